@@ -1,0 +1,26 @@
+// ag2gs: the command-line front end. It parses arguments and calls the core
+// library; exceptions become a message on stderr and a non-zero exit here only.
+#include <CLI/CLI.hpp>
+#include <spdlog/spdlog.h>
+
+#include <cstdio>
+#include <exception>
+
+#include "cli/commands.h"
+
+int main(int argc, char** argv) {
+  CLI::App app{"ag2gs: anchor-graph structured Gaussian splatting on any OpenCL device"};
+  app.require_subcommand(1);
+  ag2gs::cli::GlobalOptions global;
+  app.add_option("--device", global.device, "OpenCL device index (see `ag2gs devices`); default $AG2GS_DEVICE, "
+                 "else the first GPU, else the CPU")->check(CLI::NonNegativeNumber);
+  app.add_flag("-v,--verbose", global.verbose, "Log more detail");
+  app.add_flag("-q,--quiet", global.quiet, "Log only warnings and errors");
+  ag2gs::cli::register_commands(app, global);
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::ParseError& e) {
+    return app.exit(e);
+  }
+  return ag2gs::cli::run_selected(app, global);
+}

@@ -1,0 +1,143 @@
+// OpenCL device runtime: device discovery and selection, one context + queue,
+// program assembly (defines + common.cl + kernel file) with an in-memory and
+// an on-disk cache, a checked-call macro, growable buffers and kernel timing.
+#pragma once
+
+#include <CL/opencl.hpp>
+
+#include <cstdint>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+namespace ag2gs {
+
+// An OpenCL call failed: names the call, the error and file:line.
+class ClError : public std::runtime_error {
+ public:
+  ClError(cl_int code, const std::string& call, const char* file, int line);
+  cl_int code() const { return code_; }
+
+ private:
+  cl_int code_;
+};
+
+const char* cl_error_name(cl_int code);
+
+#define AG2GS_CL_CHECK(call)                                                \
+  do {                                                                      \
+    cl_int ag2gs_err_ = (call);                                             \
+    if (ag2gs_err_ != CL_SUCCESS) throw ::ag2gs::ClError(ag2gs_err_, #call, __FILE__, __LINE__); \
+  } while (0)
+
+// A kernel program failed to build: program name, options and full log.
+class BuildError : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+
+struct DeviceInfo {
+  int index = 0;  // global index across platforms (what --device takes)
+  std::string platform, name, vendor, version, driver;
+  bool is_gpu = false, is_cpu = false;
+  unsigned compute_units = 0;
+  uint64_t global_mem = 0, local_mem = 0, max_alloc = 0;
+  size_t max_work_group = 0;
+  bool fp64 = false;
+  cl::Device device;
+};
+
+std::vector<DeviceInfo> list_devices();
+// Default: the first GPU, else the first CPU, else device 0.
+int default_device_index(const std::vector<DeviceInfo>& devices);
+// Resolves -1 to $AG2GS_DEVICE, then to the default. Throws when out of range.
+int resolve_device_index(int requested, const std::vector<DeviceInfo>& devices);
+
+class Runtime {
+ public:
+  // device_index -1: $AG2GS_DEVICE or the default device.
+  explicit Runtime(int device_index = -1);
+
+  const DeviceInfo& info() const { return info_; }
+  cl::Context& context() { return context_; }
+  cl::CommandQueue& queue() { return queue_; }
+  // Pixels per work-item in the blending kernels: 16 on CPUs (explicit SIMD
+  // vectors), 1 on GPUs. $AG2GS_VECTOR_WIDTH overrides (1, 4, 8 or 16).
+  int vector_width() const { return vector_width_; }
+
+  // Builds (or fetches from cache) kernels/<file> assembled as
+  // "#define"s of `defines` + common.cl + the file.
+  cl::Program program(const std::string& file, const std::map<std::string, std::string>& defines);
+  cl::Kernel kernel(const std::string& file, const std::string& name,
+                    const std::map<std::string, std::string>& defines);
+
+  // Enqueue with optional timing; global size rounded up to the local size.
+  void launch(const std::string& label, cl::Kernel& k, const cl::NDRange& global,
+              const cl::NDRange& local = cl::NullRange);
+
+  // Per-kernel times in ms, summed since the last reset (profiling events).
+  void set_profiling(bool on) { profiling_ = on; }
+  std::map<std::string, double> take_timings();
+
+  // Bytes currently allocated through DeviceBuffer, and the peak.
+  uint64_t allocated_bytes() const { return allocated_; }
+  uint64_t peak_bytes() const { return peak_; }
+  void reset_peak() { peak_ = allocated_; }
+  void on_alloc(int64_t delta);
+
+  static std::string cache_dir();
+
+ private:
+  DeviceInfo info_;
+  cl::Context context_;
+  cl::CommandQueue queue_;
+  int vector_width_ = 1;
+  bool profiling_ = false;
+  std::map<std::string, cl::Program> programs_;
+  std::vector<std::pair<std::string, cl::Event>> pending_events_;
+  std::map<std::string, double> timings_;
+  uint64_t allocated_ = 0, peak_ = 0;
+  std::mutex mutex_;
+};
+
+// A device buffer that grows on demand (never shrinks); contents are not
+// preserved across growth. In test builds (AG2GS_FILL_SENTINEL=1 in the
+// environment) fresh memory is filled with a NaN sentinel.
+class DeviceBuffer {
+ public:
+  DeviceBuffer() = default;
+  explicit DeviceBuffer(Runtime* rt) : rt_(rt) {}
+  ~DeviceBuffer();
+  DeviceBuffer(const DeviceBuffer&) = delete;
+  DeviceBuffer& operator=(const DeviceBuffer&) = delete;
+
+  void bind(Runtime* rt) { rt_ = rt; }
+  // Ensures capacity for `bytes`; returns true when reallocated.
+  bool reserve(size_t bytes);
+  cl::Buffer& get() { return buffer_; }
+  size_t capacity() const { return capacity_; }
+
+  template <typename T>
+  void upload(const std::vector<T>& data) {
+    reserve(std::max<size_t>(data.size() * sizeof(T), 4));
+    if (!data.empty())
+      AG2GS_CL_CHECK(rt_->queue().enqueueWriteBuffer(buffer_, CL_TRUE, 0, data.size() * sizeof(T), data.data()));
+  }
+  template <typename T>
+  void download(std::vector<T>& out, size_t count) {
+    out.resize(count);
+    if (count)
+      AG2GS_CL_CHECK(rt_->queue().enqueueReadBuffer(buffer_, CL_TRUE, 0, count * sizeof(T), out.data()));
+  }
+  void fill_zero(size_t bytes);
+
+ private:
+  Runtime* rt_ = nullptr;
+  cl::Buffer buffer_;
+  size_t capacity_ = 0;
+};
+
+}  // namespace ag2gs

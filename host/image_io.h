@@ -1,0 +1,16 @@
+// Image output: PNGs written atomically (temp file + rename).
+#pragma once
+
+#include <string>
+#include <vector>
+
+namespace ag2gs {
+
+// [H,W,3] floats in [0,1] -> 8-bit sRGB-as-is PNG (values clamped).
+void write_rgb_png(const std::string& path, const std::vector<float>& rgb, int width, int height);
+// [H,W] floats times `scale`, clamped to [0, 65535] -> 16-bit grey PNG.
+void write_gray16_png(const std::string& path, const std::vector<float>& img, int width, int height, float scale);
+// Reads any image OpenCV can decode as [H,W,3] floats in [0,1]. Throws naming the file.
+std::vector<float> read_rgb(const std::string& path, int& width, int& height);
+
+}  // namespace ag2gs

@@ -1,0 +1,74 @@
+// The differentiable tile renderer: project -> bin -> blend on an OpenCL
+// device, and the backward pass blend -> project, all without floating-point
+// atomics (docs/rasterizer.md gives the exact function computed).
+#pragma once
+
+#include <map>
+#include <string>
+
+#include "host/cl_runtime.h"
+#include "host/gaussians.h"
+
+namespace ag2gs {
+
+// Gaussian parameters resident on the device.
+struct DeviceGaussians {
+  explicit DeviceGaussians(Runtime& rt);
+  void upload(const GaussianSet& set);  // validates shapes first
+  size_t n = 0;
+  int sh_degree = 0;
+  DeviceBuffer means, scales, quats, opacities, sh, features;
+};
+
+struct FrameStats {
+  size_t n_gaussians = 0;
+  size_t n_intersections = 0;
+  int width = 0, height = 0;
+};
+
+class Renderer {
+ public:
+  explicit Renderer(Runtime& rt);
+
+  // Host-side convenience: upload, render, download.
+  RenderOutput render(const GaussianSet& set, const Camera& cam, const RenderSettings& settings = {});
+  // Gradients of the last render() with respect to its Gaussians.
+  GaussianGrads render_backward(const OutputGrads& grads);
+
+  // Device-side API for the trainer: the frame state stays on the device.
+  void forward(const DeviceGaussians& g, const Camera& cam, const RenderSettings& settings);
+  RenderOutput download_output();
+  void backward(const OutputGrads& grads);
+  GaussianGrads download_grads();
+
+  const FrameStats& stats() const { return stats_; }
+  Runtime& runtime() { return rt_; }
+
+ private:
+  void sort_pairs(DeviceBuffer*& keys, DeviceBuffer*& vals, DeviceBuffer*& keys_tmp, DeviceBuffer*& vals_tmp,
+                  size_t n, int bits);
+  void upload_plane(DeviceBuffer& buf, const std::vector<float>& host_hwc, int channels, const char* what);
+
+  Runtime& rt_;
+  std::unique_ptr<DeviceGaussians> owned_;  // for render()
+  const DeviceGaussians* gaussians_ = nullptr;
+  Camera cam_;
+  RenderSettings settings_;
+  int sh_active_ = 0;
+  int tiles_x_ = 0, tiles_y_ = 0;
+  FrameStats stats_;
+  bool have_frame_ = false;
+
+  DeviceBuffer cam_buf_, records_, rects_, tile_counts_, depth_keys_, radii_;
+  DeviceBuffer order_keys_tmp_, order_vals_, order_vals_tmp_, counts_sorted_, offsets_, block_sums_;
+  DeviceBuffer radix_counts_;
+  DeviceBuffer tile_keys_, tile_keys_tmp_, isect_vals_, isect_vals_tmp_, isect_gid_, isect_start_, ranges_;
+  DeviceBuffer out_rgb_, out_feat_, out_depth_, out_alpha_, out_dist_, out_aux_, out_last_, out_count_;
+  DeviceBuffer g_rgb_, g_feat_, g_depth_, g_alpha_, g_dist_, isect_grads_;
+  DeviceBuffer v_means_, v_scales_, v_quats_, v_opacities_, v_sh_, v_features_, v_means2d_;
+  DeviceBuffer* sorted_order_ = nullptr;       // Gaussian ids in depth order
+  DeviceBuffer* sorted_tile_keys_ = nullptr;
+  DeviceBuffer* sorted_isect_vals_ = nullptr;
+};
+
+}  // namespace ag2gs

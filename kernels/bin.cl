@@ -1,0 +1,147 @@
+// Binning: Gaussians -> (tile, depth)-ordered intersection lists.
+//   1. sort Gaussians by depth (stable radix sort of float bits, ties by index)
+//   2. exclusive scan of tiles-per-Gaussian in that order -> offsets
+//   3. emit one intersection per (Gaussian, tile), Gaussians in depth order
+//   4. stable radix sort of the intersections by tile id -> per tile, depth order
+//   5. per-tile [start, end) ranges
+// All integer work: the result is the same whatever the thread count.
+// Defines: SCAN_BLOCK, RADIX_BLOCK (elements per work-item).
+
+__kernel void iota(int n, __global uint* out) {  // [n]
+  int i = get_global_id(0);
+  if (i < n) out[i] = (uint)i;
+}
+
+__kernel void gather_counts(int n,
+                            __global const uint* order,        // [N] Gaussian ids in depth order
+                            __global const uint* tile_counts,  // [N]
+                            __global uint* counts_sorted) {    // [N]
+  int s = get_global_id(0);
+  if (s < n) counts_sorted[s] = tile_counts[order[s]];
+}
+
+// ---------------------------------------------------------------- scan
+// Three-step exclusive scan: per-block scans, a scan of block sums, add-back.
+__kernel void scan_blocks(int n, __global const uint* in, __global uint* out,  // [n]
+                          __global uint* block_sums) {                         // [nblocks + 1]
+  int b = get_global_id(0);
+  int begin = b * SCAN_BLOCK;
+  if (begin >= n) return;
+  int end = min(n, begin + SCAN_BLOCK);
+  uint acc = 0;
+  for (int i = begin; i < end; ++i) {
+    uint v = in[i];
+    out[i] = acc;
+    acc += v;
+  }
+  block_sums[b] = acc;
+}
+
+__kernel void scan_block_sums(int nblocks, __global uint* block_sums) {  // [nblocks + 1], total at the end
+  if (get_global_id(0) != 0) return;
+  uint acc = 0;
+  for (int b = 0; b < nblocks; ++b) {
+    uint v = block_sums[b];
+    block_sums[b] = acc;
+    acc += v;
+  }
+  block_sums[nblocks] = acc;
+}
+
+__kernel void scan_add(int n, __global uint* out, __global const uint* block_sums) {
+  int i = get_global_id(0);
+  if (i < n) out[i] += block_sums[i / SCAN_BLOCK];
+}
+
+// ---------------------------------------------------------------- emit
+__kernel void emit_isects(int n,
+                          __global const uint* order,    // [N] depth order
+                          __global const int4* rects,    // [N]
+                          __global const uint* offsets,  // [N] exclusive scan in depth order
+                          __global const uint* counts_sorted,  // [N]
+                          int tiles_x,
+                          __global uint* tile_keys,      // [M] tile id per intersection
+                          __global uint* isect_vals,     // [M] identity: the intersection's slot
+                          __global uint* isect_gid,      // [M] Gaussian id
+                          __global uint* isect_start) {  // [N] first slot of each Gaussian
+  int s = get_global_id(0);
+  if (s >= n || counts_sorted[s] == 0) return;
+  uint g = order[s];
+  int4 r = rects[g];
+  uint e = offsets[s];
+  isect_start[g] = e;
+  for (int ty = r.y; ty <= r.w; ++ty)
+    for (int tx = r.x; tx <= r.z; ++tx) {
+      tile_keys[e] = (uint)(ty * tiles_x + tx);
+      isect_vals[e] = e;
+      isect_gid[e] = g;
+      ++e;
+    }
+}
+
+// ---------------------------------------------------------------- radix sort
+// One LSD pass over 8 bits. Each work-item owns a contiguous block, so the
+// scatter is stable; counts are digit-major: counts[digit * nblocks + block].
+__kernel void radix_hist(int n, int shift, __global const uint* keys,
+                         __global uint* counts, int nblocks) {  // [256 * nblocks]
+  int b = get_global_id(0);
+  if (b >= nblocks) return;
+  uint h[256];
+  for (int d = 0; d < 256; ++d) h[d] = 0;
+  int end = min(n, (b + 1) * RADIX_BLOCK);
+  for (int i = b * RADIX_BLOCK; i < end; ++i) h[(keys[i] >> shift) & 255u]++;
+  for (int d = 0; d < 256; ++d) counts[d * nblocks + b] = h[d];
+}
+
+// One work-group of 256: exclusive scan of counts in digit-major order.
+__kernel __attribute__((reqd_work_group_size(256, 1, 1)))
+void radix_scan(int nblocks, __global uint* counts) {
+  __local uint totals[256];
+  int d = get_local_id(0);
+  uint acc = 0;
+  for (int b = 0; b < nblocks; ++b) {
+    uint v = counts[d * nblocks + b];
+    counts[d * nblocks + b] = acc;
+    acc += v;
+  }
+  totals[d] = acc;
+  barrier(CLK_LOCAL_MEM_FENCE);
+  if (d == 0) {
+    uint run = 0;
+    for (int i = 0; i < 256; ++i) {
+      uint v = totals[i];
+      totals[i] = run;
+      run += v;
+    }
+  }
+  barrier(CLK_LOCAL_MEM_FENCE);
+  uint base = totals[d];
+  for (int b = 0; b < nblocks; ++b) counts[d * nblocks + b] += base;
+}
+
+__kernel void radix_scatter(int n, int shift,
+                            __global const uint* keys_in, __global const uint* vals_in,
+                            __global uint* keys_out, __global uint* vals_out,
+                            __global const uint* counts, int nblocks) {
+  int b = get_global_id(0);
+  if (b >= nblocks) return;
+  uint pos[256];
+  for (int d = 0; d < 256; ++d) pos[d] = counts[d * nblocks + b];
+  int end = min(n, (b + 1) * RADIX_BLOCK);
+  for (int i = b * RADIX_BLOCK; i < end; ++i) {
+    uint k = keys_in[i];
+    uint p = pos[(k >> shift) & 255u]++;
+    keys_out[p] = k;
+    vals_out[p] = vals_in[i];
+  }
+}
+
+// ---------------------------------------------------------------- ranges
+__kernel void tile_ranges(int m, __global const uint* sorted_tile_keys,  // [M]
+                          __global int2* ranges) {                      // [tiles], zeroed before
+  int i = get_global_id(0);
+  if (i >= m) return;
+  uint t = sorted_tile_keys[i];
+  if (i == 0 || sorted_tile_keys[i - 1] != t) ranges[t].x = i;
+  if (i == m - 1 || sorted_tile_keys[i + 1] != t) ranges[t].y = i + 1;
+}

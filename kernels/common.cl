@@ -1,0 +1,326 @@
+// Shared device code: vector-width plumbing, small matrix helpers, and every
+// differentiable helper beside its vector-Jacobian product (v_<name>).
+// The host prepends "#define"s: VW (pixels per work-item), TILE (16), and the
+// kernel-specific settings.
+
+// Identical float operations in forward and backward kernels, so that the
+// backward pass reproduces the forward pass's discrete decisions exactly.
+#pragma OPENCL FP_CONTRACT OFF
+
+#ifndef TILE
+#define TILE 16
+#endif
+#define TILE_PIXELS (TILE * TILE)
+#define ALPHA_MIN (1.0f / 255.0f)
+#define ALPHA_MAX 0.99f
+#define T_MIN 1e-4f
+
+#define CAT_(a, b) a##b
+#define CAT(a, b) CAT_(a, b)
+
+// --------------------------------------------------------------- vectors
+// vfloat holds VW horizontally adjacent pixels of one tile row. On CPUs
+// (VW = 16) PoCL maps it to SIMD registers; on GPUs VW = 1 and it is a float.
+#if VW == 1
+typedef float vfloat;
+typedef int vint;
+#define LANE_OFFSETS 0.0f
+#define ANY(m) ((m) != 0)
+#define VLOAD(p) (*(p))
+#define VSTORE(v, p) (*(p) = (v))
+#define HSUM(v) (v)
+#else
+typedef CAT(float, VW) vfloat;
+typedef CAT(int, VW) vint;
+#define ANY(m) any(m)
+#define VLOAD(p) CAT(vload, VW)(0, p)
+#define VSTORE(v, p) CAT(vstore, VW)(v, 0, p)
+#if VW == 2
+#define LANE_OFFSETS ((vfloat)(0, 1))
+#define HSUM(v) ((v).s0 + (v).s1)
+#elif VW == 4
+#define LANE_OFFSETS ((vfloat)(0, 1, 2, 3))
+#define HSUM(v) hsum4(v)
+#elif VW == 8
+#define LANE_OFFSETS ((vfloat)(0, 1, 2, 3, 4, 5, 6, 7))
+#define HSUM(v) hsum4((v).lo + (v).hi)
+#elif VW == 16
+#define LANE_OFFSETS ((vfloat)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15))
+#define HSUM(v) hsum4(((v).lo + (v).hi).lo + ((v).lo + (v).hi).hi)
+#endif
+#endif
+#define WG_SIZE (TILE_PIXELS / VW)
+
+// A fixed summation order: deterministic and the same on every device.
+inline float hsum4(float4 v) { return (v.s0 + v.s1) + (v.s2 + v.s3); }
+
+#ifndef EXPF
+#define EXPF native_exp
+#endif
+
+// Per-Gaussian record written by projection and read by blending, 16 floats.
+#define REC_U 0
+#define REC_V 1
+#define REC_CA 2
+#define REC_CB 3
+#define REC_CC 4
+#define REC_OPACITY 5
+#define REC_Z 6
+#define REC_M 7
+#define REC_RGB 8
+#define REC_FEAT 11
+#define REC_SIZE 16
+
+// Per-intersection gradient slot written by blend backward, 13 floats.
+#define G2_U 0
+#define G2_V 1
+#define G2_CA 2
+#define G2_CB 3
+#define G2_CC 4
+#define G2_OPACITY 5
+#define G2_RGB 6
+#define G2_FEAT 9
+#define G2_Z 12
+#define G2_SIZE 13
+
+// Camera block [CAM_SIZE floats], filled by host/renderer.cpp.
+#define CAM_R 0      // [9] world->camera rotation, row-major
+#define CAM_T 9      // [3]
+#define CAM_FX 12
+#define CAM_FY 13
+#define CAM_CX 14
+#define CAM_CY 15
+#define CAM_W 16
+#define CAM_H 17
+#define CAM_NEAR 18
+#define CAM_POS 19   // [3] camera centre in world space
+#define CAM_DNEAR 22 // distortion depth mapping
+#define CAM_DFAR 23
+#define CAM_BG 24    // [3]
+#define CAM_SIZE 32
+
+// --------------------------------------------------------------- 3x3 matrices
+typedef struct { float m[9]; } mat3;  // row-major
+
+inline mat3 mat3_mul(mat3 a, mat3 b) {
+  mat3 r;
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j)
+      r.m[3 * i + j] = a.m[3 * i] * b.m[j] + a.m[3 * i + 1] * b.m[3 + j] + a.m[3 * i + 2] * b.m[6 + j];
+  return r;
+}
+inline mat3 mat3_transpose(mat3 a) {
+  mat3 r;
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) r.m[3 * i + j] = a.m[3 * j + i];
+  return r;
+}
+inline float3 mat3_vec(mat3 a, float3 v) {
+  return (float3)(a.m[0] * v.x + a.m[1] * v.y + a.m[2] * v.z, a.m[3] * v.x + a.m[4] * v.y + a.m[5] * v.z,
+                  a.m[6] * v.x + a.m[7] * v.y + a.m[8] * v.z);
+}
+inline mat3 mat3_load(__constant const float* p) {
+  mat3 r;
+  for (int i = 0; i < 9; ++i) r.m[i] = p[i];
+  return r;
+}
+
+// --------------------------------------------------------------- quaternion
+// R(q) for a unit quaternion q = (w, x, y, z).
+inline mat3 quat_to_rotmat(float4 q) {
+  float w = q.x, x = q.y, y = q.z, z = q.w;
+  mat3 r;
+  r.m[0] = 1.f - 2.f * (y * y + z * z); r.m[1] = 2.f * (x * y - w * z);       r.m[2] = 2.f * (x * z + w * y);
+  r.m[3] = 2.f * (x * y + w * z);       r.m[4] = 1.f - 2.f * (x * x + z * z); r.m[5] = 2.f * (y * z - w * x);
+  r.m[6] = 2.f * (x * z - w * y);       r.m[7] = 2.f * (y * z + w * x);       r.m[8] = 1.f - 2.f * (x * x + y * y);
+  return r;
+}
+// v_q = sum_ij G_ij dR_ij/dq, each entry of R being quadratic in q.
+inline float4 quat_to_rotmat_vjp(float4 q, mat3 G) {
+  float w = q.x, x = q.y, y = q.z, z = q.w;
+  const float* g = G.m;
+  float vw = 2.f * (-z * g[1] + y * g[2] + z * g[3] - x * g[5] - y * g[6] + x * g[7]);
+  float vx = 2.f * (y * g[1] + z * g[2] + y * g[3] - 2.f * x * g[4] - w * g[5] + z * g[6] + w * g[7] - 2.f * x * g[8]);
+  float vy = 2.f * (-2.f * y * g[0] + x * g[1] + w * g[2] + x * g[3] + z * g[5] - w * g[6] + z * g[7] - 2.f * y * g[8]);
+  float vz = 2.f * (-2.f * z * g[0] - w * g[1] + x * g[2] + w * g[3] - 2.f * z * g[4] + y * g[5] + x * g[6] + y * g[7]);
+  return (float4)(vw, vx, vy, vz);
+}
+// q = raw / |raw|: v_raw = (v_q - q (q . v_q)) / |raw|.
+inline float4 normalize_vjp(float4 q_unit, float inv_norm, float4 v_q) {
+  return (v_q - q_unit * dot(q_unit, v_q)) * inv_norm;
+}
+
+// --------------------------------------------------------------- spherical harmonics
+#define SH_C0 0.28209479177387814f
+#define SH_C1 0.4886025119029199f
+// Basis function k (3DGS order) at unit direction d, and its gradient in d.
+inline float sh_basis(int k, float3 d, float3* grad) {
+  float x = d.x, y = d.y, z = d.z;
+  float xx = x * x, yy = y * y, zz = z * z;
+  switch (k) {
+    case 0: *grad = (float3)(0.f); return SH_C0;
+    case 1: *grad = (float3)(0.f, -SH_C1, 0.f); return -SH_C1 * y;
+    case 2: *grad = (float3)(0.f, 0.f, SH_C1); return SH_C1 * z;
+    case 3: *grad = (float3)(-SH_C1, 0.f, 0.f); return -SH_C1 * x;
+    case 4: { const float c = 1.0925484305920792f; *grad = (float3)(c * y, c * x, 0.f); return c * x * y; }
+    case 5: { const float c = -1.0925484305920792f; *grad = (float3)(0.f, c * z, c * y); return c * y * z; }
+    case 6: { const float c = 0.31539156525252005f;
+              *grad = (float3)(-2.f * c * x, -2.f * c * y, 4.f * c * z); return c * (2.f * zz - xx - yy); }
+    case 7: { const float c = -1.0925484305920792f; *grad = (float3)(c * z, 0.f, c * x); return c * x * z; }
+    case 8: { const float c = 0.5462742152960396f; *grad = (float3)(2.f * c * x, -2.f * c * y, 0.f); return c * (xx - yy); }
+    case 9: { const float c = -0.5900435899266435f;
+              *grad = (float3)(6.f * c * x * y, c * (3.f * xx - 3.f * yy), 0.f); return c * y * (3.f * xx - yy); }
+    case 10: { const float c = 2.890611442640554f;
+               *grad = (float3)(c * y * z, c * x * z, c * x * y); return c * x * y * z; }
+    case 11: { const float c = -0.4570457994644658f;
+               *grad = (float3)(-2.f * c * x * y, c * (4.f * zz - xx - 3.f * yy), 8.f * c * y * z);
+               return c * y * (4.f * zz - xx - yy); }
+    case 12: { const float c = 0.3731763325901154f;
+               *grad = (float3)(-6.f * c * x * z, -6.f * c * y * z, c * (6.f * zz - 3.f * xx - 3.f * yy));
+               return c * z * (2.f * zz - 3.f * xx - 3.f * yy); }
+    case 13: { const float c = -0.4570457994644658f;
+               *grad = (float3)(c * (4.f * zz - 3.f * xx - yy), -2.f * c * x * y, 8.f * c * x * z);
+               return c * x * (4.f * zz - xx - yy); }
+    case 14: { const float c = 1.445305721320277f;
+               *grad = (float3)(2.f * c * x * z, -2.f * c * y * z, c * (xx - yy)); return c * z * (xx - yy); }
+    default: { const float c = -0.5900435899266435f;
+               *grad = (float3)(c * (3.f * xx - 3.f * yy), -6.f * c * x * y, 0.f); return c * x * (xx - 3.f * yy); }
+  }
+}
+
+// Unit view direction from the camera centre to a mean; zero when they meet.
+inline float3 view_dir(float3 mean, float3 campos, float* inv_norm) {
+  float3 d = mean - campos;
+  float n2 = dot(d, d);
+  *inv_norm = n2 > 0.f ? rsqrt(n2) : 0.f;
+  return d * *inv_norm;
+}
+
+// Depth mapped for the distortion loss (2DGS): m = f/(f-n) (1 - n/z).
+inline float dist_depth(float z, float n, float f) { return f / (f - n) * (1.f - n / z); }
+// dm/dz = f/(f-n) n / z^2
+inline float dist_depth_vjp(float z, float n, float f) { return f / (f - n) * n / (z * z); }
+
+// --------------------------------------------------------------- EWA projection
+// Quantities of one Gaussian's projection kept for the backward pass.
+typedef struct {
+  float3 p;        // camera-space mean
+  float4 q;        // unit quaternion
+  float inv_qnorm; // 1 / |raw quaternion|
+  mat3 Rq;         // rotation of the Gaussian
+  mat3 Sigma_c;    // camera-space covariance
+  float J[6];      // 2x3 Jacobian of the perspective map (clamped, 3DGS style)
+  int clamp_x, clamp_y;  // which side the clamp hit: -1, 0, +1
+  float lim_x, lim_y;    // the limit used when clamped (signed)
+  float a, b, c;   // 2D covariance incl. low-pass
+} Proj;
+
+// Camera-space mean, covariance and its 2D EWA image (docs/rasterizer.md 2-6).
+// Returns 0 when the Gaussian is culled by the near plane or a bad quaternion.
+inline int ewa_project(__constant const float* cam, float3 mean, float3 scale, float4 qraw, Proj* o) {
+  mat3 R = mat3_load(cam + CAM_R);
+  float3 t = (float3)(cam[CAM_T], cam[CAM_T + 1], cam[CAM_T + 2]);
+  o->p = mat3_vec(R, mean) + t;
+  if (!(o->p.z > cam[CAM_NEAR])) return 0;
+  float qn2 = dot(qraw, qraw);
+  if (!(qn2 >= 1e-20f)) return 0;
+  o->inv_qnorm = rsqrt(qn2);
+  o->q = qraw * o->inv_qnorm;
+  o->Rq = quat_to_rotmat(o->q);
+  // Sigma = M M^T with M = Rq diag(scale); Sigma_c = R Sigma R^T = (R M)(R M)^T.
+  mat3 M = o->Rq;
+  for (int i = 0; i < 3; ++i) { M.m[3 * i] *= scale.x; M.m[3 * i + 1] *= scale.y; M.m[3 * i + 2] *= scale.z; }
+  mat3 RM = mat3_mul(R, M);
+  o->Sigma_c = mat3_mul(RM, mat3_transpose(RM));
+
+  float fx = cam[CAM_FX], fy = cam[CAM_FY], cx = cam[CAM_CX], cy = cam[CAM_CY];
+  float W = cam[CAM_W], H = cam[CAM_H];
+  float z = o->p.z, iz = 1.f / z;
+  float tan_x = 0.5f * W / fx, tan_y = 0.5f * H / fy;
+  float lim_xp = (W - cx) / fx + 0.3f * tan_x, lim_xn = cx / fx + 0.3f * tan_x;
+  float lim_yp = (H - cy) / fy + 0.3f * tan_y, lim_yn = cy / fy + 0.3f * tan_y;
+  float rx = o->p.x * iz, ry = o->p.y * iz;
+  o->clamp_x = rx > lim_xp ? 1 : (rx < -lim_xn ? -1 : 0);
+  o->clamp_y = ry > lim_yp ? 1 : (ry < -lim_yn ? -1 : 0);
+  o->lim_x = o->clamp_x > 0 ? lim_xp : -lim_xn;
+  o->lim_y = o->clamp_y > 0 ? lim_yp : -lim_yn;
+  // tx = clamp(x/z) z; J02 = -fx tx / z^2.
+  float tx_over_z2 = o->clamp_x ? o->lim_x * iz : o->p.x * iz * iz;
+  float ty_over_z2 = o->clamp_y ? o->lim_y * iz : o->p.y * iz * iz;
+  o->J[0] = fx * iz; o->J[1] = 0.f; o->J[2] = -fx * tx_over_z2;
+  o->J[3] = 0.f; o->J[4] = fy * iz; o->J[5] = -fy * ty_over_z2;
+  // cov2d = J Sigma_c J^T + 0.3 I (low-pass: every splat covers ~1 pixel).
+  const float* S = o->Sigma_c.m;
+  float JS0[3], JS1[3];
+  for (int k = 0; k < 3; ++k) {
+    JS0[k] = o->J[0] * S[k] + o->J[1] * S[3 + k] + o->J[2] * S[6 + k];
+    JS1[k] = o->J[3] * S[k] + o->J[4] * S[3 + k] + o->J[5] * S[6 + k];
+  }
+  o->a = JS0[0] * o->J[0] + JS0[1] * o->J[1] + JS0[2] * o->J[2] + 0.3f;
+  o->b = JS0[0] * o->J[3] + JS0[1] * o->J[4] + JS0[2] * o->J[5];
+  o->c = JS1[0] * o->J[3] + JS1[1] * o->J[4] + JS1[2] * o->J[5] + 0.3f;
+  return 1;
+}
+
+// --------------------------------------------------------------- blending
+// The Gaussian's exponent at pixel offsets (dx, dy) from its centre; shared by
+// the forward and backward kernels so both see identical bits.
+inline vfloat blend_sigma(float cA, float cB, float cC, vfloat dx, float dy) {
+  return 0.5f * (cA * dx * dx + cC * dy * dy) + cB * dx * dy;
+}
+
+// Tile geometry of one work-item: VW adjacent pixels of a tile row.
+typedef struct {
+  int tile, x0, y;   // first pixel's column, the row
+  vfloat px;         // pixel centres (x + 0.5)
+  float py;
+  vint inside;       // lanes inside the image
+} PixelRow;
+
+inline PixelRow pixel_row(int tiles_x, int width, int height) {
+  PixelRow r;
+  r.tile = get_group_id(0);
+  int lid = get_local_id(0);
+  int p0 = lid * VW;
+  r.x0 = (r.tile % tiles_x) * TILE + p0 % TILE;
+  r.y = (r.tile / tiles_x) * TILE + p0 / TILE;
+  r.px = (float)r.x0 + 0.5f + LANE_OFFSETS;
+  r.py = (float)r.y + 0.5f;
+  r.inside = r.px < (float)width;
+  if (r.y >= height) r.inside = (vint)0;
+  return r;
+}
+
+// Load one plane's VW pixels of this row (0 outside the image).
+inline vfloat load_row(__global const float* plane, PixelRow r, int width) {
+  if (!ANY(r.inside)) return (vfloat)0.f;
+  __global const float* p = plane + (size_t)r.y * width + r.x0;
+  if (r.x0 + VW <= width) return VLOAD(p);
+  float tmp[VW];
+  for (int l = 0; l < VW; ++l) tmp[l] = r.x0 + l < width ? p[l] : 0.f;
+  return VLOAD(tmp);
+}
+inline vint load_row_int(__global const int* plane, PixelRow r, int width) {
+  if (!ANY(r.inside)) return (vint)0;
+  __global const int* p = plane + (size_t)r.y * width + r.x0;
+  if (r.x0 + VW <= width) return VLOAD(p);
+  int tmp[VW];
+  for (int l = 0; l < VW; ++l) tmp[l] = r.x0 + l < width ? p[l] : 0;
+  return VLOAD(tmp);
+}
+inline void store_row(vfloat v, __global float* plane, PixelRow r, int width) {
+  if (!ANY(r.inside)) return;
+  __global float* p = plane + (size_t)r.y * width + r.x0;
+  if (r.x0 + VW <= width) { VSTORE(v, p); return; }
+  float tmp[VW];
+  VSTORE(v, tmp);
+  for (int l = 0; l < VW && r.x0 + l < width; ++l) p[l] = tmp[l];
+}
+inline void store_row_int(vint v, __global int* plane, PixelRow r, int width) {
+  if (!ANY(r.inside)) return;
+  __global int* p = plane + (size_t)r.y * width + r.x0;
+  if (r.x0 + VW <= width) { VSTORE(v, p); return; }
+  int tmp[VW];
+  VSTORE(v, tmp);
+  for (int l = 0; l < VW && r.x0 + l < width; ++l) p[l] = tmp[l];
+}
