@@ -1,0 +1,94 @@
+// Device backward pass against the double-precision reference's analytic
+// gradients (which tests/test_reference_gradients.cpp checks against finite
+// differences), for every input, the distortion term included.
+#include "reference/reference_renderer.h"
+#include "test_util.h"
+
+namespace ag2gs {
+namespace {
+
+OutputGrads random_output_grads(int w, int h, uint32_t seed, bool rgb = true, bool feat = true, bool depth = true,
+                                bool alpha = true, bool dist = true) {
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<float> u(-1.f, 1.f);
+  const size_t npix = static_cast<size_t>(w) * h;
+  auto fill = [&](std::vector<float>& v, size_t n, bool on) {
+    if (!on) return;
+    v.resize(n);
+    for (auto& x : v) x = u(rng);
+  };
+  OutputGrads g;
+  fill(g.rgb, npix * 3, rgb);
+  fill(g.feature, npix * 3, feat);
+  fill(g.depth, npix, depth);
+  fill(g.alpha, npix, alpha);
+  fill(g.distortion, npix, dist);
+  if (dist)
+    for (auto& x : g.distortion) x *= 100.f;  // the loss weight is ~50: exercise the term
+  return g;
+}
+
+// Per array: |dev - ref| <= kAbsScale * max|ref| + kRel |ref|, measured on PoCL
+// (float32 accumulation over many pixels: errors are relative to the array's
+// scale, not to each element).
+constexpr double kAbsScale = 5e-5, kRel = 2e-3;  // worst measured: 1.7e-5 of scale
+
+double max_abs(const std::vector<double>& v) {
+  double m = 0;
+  for (double x : v) m = std::max(m, std::abs(x));
+  return m;
+}
+
+void check_array(const char* what, const std::vector<float>& dev, const std::vector<double>& ref) {
+  double scale = max_abs(ref);
+  auto r = test::compare(dev, ref, kAbsScale * scale + 1e-12, kRel);
+  std::printf("  %-10s scale %.3g  max abs %.3g (%.2g of scale)  violations %zu/%zu\n", what, scale, r.max_abs,
+              scale > 0 ? r.max_abs / scale : 0.0, r.violations, r.n);
+  EXPECT_EQ(r.violations, 0u) << what;
+  EXPECT_EQ(r.nan_mismatch, 0u) << what;
+}
+
+void check_backward(int w, int h, size_t n, int sh, uint32_t seed, const OutputGrads& og,
+                    const RenderSettings& settings = {}) {
+  test::SceneSpec spec;
+  spec.n = n;
+  spec.sh_degree = sh;
+  spec.opacity_hi = 0.9;
+  GaussianSet g = test::random_scene(spec, seed);
+  Camera cam = test::look_at_origin(w, h);
+  Renderer r(test::runtime());
+  r.render(g, cam, settings);
+  GaussianGrads dg = r.render_backward(og);
+  ref::RefGrads rg = ref::render_backward(g, cam, settings, og);
+  std::printf("%dx%d, %zu Gaussians, %zu intersections\n", w, h, n, r.stats().n_intersections);
+  ASSERT_GT(max_abs(rg.means), 0.0) << "no gradient at all: the test would be vacuous";
+  check_array("means", dg.means, rg.means);
+  check_array("scales", dg.scales, rg.scales);
+  check_array("quats", dg.quats, rg.quats);
+  check_array("opacities", dg.opacities, rg.opacities);
+  check_array("sh", dg.sh, rg.sh);
+  check_array("features", dg.features, rg.features);
+  check_array("means2d", dg.means2d, rg.means2d);
+}
+
+TEST(RenderBackward, AllOutputs) { check_backward(64, 48, 60, 3, 11, random_output_grads(64, 48, 1)); }
+TEST(RenderBackward, OddSize) { check_backward(37, 23, 30, 1, 12, random_output_grads(37, 23, 2)); }
+TEST(RenderBackward, OnlyDistortion) {
+  check_backward(48, 40, 40, 0, 13, random_output_grads(48, 40, 3, false, false, false, false, true));
+}
+TEST(RenderBackward, OnlyAlpha) {
+  check_backward(48, 40, 40, 0, 14, random_output_grads(48, 40, 4, false, false, false, true, false));
+}
+TEST(RenderBackward, OnlyDepth) {
+  check_backward(48, 40, 40, 1, 15, random_output_grads(48, 40, 5, false, false, true, false, false));
+}
+TEST(RenderBackward, BackgroundAndActiveDegree) {
+  RenderSettings s;
+  s.background = {1.f, 0.5f, 0.25f};
+  s.sh_degree = 2;
+  check_backward(40, 40, 40, 3, 16, random_output_grads(40, 40, 6), s);
+}
+TEST(RenderBackward, ThousandGaussians) { check_backward(160, 120, 1000, 1, 17, random_output_grads(160, 120, 7)); }
+
+}  // namespace
+}  // namespace ag2gs
