@@ -1,0 +1,39 @@
+// Reading and writing Gaussians in the standard 3D Gaussian Splatting
+// point_cloud.ply layout, which every 3DGS viewer opens:
+//
+//   format binary_little_endian 1.0
+//   element vertex N
+//   property float x y z nx ny nz f_dc_0..2 f_rest_0..M-1 opacity scale_0..2 rot_0..3
+//   [property float feat_0..2]   (ag2gs: the semantic feature; viewers ignore it)
+//
+// M = 3 (K - 1) with K = (degree + 1)^2, so M in {0, 9, 24, 45} gives the SH
+// degree 0..3. f_dc_c = sh[n,0,c]; f_rest is channel-major:
+// f_rest_{c (K-1) + (k-1)} = sh[n,k,c]. The file stores pre-activation values:
+// opacity is a logit (ours = sigmoid of it), scale_i is a log (ours = exp of
+// it), rot is (w, x, y, z) kept as stored, without normalisation. The
+// activations and their inverses are computed in double and rounded to float.
+#pragma once
+
+#include <string>
+
+#include "host/gaussians.h"
+
+namespace ag2gs {
+
+// Reads a PLY in the layout above. Also accepts ascii PLYs, any scalar
+// property type (double, int, ...), extra properties (ignored) and a missing
+// nx/ny/nz or feat_0..2 (features read as zero). Throws std::runtime_error
+// naming the file and what is wrong: not a PLY, big-endian, truncated data,
+// a missing property, an f_rest count that is no SH degree.
+GaussianSet read_ply(const std::string& path);
+
+// Writes `gaussians` (validated first: std::invalid_argument when the array
+// sizes disagree) as a binary little-endian PLY, applying the inverse
+// activations logit(clamp(o, 1e-7, 1 - 1e-7)) and log(max(scale, 1e-30)).
+// with_features = false leaves out feat_0..2 (a plain 3DGS file). Atomic: the
+// data goes to "<path>.tmp.<pid>", renamed over `path` only when complete;
+// on failure the temporary file is removed, an existing `path` is left as it
+// was, and std::runtime_error says why.
+void write_ply(const std::string& path, const GaussianSet& gaussians, bool with_features = true);
+
+}  // namespace ag2gs
