@@ -29,6 +29,8 @@ __kernel void project_fwd(
   float opacity = opacities[g];
   // Non-finite inputs are culled, never propagated.
   float check = mean.x + mean.y + mean.z + scale.x + scale.y + scale.z + qraw.x + qraw.y + qraw.z + qraw.w + opacity;
+  for (int k = 0; k < SH_K * 3; ++k) check += sh[(size_t)g * SH_K * 3 + k] * 0.f;
+  check += (feat.x + feat.y + feat.z) * 0.f;  // x * 0 is NaN exactly when x is not finite
   if (!isfinite(check)) return;
   if (!(opacity >= ALPHA_MIN)) return;
 

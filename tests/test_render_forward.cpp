@@ -19,7 +19,9 @@ struct Case {
 // Tolerances, measured on PoCL (native_exp, float32) over the cases below:
 // colours/features/alpha agree to ~1e-5 where no decision flips; a pixel
 // where a float-vs-double threshold (alpha >= 1/255, T >= 1e-4) decided the
-// other way differs by at most about one 1/255 contribution.
+// other way, or where two Gaussians' depths are so close that float and
+// double sort them differently (alpha is order-independent, colour is not),
+// differs by more: at 100k Gaussians 75 of 250k values, at most 0.016.
 constexpr double kAbs = 3e-5, kRel = 1e-4, kFlip = 0.02, kFlipFraction = 2e-3;  // worst measured: 9e-6 abs, 2.9e-5 rel
 
 void check_forward(const Case& c, const RenderSettings& settings = {}) {

@@ -208,7 +208,7 @@ TEST(HardCases, ZeroQuaternionCulledUnnormalisedEqualsNormalised) {
 TEST(HardCases, NanAndInfParametersAreCulled) {
   const float nan = std::numeric_limits<float>::quiet_NaN(), inf = std::numeric_limits<float>::infinity();
   GaussianSet g = single(0, 0, 3, 0.3f, 0.3f, 0.3f, 0.8f);
-  for (int field = 0; field < 5; ++field) {
+  for (int field = 0; field < 7; ++field) {
     GaussianSet b = single(0.1f, 0.1f, 2.5f, 0.3f, 0.3f, 0.3f, 0.8f);
     float bad = field % 2 ? inf : nan;
     if (field == 0) b.means[1] = bad;
@@ -216,6 +216,8 @@ TEST(HardCases, NanAndInfParametersAreCulled) {
     if (field == 2) b.quats[0] = bad;
     if (field == 3) b.opacities[0] = bad;
     if (field == 4) b.means[2] = -inf;
+    if (field == 5) b.sh[1] = bad;
+    if (field == 6) b.features[2] = bad;
     append(g, b);
   }
   RunResult r = run(g, axis_camera());
