@@ -93,6 +93,8 @@ int main(int argc, char** argv) {
   app.add_option("--repeats", repeats, "timed repeats per configuration (median reported)");
   app.add_option("--device", device, "OpenCL device index");
   app.add_option("--sample-pixels", sample_pixels, "pixels compared with the double reference");
+  std::vector<size_t> only;
+  app.add_option("--counts", only, "Gaussian counts to run (default 10000 100000 1000000)");
   CLI11_PARSE(app, argc, argv);
   spdlog::set_level(spdlog::level::warn);
 
@@ -101,6 +103,7 @@ int main(int argc, char** argv) {
   std::printf("device: %s (%s), vector width %d\n", rt.info().name.c_str(), rt.info().platform.c_str(),
               rt.vector_width());
   std::vector<size_t> counts = quick ? std::vector<size_t>{10000} : std::vector<size_t>{10000, 100000, 1000000};
+  if (!only.empty()) counts = only;
   std::vector<std::pair<int, int>> sizes = {{400, 300}, {800, 600}};
   std::printf("\n| Gaussians | image | isect | fwd ms (project/sort/bin/blend) | bwd ms (blend/project) | fwd+bwd ms "
               "| blend G evals/s | peak MiB | fwd max abs / rel err | bwd max err / scale |\n");

@@ -224,7 +224,10 @@ void Renderer::forward(const DeviceGaussians& g, const Camera& cam, const Render
   out_last_.reserve(npix * 4);
   out_count_.reserve(npix * 4);
   const int wg = 256 / rt_.vector_width();
-  cl::Kernel blend = rt_.kernel("blend_fwd.cl", "blend_fwd", {{"BATCH", std::to_string(std::max(64, wg))}});
+  // CPUs: no local-memory staging (records come from cache), see blend_fwd.cl.
+  cl::Kernel blend = rt_.kernel("blend_fwd.cl", "blend_fwd",
+                                {{"BATCH", std::to_string(std::max(64, wg))},
+                                 {"NO_STAGING", rt_.info().is_gpu ? "0" : "1"}});
   set_args(blend, cam.width, cam.height, tiles_x_, cam_buf_, ranges_, *sorted_isect_vals_, isect_gid_, records_,
            out_rgb_, out_feat_, out_depth_, out_alpha_, out_dist_, out_aux_, out_last_, out_count_);
   rt_.launch("blend_fwd", blend, cl::NDRange(static_cast<size_t>(ntiles) * wg), cl::NDRange(wg));

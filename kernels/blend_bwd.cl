@@ -97,7 +97,7 @@ void blend_bwd(int width, int height, int tiles_x,
       vfloat dx = q[REC_U] - pr.px;
       float dy = q[REC_V] - pr.py;
       vfloat sigma = blend_sigma(cA, cB, cC, dx, dy);
-      vfloat G = EXPF(-sigma);
+      vfloat G = blend_falloff(sigma);
       vfloat oG = o * G;
       vfloat alpha = fmin(ALPHA_MAX, oG);
       vint ok = active && sigma >= 0.f && alpha >= ALPHA_MIN;

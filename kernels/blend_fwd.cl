@@ -18,9 +18,11 @@ void blend_fwd(int width, int height, int tiles_x,
                __global float* out_aux,            // [4,H,W] T, A, mu, M2 (for backward)
                __global int* out_last,             // [H,W] 1 + list index of the last blended
                __global int* out_count) {          // [H,W] Gaussians blended
+#if !NO_STAGING
   __local float s_rec[BATCH * REC_SIZE];
   __local int s_alive;
   const int lid = get_local_id(0);
+#endif
   PixelRow pr = pixel_row(tiles_x, width, height);
   const size_t npix = (size_t)width * height;
 
@@ -31,6 +33,15 @@ void blend_fwd(int width, int height, int tiles_x,
 
   int2 range = ranges[pr.tile];
   int n = range.y - range.x;
+#if NO_STAGING
+  // CPU layout: one tile row per work-item. No staging and no barriers, so
+  // the pixel state stays in SIMD registers (PoCL keeps values that live
+  // across a barrier in memory); records come from cache instead.
+  {
+    const int b0 = 0;
+    for (int j = 0; j < n; ++j) {
+      __global const float* q = records + (size_t)isect_gid[isect_vals[range.x + j]] * REC_SIZE;
+#else
   for (int b0 = 0; b0 < n; b0 += BATCH) {
     int nb = min(BATCH, n - b0);
     barrier(CLK_LOCAL_MEM_FENCE);
@@ -46,10 +57,11 @@ void blend_fwd(int width, int height, int tiles_x,
     if (!ANY(!done)) continue;
     for (int j = 0; j < nb; ++j) {
       __local const float* q = s_rec + j * REC_SIZE;
+#endif
       vfloat dx = q[REC_U] - pr.px;
       float dy = q[REC_V] - pr.py;
       vfloat sigma = blend_sigma(q[REC_CA], q[REC_CB], q[REC_CC], dx, dy);
-      vfloat alpha = fmin(ALPHA_MAX, q[REC_OPACITY] * EXPF(-sigma));
+      vfloat alpha = fmin(ALPHA_MAX, q[REC_OPACITY] * blend_falloff(sigma));
       vint ok = !done && sigma >= 0.f && alpha >= ALPHA_MIN;
       vfloat Tn = T * (1.f - alpha);
       vint stop = ok && Tn < T_MIN;
