@@ -1,0 +1,149 @@
+// Device runtime: device selection, the program cache (memory and disk,
+// corrupt entries rebuilt), build errors carrying the log, growable buffers,
+// per-kernel timing.
+#include <gtest/gtest.h>
+
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+
+#include "host/cl_runtime.h"
+#include "host/kernel_source.h"
+
+namespace fs = std::filesystem;
+
+namespace ag2gs {
+namespace {
+
+fs::path fresh_dir(const std::string& name) {
+  fs::path d = fs::path(testing::TempDir()) / ("ag2gs_rt_" + name + "_" + std::to_string(::getpid()));
+  fs::remove_all(d);
+  fs::create_directories(d);
+  return d;
+}
+
+TEST(Runtime, ListsAtLeastOneDeviceAndSelectsTheDefault) {
+  auto devices = list_devices();
+  ASSERT_FALSE(devices.empty()) << "no OpenCL device: is pocl-opencl-icd installed?";
+  int def = default_device_index(devices);
+  EXPECT_GE(def, 0);
+  EXPECT_EQ(resolve_device_index(-1, devices), def);
+  EXPECT_THROW(resolve_device_index(static_cast<int>(devices.size()), devices), std::runtime_error);
+}
+
+TEST(Runtime, BadDeviceEnvironmentVariableIsRejected) {
+  auto devices = list_devices();
+  setenv("AG2GS_DEVICE", "gpu0", 1);
+  EXPECT_THROW(resolve_device_index(-1, devices), std::runtime_error);
+  setenv("AG2GS_DEVICE", "99", 1);
+  try {
+    resolve_device_index(-1, devices);
+    FAIL();
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("ag2gs devices"), std::string::npos) << e.what();
+  }
+  unsetenv("AG2GS_DEVICE");
+}
+
+TEST(Runtime, DiskCacheIsWrittenReusedAndCorruptEntriesRebuilt) {
+  fs::path dir = fresh_dir("cache");
+  setenv("AG2GS_CACHE_DIR", dir.c_str(), 1);
+  std::map<std::string, std::string> defs{{"SCAN_BLOCK", "64"}, {"RADIX_BLOCK", "64"}};
+  {
+    Runtime rt;
+    rt.kernel("bin.cl", "iota", defs);
+  }
+  std::vector<fs::path> files;
+  for (auto& e : fs::directory_iterator(dir)) files.push_back(e.path());
+  ASSERT_EQ(files.size(), 1u) << "one cache entry expected";
+  auto size = fs::file_size(files[0]);
+  EXPECT_GT(size, 64u);
+  // Corrupt the entry: flip bytes in the middle (the checksum must catch it).
+  {
+    std::fstream f(files[0], std::ios::in | std::ios::out | std::ios::binary);
+    f.seekp(static_cast<std::streamoff>(size / 2));
+    char junk[16] = {'x', 'x', 'x', 'x', 'x', 'x', 'x', 'x', 'x', 'x', 'x', 'x', 'x', 'x', 'x', 'x'};
+    f.write(junk, sizeof junk);
+  }
+  {
+    Runtime rt;
+    cl::Kernel k = rt.kernel("bin.cl", "iota", defs);  // must rebuild, not crash
+    EXPECT_NE(k(), nullptr);
+  }
+  // Truncated entry, too.
+  fs::resize_file(files[0], 20);
+  {
+    Runtime rt;
+    EXPECT_NO_THROW(rt.kernel("bin.cl", "iota", defs));
+  }
+  EXPECT_GT(fs::file_size(files[0]), 64u) << "the rebuilt program was written back";
+  for (auto& e : fs::directory_iterator(dir))
+    EXPECT_EQ(e.path().string().find(".tmp."), std::string::npos) << "temp file left behind: " << e.path();
+  unsetenv("AG2GS_CACHE_DIR");
+  fs::remove_all(dir);
+}
+
+TEST(Runtime, BuildFailureCarriesNameOptionsAndLog) {
+  fs::path dir = fresh_dir("kernels");
+  std::ofstream(dir / "common.cl") << kernel_source("common.cl");
+  std::ofstream(dir / "broken.cl") << "__kernel void broken(__global float* x) { x[0] = undefined_name; }\n";
+  setenv("AG2GS_KERNEL_DIR", dir.c_str(), 1);
+  setenv("AG2GS_NO_KERNEL_CACHE", "1", 1);
+  Runtime rt;
+  try {
+    rt.program("broken.cl", {{"MY_DEFINE", "3"}});
+    FAIL() << "expected a BuildError";
+  } catch (const BuildError& e) {
+    std::string m = e.what();
+    EXPECT_NE(m.find("broken.cl"), std::string::npos) << m;
+    EXPECT_NE(m.find("-cl-std=CL1.2"), std::string::npos) << m;
+    EXPECT_NE(m.find("MY_DEFINE"), std::string::npos) << m;
+    EXPECT_NE(m.find("undefined_name"), std::string::npos) << "build log missing: " << m;
+  }
+  // A missing file names itself and the fix.
+  try {
+    rt.program("missing.cl", {});
+    FAIL();
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("missing.cl"), std::string::npos);
+  }
+  unsetenv("AG2GS_KERNEL_DIR");
+  unsetenv("AG2GS_NO_KERNEL_CACHE");
+  fs::remove_all(dir);
+}
+
+TEST(Runtime, CheckMacroNamesTheCallAndLocation) {
+  try {
+    AG2GS_CL_CHECK(CL_INVALID_VALUE);
+    FAIL();
+  } catch (const ClError& e) {
+    std::string m = e.what();
+    EXPECT_NE(m.find("CL_INVALID_VALUE"), std::string::npos) << m;
+    EXPECT_NE(m.find("test_runtime.cpp:"), std::string::npos) << m;
+    EXPECT_EQ(e.code(), CL_INVALID_VALUE);
+  }
+}
+
+TEST(Runtime, BuffersGrowAndTimingsAreRecorded) {
+  Runtime rt;
+  rt.set_profiling(true);
+  DeviceBuffer b(&rt);
+  EXPECT_TRUE(b.reserve(1000));
+  EXPECT_FALSE(b.reserve(500)) << "a smaller request must not reallocate";
+  EXPECT_TRUE(b.reserve(100000));
+  EXPECT_GE(b.capacity(), 100000u);
+  EXPECT_GE(rt.peak_bytes(), 100000u);
+  std::vector<uint32_t> out;
+  cl::Kernel k = rt.kernel("bin.cl", "iota", {{"SCAN_BLOCK", "64"}, {"RADIX_BLOCK", "64"}});
+  k.setArg(0, 1000);
+  k.setArg(1, b.get());
+  rt.launch("iota", k, cl::NDRange(1000), cl::NDRange(64));
+  b.download(out, 1000);
+  for (uint32_t i = 0; i < 1000; ++i) ASSERT_EQ(out[i], i);
+  auto t = rt.take_timings();
+  ASSERT_EQ(t.count("iota"), 1u);
+  EXPECT_GE(t["iota"], 0.0);
+}
+
+}  // namespace
+}  // namespace ag2gs
