@@ -1,0 +1,111 @@
+// The ag2gs program as scripts use it: render's output paths, exit codes and
+// error messages that name the file and the fix.
+#include <gtest/gtest.h>
+
+#include <array>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <opencv2/imgcodecs.hpp>
+
+namespace fs = std::filesystem;
+
+namespace {
+
+struct Result {
+  int code;
+  std::string output;
+};
+
+Result run(const std::string& args) {
+  const char* bin = std::getenv("AG2GS_BINARY");
+  std::string cmd = std::string(bin ? bin : "./ag2gs") + " " + args + " 2>&1";
+  Result r{-1, ""};
+  FILE* p = popen(cmd.c_str(), "r");
+  if (!p) return r;
+  std::array<char, 4096> buf;
+  while (fgets(buf.data(), buf.size(), p)) r.output += buf.data();
+  int status = pclose(p);
+  r.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  return r;
+}
+
+std::string src() {
+  const char* s = std::getenv("AG2GS_SOURCE_DIR");
+  return s ? s : ".";
+}
+
+fs::path temp(const std::string& name) {
+  fs::path d = fs::path(testing::TempDir()) / ("ag2gs_cli_" + name + "_" + std::to_string(::getpid()));
+  fs::remove_all(d);
+  return d;
+}
+
+TEST(Cli, DevicesListsTheDefault) {
+  Result r = run("devices");
+  EXPECT_EQ(r.code, 0) << r.output;
+  EXPECT_NE(r.output.find("(default"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("fp64"), std::string::npos) << r.output;
+}
+
+TEST(Cli, RenderWritesOnePngPerViewAtTheCameraResolution) {
+  fs::path out = temp("render");
+  std::string scene = src() + "/data_samples/tiny_scene";
+  Result r = run("render --ply " + scene + "/gaussians.ply --scene " + scene + " -o " + out.string());
+  ASSERT_EQ(r.code, 0) << r.output;
+  for (int i = 0; i < 4; ++i) {
+    fs::path f = out / "rgb" / ("view_00" + std::to_string(i) + ".png");
+    ASSERT_TRUE(fs::exists(f)) << f;
+    cv::Mat img = cv::imread(f.string());
+    EXPECT_EQ(img.cols, 160);
+    EXPECT_EQ(img.rows, 120);
+    EXPECT_GT(cv::countNonZero(img.reshape(1)), 100) << "the blobs should be visible";
+  }
+  // -r 2, --views by stem, a background colour, extras.
+  fs::path out2 = temp("render2");
+  r = run("render --ply " + scene + "/gaussians.ply --scene " + scene + " -o " + out2.string() +
+          " --views view_001,view_003.png -r 2 --bg 1,1,1 --extras");
+  ASSERT_EQ(r.code, 0) << r.output;
+  cv::Mat img = cv::imread((out2 / "rgb" / "view_001.png").string());
+  EXPECT_EQ(img.cols, 80);
+  EXPECT_EQ(img.rows, 60);
+  EXPECT_EQ(img.at<cv::Vec3b>(0, 0), cv::Vec3b(255, 255, 255)) << "white background in the corner";
+  EXPECT_FALSE(fs::exists(out2 / "rgb" / "view_000.png"));
+  EXPECT_TRUE(fs::exists(out2 / "depth" / "view_003.png"));
+  EXPECT_TRUE(fs::exists(out2 / "alpha" / "view_003.png"));
+  fs::remove_all(out);
+  fs::remove_all(out2);
+}
+
+TEST(Cli, BadInputGivesAClearErrorAndNonZeroExit) {
+  std::string scene = src() + "/data_samples/tiny_scene";
+  fs::path dir = temp("bad");
+  fs::create_directories(dir);
+  std::ofstream(dir / "junk.ply") << "this is not a ply\n";
+  Result r = run("render --ply " + (dir / "junk.ply").string() + " --scene " + scene + " -o " + (dir / "o").string());
+  EXPECT_NE(r.code, 0);
+  EXPECT_NE(r.output.find("junk.ply"), std::string::npos) << r.output;
+
+  r = run("render --ply " + scene + "/gaussians.ply --scene " + dir.string() + " -o " + (dir / "o").string());
+  EXPECT_NE(r.code, 0);
+  EXPECT_NE(r.output.find("sparse"), std::string::npos) << r.output;
+
+  r = run("render --ply " + scene + "/gaussians.ply --scene " + scene + " -o " + (dir / "o").string() +
+          " --views no_such_view");
+  EXPECT_NE(r.code, 0);
+  EXPECT_NE(r.output.find("no_such_view"), std::string::npos) << r.output;
+
+  r = run("render --ply " + scene + "/gaussians.ply --scene " + scene + " -o " + (dir / "o").string() + " --bg 1,x,1");
+  EXPECT_NE(r.code, 0);
+  EXPECT_NE(r.output.find("--bg"), std::string::npos) << r.output;
+
+  r = run("--device 99 devices");
+  EXPECT_NE(r.code, 0);
+  EXPECT_NE(r.output.find("ag2gs devices"), std::string::npos) << r.output;
+
+  r = run("render --scene " + scene);  // missing required options
+  EXPECT_NE(r.code, 0);
+  fs::remove_all(dir);
+}
+
+}  // namespace
