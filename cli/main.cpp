@@ -11,6 +11,7 @@
 int main(int argc, char** argv) {
   CLI::App app{"ag2gs: anchor-graph structured Gaussian splatting on any OpenCL device"};
   app.require_subcommand(1);
+  app.fallthrough();  // global options also after the subcommand: `ag2gs render ... --device 1`
   ag2gs::cli::GlobalOptions global;
   app.add_option("--device", global.device, "OpenCL device index (see `ag2gs devices`); default $AG2GS_DEVICE, "
                  "else the first GPU, else the CPU")->check(CLI::NonNegativeNumber);

@@ -236,6 +236,8 @@ cl::Program Runtime::program(const std::string& file, const std::map<std::string
     throw BuildError("building OpenCL program " + file + " failed (" + cl_error_name(err) + ") on " + info_.name +
                      "\noptions: " + options + "\ndefines:\n" + header + "build log:\n" + log);
   }
+  if (std::string log = p.getBuildInfo<CL_PROGRAM_BUILD_LOG>(info_.device); log.find_first_not_of(" \n\r\t") != std::string::npos)
+    spdlog::debug("build log of {}:\n{}", file, log);
   if (use_disk) {
     auto bins = p.getInfo<CL_PROGRAM_BINARIES>();
     if (!bins.empty() && !bins[0].empty()) store_cached_binary(cache_path, key, bins[0]);

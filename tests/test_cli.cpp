@@ -101,6 +101,8 @@ TEST(Cli, BadInputGivesAClearErrorAndNonZeroExit) {
 
   r = run("--device 99 devices");
   EXPECT_NE(r.code, 0);
+  r = run("devices --device 99");  // global options may follow the subcommand
+  EXPECT_NE(r.code, 0);
   EXPECT_NE(r.output.find("ag2gs devices"), std::string::npos) << r.output;
 
   r = run("render --scene " + scene);  // missing required options
