@@ -4,9 +4,9 @@
 // (median over repeats), Gaussian-pixel evaluations per second, peak device
 // memory, and the error of the device result against the double-precision
 // reference (tests/reference) at the same settings.
-#include <CLI/CLI.hpp>
 #include <spdlog/spdlog.h>
 
+#include <CLI/CLI.hpp>
 #include <Eigen/Geometry>
 #include <algorithm>
 #include <chrono>
@@ -105,8 +105,9 @@ int main(int argc, char** argv) {
   std::vector<size_t> counts = quick ? std::vector<size_t>{10000} : std::vector<size_t>{10000, 100000, 1000000};
   if (!only.empty()) counts = only;
   std::vector<std::pair<int, int>> sizes = {{400, 300}, {800, 600}};
-  std::printf("\n| Gaussians | image | isect | fwd ms (project/sort/bin/blend) | bwd ms (blend/project) | fwd+bwd ms "
-              "| blend G evals/s | peak MiB | fwd max abs / rel err | bwd max err / scale |\n");
+  std::printf(
+      "\n| Gaussians | image | isect | fwd ms (project/sort/bin/blend) | bwd ms (blend/project) | fwd+bwd ms "
+      "| blend G evals/s | peak MiB | fwd max abs / rel err | bwd max err / scale |\n");
   std::printf("|---|---|---|---|---|---|---|---|---|---|\n");
   for (size_t n : counts) {
     GaussianSet g = surface_scene(n, 7);
@@ -170,10 +171,12 @@ int main(int argc, char** argv) {
         for (size_t i = 0; i < rg.means.size(); ++i) err = std::max(err, std::abs(dgr.means[i] - rg.means[i]));
         std::snprintf(bwd_err, sizeof bwd_err, "means %.2g", scale > 0 ? err / scale : 0.0);
       }
-      std::printf("| %zu | %dx%d | %zu | %.1f (%.1f/%.1f/%.1f/%.1f) | %.1f (%.1f/%.1f) | %.1f | %.2f | %.0f | %.2g / %.2g | %s |\n",
-                  n, w, h, M, median(wall_f), median(t["project"]), median(t["sort"]), median(t["bin"]), blend,
-                  median(wall_fb) - median(wall_f), median(t["blend_bwd"]), median(t["project_bwd"]), median(wall_fb),
-                  evals, rt.peak_bytes() / double(1 << 20), e.fwd_abs, e.fwd_rel, bwd_err);
+      std::printf(
+          "| %zu | %dx%d | %zu | %.1f (%.1f/%.1f/%.1f/%.1f) | %.1f (%.1f/%.1f) | %.1f | %.2f | %.0f | %.2g / %.2g | %s "
+          "|\n",
+          n, w, h, M, median(wall_f), median(t["project"]), median(t["sort"]), median(t["bin"]), blend,
+          median(wall_fb) - median(wall_f), median(t["blend_bwd"]), median(t["project_bwd"]), median(wall_fb), evals,
+          rt.peak_bytes() / double(1 << 20), e.fwd_abs, e.fwd_rel, bwd_err);
       std::fflush(stdout);
     }
   }

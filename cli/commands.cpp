@@ -28,9 +28,12 @@ std::map<CLI::App*, std::function<void()>>& actions() {
 
 std::string human_bytes(uint64_t b) {
   char buf[32];
-  if (b >= (1ull << 30)) std::snprintf(buf, sizeof buf, "%.1f GiB", b / double(1ull << 30));
-  else if (b >= (1ull << 20)) std::snprintf(buf, sizeof buf, "%.1f MiB", b / double(1ull << 20));
-  else std::snprintf(buf, sizeof buf, "%.0f KiB", b / 1024.0);
+  if (b >= (1ull << 30))
+    std::snprintf(buf, sizeof buf, "%.1f GiB", b / double(1ull << 30));
+  else if (b >= (1ull << 20))
+    std::snprintf(buf, sizeof buf, "%.1f MiB", b / double(1ull << 20));
+  else
+    std::snprintf(buf, sizeof buf, "%.0f KiB", b / 1024.0);
   return buf;
 }
 
@@ -43,13 +46,16 @@ void cmd_devices(const GlobalOptions& global) {
   int def = default_device_index(devices);
   int selected = resolve_device_index(global.device, devices);
   for (auto& d : devices) {
-    std::printf("[%d]%s %s\n", d.index, d.index == selected ? (d.index == def ? " (default, selected)" : " (selected)")
-                                                            : (d.index == def ? " (default)" : ""),
+    std::printf("[%d]%s %s\n", d.index,
+                d.index == selected ? (d.index == def ? " (default, selected)" : " (selected)")
+                                    : (d.index == def ? " (default)" : ""),
                 d.name.c_str());
     std::printf("    platform: %s\n", d.platform.c_str());
     std::printf("    type: %s   compute units: %u   global memory: %s   local memory: %s\n",
-                d.is_gpu ? "GPU" : d.is_cpu ? "CPU" : "other", d.compute_units, human_bytes(d.global_mem).c_str(),
-                human_bytes(d.local_mem).c_str());
+                d.is_gpu   ? "GPU"
+                : d.is_cpu ? "CPU"
+                           : "other",
+                d.compute_units, human_bytes(d.global_mem).c_str(), human_bytes(d.local_mem).c_str());
     std::printf("    fp64: %s   max work-group: %zu   version: %s   driver: %s\n", d.fp64 ? "yes" : "no",
                 d.max_work_group, d.version.c_str(), d.driver.c_str());
   }
@@ -74,7 +80,8 @@ std::array<float, 3> parse_rgb(const std::string& s) {
       v[i] = std::stof(item, &used);
       if (used != item.size()) throw std::invalid_argument(item);
     } catch (const std::exception&) {
-      throw std::invalid_argument("--bg '" + s + "': '" + item + "' is not a number; expected R,G,B in [0,1], e.g. 1,1,1");
+      throw std::invalid_argument("--bg '" + s + "': '" + item +
+                                  "' is not a number; expected R,G,B in [0,1], e.g. 1,1,1");
     }
     ++i;
   }
@@ -92,7 +99,8 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
     throw std::runtime_error(sparse.string() + " is not a directory; --scene must hold a COLMAP model in " + a.sparse +
                              "/ (cameras, images, points3D as .bin or .txt)");
   ColmapModel model = read_colmap_model(sparse.string());
-  std::vector<Camera> cams = a.views.empty() ? model.cameras_for_images : select_views(model.cameras_for_images, a.views);
+  std::vector<Camera> cams =
+      a.views.empty() ? model.cameras_for_images : select_views(model.cameras_for_images, a.views);
   if (cams.empty()) throw std::runtime_error(sparse.string() + " has no registered images to render");
 
   Runtime rt(global.device);
@@ -117,8 +125,7 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
     if (a.extras) {
       // Mean depth (metres, 16-bit millimetres) and alpha (16-bit).
       std::vector<float> depth(out.depth.size());
-      for (size_t p = 0; p < depth.size(); ++p)
-        depth[p] = out.alpha[p] > 1e-6f ? out.depth[p] / out.alpha[p] : 0.f;
+      for (size_t p = 0; p < depth.size(); ++p) depth[p] = out.alpha[p] > 1e-6f ? out.depth[p] / out.alpha[p] : 0.f;
       write_gray16_png((out_dir / "depth" / (stem + ".png")).string(), depth, out.width, out.height, 1000.f);
       write_gray16_png((out_dir / "alpha" / (stem + ".png")).string(), out.alpha, out.width, out.height, 65535.f);
     }

@@ -1,8 +1,8 @@
 // ag2gs: the command-line front end. It parses arguments and calls the core
 // library; exceptions become a message on stderr and a non-zero exit here only.
-#include <CLI/CLI.hpp>
 #include <spdlog/spdlog.h>
 
+#include <CLI/CLI.hpp>
 #include <cstdio>
 #include <exception>
 
@@ -13,8 +13,10 @@ int main(int argc, char** argv) {
   app.require_subcommand(1);
   app.fallthrough();  // global options also after the subcommand: `ag2gs render ... --device 1`
   ag2gs::cli::GlobalOptions global;
-  app.add_option("--device", global.device, "OpenCL device index (see `ag2gs devices`); default $AG2GS_DEVICE, "
-                 "else the first GPU, else the CPU")->check(CLI::NonNegativeNumber);
+  app.add_option("--device", global.device,
+                 "OpenCL device index (see `ag2gs devices`); default $AG2GS_DEVICE, "
+                 "else the first GPU, else the CPU")
+      ->check(CLI::NonNegativeNumber);
   app.add_flag("-v,--verbose", global.verbose, "Log more detail");
   app.add_flag("-q,--quiet", global.quiet, "Log only warnings and errors");
   ag2gs::cli::register_commands(app, global);

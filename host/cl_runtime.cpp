@@ -1,6 +1,7 @@
 #include "host/cl_runtime.h"
 
 #include <spdlog/spdlog.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <cstdlib>
@@ -8,7 +9,6 @@
 #include <fstream>
 #include <limits>
 #include <sstream>
-#include <unistd.h>
 
 #include "host/kernel_source.h"
 
@@ -18,29 +18,32 @@ namespace ag2gs {
 
 const char* cl_error_name(cl_int code) {
   switch (code) {
-#define E(x) case x: return #x;
-    E(CL_DEVICE_NOT_FOUND) E(CL_DEVICE_NOT_AVAILABLE) E(CL_COMPILER_NOT_AVAILABLE)
-    E(CL_MEM_OBJECT_ALLOCATION_FAILURE) E(CL_OUT_OF_RESOURCES) E(CL_OUT_OF_HOST_MEMORY)
-    E(CL_PROFILING_INFO_NOT_AVAILABLE) E(CL_BUILD_PROGRAM_FAILURE) E(CL_INVALID_VALUE)
-    E(CL_INVALID_DEVICE) E(CL_INVALID_CONTEXT) E(CL_INVALID_COMMAND_QUEUE)
-    E(CL_INVALID_MEM_OBJECT) E(CL_INVALID_BINARY) E(CL_INVALID_BUILD_OPTIONS)
-    E(CL_INVALID_PROGRAM) E(CL_INVALID_PROGRAM_EXECUTABLE) E(CL_INVALID_KERNEL_NAME)
-    E(CL_INVALID_KERNEL) E(CL_INVALID_ARG_INDEX) E(CL_INVALID_ARG_VALUE) E(CL_INVALID_ARG_SIZE)
-    E(CL_INVALID_KERNEL_ARGS) E(CL_INVALID_WORK_DIMENSION) E(CL_INVALID_WORK_GROUP_SIZE)
-    E(CL_INVALID_WORK_ITEM_SIZE) E(CL_INVALID_GLOBAL_OFFSET) E(CL_INVALID_EVENT_WAIT_LIST)
-    E(CL_INVALID_EVENT) E(CL_INVALID_OPERATION) E(CL_INVALID_BUFFER_SIZE)
-    E(CL_INVALID_GLOBAL_WORK_SIZE) E(CL_PLATFORM_NOT_FOUND_KHR)
+#define E(x) \
+  case x:    \
+    return #x;
+    E(CL_DEVICE_NOT_FOUND)
+    E(CL_DEVICE_NOT_AVAILABLE) E(CL_COMPILER_NOT_AVAILABLE) E(CL_MEM_OBJECT_ALLOCATION_FAILURE) E(CL_OUT_OF_RESOURCES)
+        E(CL_OUT_OF_HOST_MEMORY) E(CL_PROFILING_INFO_NOT_AVAILABLE) E(CL_BUILD_PROGRAM_FAILURE) E(CL_INVALID_VALUE)
+            E(CL_INVALID_DEVICE) E(CL_INVALID_CONTEXT) E(CL_INVALID_COMMAND_QUEUE) E(CL_INVALID_MEM_OBJECT)
+                E(CL_INVALID_BINARY) E(CL_INVALID_BUILD_OPTIONS) E(CL_INVALID_PROGRAM) E(CL_INVALID_PROGRAM_EXECUTABLE)
+                    E(CL_INVALID_KERNEL_NAME) E(CL_INVALID_KERNEL) E(CL_INVALID_ARG_INDEX) E(CL_INVALID_ARG_VALUE)
+                        E(CL_INVALID_ARG_SIZE) E(CL_INVALID_KERNEL_ARGS) E(CL_INVALID_WORK_DIMENSION)
+                            E(CL_INVALID_WORK_GROUP_SIZE) E(CL_INVALID_WORK_ITEM_SIZE) E(CL_INVALID_GLOBAL_OFFSET)
+                                E(CL_INVALID_EVENT_WAIT_LIST) E(CL_INVALID_EVENT) E(CL_INVALID_OPERATION)
+                                    E(CL_INVALID_BUFFER_SIZE) E(CL_INVALID_GLOBAL_WORK_SIZE)
+                                        E(CL_PLATFORM_NOT_FOUND_KHR)
 #undef E
-    default: return "unknown OpenCL error";
+                                            default : return "unknown OpenCL error";
   }
 }
 
 ClError::ClError(cl_int code, const std::string& call, const char* file, int line)
-    : std::runtime_error(call + " failed: " + cl_error_name(code) + " (" + std::to_string(code) + ") at " +
-                         file + ":" + std::to_string(line) +
-                         (code == CL_MEM_OBJECT_ALLOCATION_FAILURE || code == CL_OUT_OF_RESOURCES
-                              ? ". The device ran out of memory: render at a lower resolution (-r) or pick another device (--device)."
-                              : "")),
+    : std::runtime_error(
+          call + " failed: " + cl_error_name(code) + " (" + std::to_string(code) + ") at " + file + ":" +
+          std::to_string(line) +
+          (code == CL_MEM_OBJECT_ALLOCATION_FAILURE || code == CL_OUT_OF_RESOURCES
+               ? ". The device ran out of memory: render at a lower resolution (-r) or pick another device (--device)."
+               : "")),
       code_(code) {}
 
 // ---------------------------------------------------------------- devices
@@ -127,8 +130,7 @@ Runtime::Runtime(int device_index) {
       throw std::runtime_error(std::string("AG2GS_VECTOR_WIDTH='") + env + "' must be 1, 2, 4, 8 or 16");
     vector_width_ = v;
   }
-  spdlog::debug("OpenCL device {}: {} ({}), vector width {}", info_.index, info_.name, info_.platform,
-                vector_width_);
+  spdlog::debug("OpenCL device {}: {} ({}), vector width {}", info_.index, info_.name, info_.platform, vector_width_);
 }
 
 std::string Runtime::cache_dir() {
@@ -208,8 +210,8 @@ cl::Program Runtime::program(const std::string& file, const std::map<std::string
   std::string options = "-cl-std=CL1.2";
   if (const char* env = std::getenv("AG2GS_CL_OPTIONS"); env) options += std::string(" ") + env;
 
-  std::string key = file + "\n" + options + "\n" + info_.platform + "\n" + info_.name + "\n" + info_.driver +
-                    "\n" + info_.version + "\n" + hex(fnv1a(source));
+  std::string key = file + "\n" + options + "\n" + info_.platform + "\n" + info_.name + "\n" + info_.driver + "\n" +
+                    info_.version + "\n" + hex(fnv1a(source));
   std::lock_guard<std::mutex> lock(mutex_);
   if (auto it = programs_.find(key); it != programs_.end()) return it->second;
 
@@ -236,7 +238,8 @@ cl::Program Runtime::program(const std::string& file, const std::map<std::string
     throw BuildError("building OpenCL program " + file + " failed (" + cl_error_name(err) + ") on " + info_.name +
                      "\noptions: " + options + "\ndefines:\n" + header + "build log:\n" + log);
   }
-  if (std::string log = p.getBuildInfo<CL_PROGRAM_BUILD_LOG>(info_.device); log.find_first_not_of(" \n\r\t") != std::string::npos)
+  if (std::string log = p.getBuildInfo<CL_PROGRAM_BUILD_LOG>(info_.device);
+      log.find_first_not_of(" \n\r\t") != std::string::npos)
     spdlog::debug("build log of {}:\n{}", file, log);
   if (use_disk) {
     auto bins = p.getInfo<CL_PROGRAM_BINARIES>();
@@ -263,7 +266,7 @@ void Runtime::launch(const std::string& label, cl::Kernel& k, const cl::NDRange&
       size_t l = local.get()[i];
       dims[i] = (global.get()[i] + l - 1) / l * l;
     }
-    g = global.dimensions() == 1 ? cl::NDRange(dims[0])
+    g = global.dimensions() == 1   ? cl::NDRange(dims[0])
         : global.dimensions() == 2 ? cl::NDRange(dims[0], dims[1])
                                    : cl::NDRange(dims[0], dims[1], dims[2]);
   }

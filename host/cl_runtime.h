@@ -4,7 +4,6 @@
 #pragma once
 
 #include <CL/opencl.hpp>
-
 #include <cstdint>
 #include <map>
 #include <memory>
@@ -27,9 +26,9 @@ class ClError : public std::runtime_error {
 
 const char* cl_error_name(cl_int code);
 
-#define AG2GS_CL_CHECK(call)                                                \
-  do {                                                                      \
-    cl_int ag2gs_err_ = (call);                                             \
+#define AG2GS_CL_CHECK(call)                                                                     \
+  do {                                                                                           \
+    cl_int ag2gs_err_ = (call);                                                                  \
     if (ag2gs_err_ != CL_SUCCESS) throw ::ag2gs::ClError(ag2gs_err_, #call, __FILE__, __LINE__); \
   } while (0)
 
@@ -129,8 +128,7 @@ class DeviceBuffer {
   template <typename T>
   void download(std::vector<T>& out, size_t count) {
     out.resize(count);
-    if (count)
-      AG2GS_CL_CHECK(rt_->queue().enqueueReadBuffer(buffer_, CL_TRUE, 0, count * sizeof(T), out.data()));
+    if (count) AG2GS_CL_CHECK(rt_->queue().enqueueReadBuffer(buffer_, CL_TRUE, 0, count * sizeof(T), out.data()));
   }
   void fill_zero(size_t bytes);
 

@@ -11,17 +11,19 @@
 namespace ag2gs {
 
 // SH coefficients per colour channel for a degree (0..3).
-inline int sh_coeffs_for_degree(int degree) { return (degree + 1) * (degree + 1); }
+inline int sh_coeffs_for_degree(int degree) {
+  return (degree + 1) * (degree + 1);
+}
 
 // A set of 3D Gaussians with activated parameters (float32, row-major).
 struct GaussianSet {
-  int sh_degree = 0;              // 0..3
-  std::vector<float> means;       // [N,3] world position
-  std::vector<float> scales;      // [N,3] standard deviations (> 0)
-  std::vector<float> quats;       // [N,4] w x y z, need not be normalised
-  std::vector<float> opacities;   // [N]   in [0,1]
-  std::vector<float> sh;          // [N,K,3] K = (sh_degree+1)^2, sh[(n*K+k)*3+c]
-  std::vector<float> features;    // [N,3] semantic feature
+  int sh_degree = 0;             // 0..3
+  std::vector<float> means;      // [N,3] world position
+  std::vector<float> scales;     // [N,3] standard deviations (> 0)
+  std::vector<float> quats;      // [N,4] w x y z, need not be normalised
+  std::vector<float> opacities;  // [N]   in [0,1]
+  std::vector<float> sh;         // [N,K,3] K = (sh_degree+1)^2, sh[(n*K+k)*3+c]
+  std::vector<float> features;   // [N,3] semantic feature
 
   size_t size() const { return opacities.size(); }
   int sh_coeffs() const { return sh_coeffs_for_degree(sh_degree); }
@@ -60,8 +62,8 @@ struct Camera {
 struct RenderSettings {
   std::array<float, 3> background{0.f, 0.f, 0.f};
   float near_plane = 0.01f;
-  int sh_degree = -1;        // active SH degree; -1 = the set's degree
-  float dist_near = 0.2f;    // depth mapping of the distortion term (2DGS)
+  int sh_degree = -1;      // active SH degree; -1 = the set's degree
+  float dist_near = 0.2f;  // depth mapping of the distortion term (2DGS)
   float dist_far = 100.0f;
 };
 

@@ -1,13 +1,13 @@
 #include "host/image_io.h"
 
-#include <opencv2/imgcodecs.hpp>
-#include <opencv2/imgproc.hpp>
+#include <unistd.h>
 
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 #include <stdexcept>
-#include <unistd.h>
 
 namespace ag2gs {
 
@@ -16,7 +16,8 @@ namespace {
 void write_atomic(const std::string& path, const cv::Mat& img) {
   namespace fs = std::filesystem;
   fs::path p(path);
-  std::string tmp = (p.parent_path() / ("." + p.filename().string() + ".tmp." + std::to_string(::getpid()) + ".png")).string();
+  std::string tmp =
+      (p.parent_path() / ("." + p.filename().string() + ".tmp." + std::to_string(::getpid()) + ".png")).string();
   bool ok = false;
   try {
     ok = cv::imwrite(tmp, img);
@@ -46,7 +47,9 @@ void write_rgb_png(const std::string& path, const std::vector<float>& rgb, int w
   for (int y = 0; y < height; ++y)
     for (int x = 0; x < width; ++x) {
       const float* p = &rgb[(static_cast<size_t>(y) * width + x) * 3];
-      auto q = [](float v) { return static_cast<uint8_t>(std::lround(std::clamp(std::isfinite(v) ? v : 0.f, 0.f, 1.f) * 255.f)); };
+      auto q = [](float v) {
+        return static_cast<uint8_t>(std::lround(std::clamp(std::isfinite(v) ? v : 0.f, 0.f, 1.f) * 255.f));
+      };
       img.at<cv::Vec3b>(y, x) = cv::Vec3b(q(p[2]), q(p[1]), q(p[0]));  // OpenCV is BGR
     }
   write_atomic(path, img);
@@ -67,7 +70,8 @@ void write_gray16_png(const std::string& path, const std::vector<float>& v, int 
 
 std::vector<float> read_rgb(const std::string& path, int& width, int& height) {
   cv::Mat img = cv::imread(path, cv::IMREAD_COLOR);
-  if (img.empty()) throw std::runtime_error(path + ": cannot read the image (missing, or a format OpenCV cannot decode)");
+  if (img.empty())
+    throw std::runtime_error(path + ": cannot read the image (missing, or a format OpenCV cannot decode)");
   width = img.cols;
   height = img.rows;
   std::vector<float> out(static_cast<size_t>(width) * height * 3);

@@ -21,7 +21,9 @@ template <typename T>
 void set_arg(cl::Kernel& k, cl_uint i, const T& v) {
   AG2GS_CL_CHECK(k.setArg(i, v));
 }
-inline void set_arg(cl::Kernel& k, cl_uint i, DeviceBuffer& b) { AG2GS_CL_CHECK(k.setArg(i, b.get())); }
+inline void set_arg(cl::Kernel& k, cl_uint i, DeviceBuffer& b) {
+  AG2GS_CL_CHECK(k.setArg(i, b.get()));
+}
 inline void set_arg(cl::Kernel& k, cl_uint i, const DeviceBuffer& b) {
   AG2GS_CL_CHECK(k.setArg(i, const_cast<DeviceBuffer&>(b).get()));
 }
@@ -32,7 +34,9 @@ void set_args(cl::Kernel& k, Args&&... args) {
   (set_arg(k, i++, std::forward<Args>(args)), ...);
 }
 
-size_t ceil_div(size_t a, size_t b) { return (a + b - 1) / b; }
+size_t ceil_div(size_t a, size_t b) {
+  return (a + b - 1) / b;
+}
 
 // [H,W,C] -> [C,H,W]
 std::vector<float> to_planar(const std::vector<float>& hwc, size_t npix, int c) {
@@ -67,12 +71,13 @@ void DeviceGaussians::upload(const GaussianSet& set) {
 
 Renderer::Renderer(Runtime& rt) : rt_(rt) {
   for (DeviceBuffer* b :
-       {&cam_buf_, &records_, &rects_, &tile_counts_, &depth_keys_, &radii_, &order_keys_tmp_, &order_vals_,
-        &order_vals_tmp_, &counts_sorted_, &offsets_, &block_sums_, &radix_counts_, &tile_keys_, &tile_keys_tmp_,
-        &isect_vals_, &isect_vals_tmp_, &isect_gid_, &isect_start_, &ranges_, &out_rgb_, &out_feat_, &out_depth_,
-        &out_alpha_, &out_dist_, &out_aux_, &out_last_, &out_count_, &g_rgb_, &g_feat_, &g_depth_, &g_alpha_,
-        &g_dist_, &isect_grads_, &v_means_, &v_scales_, &v_quats_, &v_opacities_, &v_sh_, &v_features_,
-        &v_means2d_})
+       {&cam_buf_,        &records_,     &rects_,          &tile_counts_,   &depth_keys_,     &radii_,
+        &order_keys_tmp_, &order_vals_,  &order_vals_tmp_, &counts_sorted_, &offsets_,        &block_sums_,
+        &radix_counts_,   &tile_keys_,   &tile_keys_tmp_,  &isect_vals_,    &isect_vals_tmp_, &isect_gid_,
+        &isect_start_,    &ranges_,      &out_rgb_,        &out_feat_,      &out_depth_,      &out_alpha_,
+        &out_dist_,       &out_aux_,     &out_last_,       &out_count_,     &g_rgb_,          &g_feat_,
+        &g_depth_,        &g_alpha_,     &g_dist_,         &isect_grads_,   &v_means_,        &v_scales_,
+        &v_quats_,        &v_opacities_, &v_sh_,           &v_features_,    &v_means2d_})
     b->bind(&rt_);
 }
 
@@ -80,8 +85,8 @@ static std::map<std::string, std::string> bin_defines() {
   return {{"SCAN_BLOCK", std::to_string(kScanBlock)}, {"RADIX_BLOCK", std::to_string(kRadixBlock)}};
 }
 
-void Renderer::sort_pairs(DeviceBuffer*& keys, DeviceBuffer*& vals, DeviceBuffer*& keys_tmp,
-                          DeviceBuffer*& vals_tmp, size_t n, int bits) {
+void Renderer::sort_pairs(DeviceBuffer*& keys, DeviceBuffer*& vals, DeviceBuffer*& keys_tmp, DeviceBuffer*& vals_tmp,
+                          size_t n, int bits) {
   if (n == 0) return;
   const int nblocks = static_cast<int>(ceil_div(n, kRadixBlock));
   radix_counts_.reserve(sizeof(cl_uint) * 256 * nblocks);
@@ -186,7 +191,8 @@ void Renderer::forward(const DeviceGaussians& g, const Camera& cam, const Render
   }
   stats_.n_intersections = M;
   if (M > 0xF0000000ull)
-    throw std::runtime_error("render: " + std::to_string(M) + " tile intersections exceed the 32-bit index range; "
+    throw std::runtime_error("render: " + std::to_string(M) +
+                             " tile intersections exceed the 32-bit index range; "
                              "render at a lower resolution (-r)");
 
   // Intersection buffers grow with the frame; nothing is dropped.
@@ -201,8 +207,8 @@ void Renderer::forward(const DeviceGaussians& g, const Camera& cam, const Render
   sorted_isect_vals_ = &isect_vals_;
   if (M > 0) {
     cl::Kernel emit = rt_.kernel("bin.cl", "emit_isects", bin_defines());
-    set_args(emit, ni, *sorted_order_, rects_, offsets_, counts_sorted_, tiles_x_, tile_keys_, isect_vals_,
-             isect_gid_, isect_start_);
+    set_args(emit, ni, *sorted_order_, rects_, offsets_, counts_sorted_, tiles_x_, tile_keys_, isect_vals_, isect_gid_,
+             isect_start_);
     rt_.launch("bin", emit, cl::NDRange(n), cl::NDRange(64));
     int bits = 1;
     while ((1 << bits) < ntiles) ++bits;
@@ -225,9 +231,9 @@ void Renderer::forward(const DeviceGaussians& g, const Camera& cam, const Render
   out_count_.reserve(npix * 4);
   const int wg = 256 / rt_.vector_width();
   // CPUs: no local-memory staging (records come from cache), see blend_fwd.cl.
-  cl::Kernel blend = rt_.kernel("blend_fwd.cl", "blend_fwd",
-                                {{"BATCH", std::to_string(std::max(64, wg))},
-                                 {"NO_STAGING", rt_.info().is_gpu ? "0" : "1"}});
+  cl::Kernel blend =
+      rt_.kernel("blend_fwd.cl", "blend_fwd",
+                 {{"BATCH", std::to_string(std::max(64, wg))}, {"NO_STAGING", rt_.info().is_gpu ? "0" : "1"}});
   set_args(blend, cam.width, cam.height, tiles_x_, cam_buf_, ranges_, *sorted_isect_vals_, isect_gid_, records_,
            out_rgb_, out_feat_, out_depth_, out_alpha_, out_dist_, out_aux_, out_last_, out_count_);
   rt_.launch("blend_fwd", blend, cl::NDRange(static_cast<size_t>(ntiles) * wg), cl::NDRange(wg));
@@ -261,8 +267,8 @@ void Renderer::upload_plane(DeviceBuffer& buf, const std::vector<float>& hwc, in
   }
   if (hwc.size() != npix * channels)
     throw std::invalid_argument(std::string("render_backward: gradient '") + what + "' has " +
-                                std::to_string(hwc.size()) + " values, expected " +
-                                std::to_string(npix * channels) + " (H*W*" + std::to_string(channels) + ")");
+                                std::to_string(hwc.size()) + " values, expected " + std::to_string(npix * channels) +
+                                " (H*W*" + std::to_string(channels) + ")");
   buf.upload(channels == 1 ? hwc : to_planar(hwc, npix, channels));
 }
 
@@ -297,8 +303,8 @@ void Renderer::backward(const OutputGrads& grads) {
   if (g.n == 0) return;
   std::map<std::string, std::string> pdef{{"SH_K", std::to_string(K)}, {"SH_ACTIVE", std::to_string(sh_active_)}};
   cl::Kernel pb = rt_.kernel("project_bwd.cl", "project_bwd", pdef);
-  set_args(pb, static_cast<int>(g.n), cam_buf_, g.means, g.scales, g.quats, g.sh, records_, tile_counts_,
-           isect_start_, isect_grads_, v_means_, v_scales_, v_quats_, v_opacities_, v_sh_, v_features_, v_means2d_);
+  set_args(pb, static_cast<int>(g.n), cam_buf_, g.means, g.scales, g.quats, g.sh, records_, tile_counts_, isect_start_,
+           isect_grads_, v_means_, v_scales_, v_quats_, v_opacities_, v_sh_, v_features_, v_means2d_);
   rt_.launch("project_bwd", pb, cl::NDRange(g.n), cl::NDRange(64));
 }
 

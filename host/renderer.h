@@ -45,8 +45,8 @@ class Renderer {
   Runtime& runtime() { return rt_; }
 
  private:
-  void sort_pairs(DeviceBuffer*& keys, DeviceBuffer*& vals, DeviceBuffer*& keys_tmp, DeviceBuffer*& vals_tmp,
-                  size_t n, int bits);
+  void sort_pairs(DeviceBuffer*& keys, DeviceBuffer*& vals, DeviceBuffer*& keys_tmp, DeviceBuffer*& vals_tmp, size_t n,
+                  int bits);
   void upload_plane(DeviceBuffer& buf, const std::vector<float>& host_hwc, int channels, const char* what);
 
   Runtime& rt_;
@@ -66,7 +66,7 @@ class Renderer {
   DeviceBuffer out_rgb_, out_feat_, out_depth_, out_alpha_, out_dist_, out_aux_, out_last_, out_count_;
   DeviceBuffer g_rgb_, g_feat_, g_depth_, g_alpha_, g_dist_, isect_grads_;
   DeviceBuffer v_means_, v_scales_, v_quats_, v_opacities_, v_sh_, v_features_, v_means2d_;
-  DeviceBuffer* sorted_order_ = nullptr;       // Gaussian ids in depth order
+  DeviceBuffer* sorted_order_ = nullptr;  // Gaussian ids in depth order
   DeviceBuffer* sorted_tile_keys_ = nullptr;
   DeviceBuffer* sorted_isect_vals_ = nullptr;
 };

@@ -71,8 +71,12 @@ void check_backward(int w, int h, size_t n, int sh, uint32_t seed, const OutputG
   check_array("means2d", dg.means2d, rg.means2d);
 }
 
-TEST(RenderBackward, AllOutputs) { check_backward(64, 48, 60, 3, 11, random_output_grads(64, 48, 1)); }
-TEST(RenderBackward, OddSize) { check_backward(37, 23, 30, 1, 12, random_output_grads(37, 23, 2)); }
+TEST(RenderBackward, AllOutputs) {
+  check_backward(64, 48, 60, 3, 11, random_output_grads(64, 48, 1));
+}
+TEST(RenderBackward, OddSize) {
+  check_backward(37, 23, 30, 1, 12, random_output_grads(37, 23, 2));
+}
 TEST(RenderBackward, OnlyDistortion) {
   check_backward(48, 40, 40, 0, 13, random_output_grads(48, 40, 3, false, false, false, false, true));
 }
@@ -88,7 +92,9 @@ TEST(RenderBackward, BackgroundAndActiveDegree) {
   s.sh_degree = 2;
   check_backward(40, 40, 40, 3, 16, random_output_grads(40, 40, 6), s);
 }
-TEST(RenderBackward, ThousandGaussians) { check_backward(160, 120, 1000, 1, 17, random_output_grads(160, 120, 7)); }
+TEST(RenderBackward, ThousandGaussians) {
+  check_backward(160, 120, 1000, 1, 17, random_output_grads(160, 120, 7));
+}
 
 }  // namespace
 }  // namespace ag2gs

@@ -51,11 +51,21 @@ void check_forward(const Case& c, const RenderSettings& settings = {}) {
   if (c.n >= 10) EXPECT_GT(visible, 0u) << "the scene must be in view for this test to mean anything";
 }
 
-TEST(RenderForward, OnePixel) { check_forward({1, 1, 50, 1, 1}); }
-TEST(RenderForward, OddSize17x9) { check_forward({17, 9, 40, 2, 2}); }
-TEST(RenderForward, SingleGaussian) { check_forward({64, 48, 1, 0, 3}); }
-TEST(RenderForward, Odd333x250) { check_forward({333, 250, 1000, 3, 4}); }
-TEST(RenderForward, Many333x250) { check_forward({333, 250, 100000, 1, 5}); }
+TEST(RenderForward, OnePixel) {
+  check_forward({1, 1, 50, 1, 1});
+}
+TEST(RenderForward, OddSize17x9) {
+  check_forward({17, 9, 40, 2, 2});
+}
+TEST(RenderForward, SingleGaussian) {
+  check_forward({64, 48, 1, 0, 3});
+}
+TEST(RenderForward, Odd333x250) {
+  check_forward({333, 250, 1000, 3, 4});
+}
+TEST(RenderForward, Many333x250) {
+  check_forward({333, 250, 100000, 1, 5});
+}
 TEST(RenderForward, Background) {
   RenderSettings s;
   s.background = {0.2f, 0.5f, 1.0f};

@@ -71,8 +71,8 @@ void expect_all_finite(const RunResult& r) {
   EXPECT_TRUE(test::all_finite(r.out.depth));
   EXPECT_TRUE(test::all_finite(r.out.alpha));
   EXPECT_TRUE(test::all_finite(r.out.distortion));
-  for (auto* v : {&r.grads.means, &r.grads.scales, &r.grads.quats, &r.grads.opacities, &r.grads.sh,
-                  &r.grads.features, &r.grads.means2d})
+  for (auto* v : {&r.grads.means, &r.grads.scales, &r.grads.quats, &r.grads.opacities, &r.grads.sh, &r.grads.features,
+                  &r.grads.means2d})
     EXPECT_TRUE(test::all_finite(*v));
 }
 
@@ -158,8 +158,8 @@ TEST(HardCases, OneGaussianCoversTheWholeImage) {
 
 TEST(HardCases, OpacityAtTheClampAndAtTheFloor) {
   GaussianSet g = single(0.025f, 0.025f, 3, 0.2f, 0.2f, 0.2f, 1.0f);  // on a pixel centre: alpha clamps at 0.99
-  append(g, single(0.5f, 0, 3, 0.2f, 0.2f, 0.2f, 1.f / 255.f));           // at the floor: kept
-  append(g, single(-0.5f, 0, 3, 0.2f, 0.2f, 0.2f, 0.999f / 255.f));       // below: culled
+  append(g, single(0.5f, 0, 3, 0.2f, 0.2f, 0.2f, 1.f / 255.f));       // at the floor: kept
+  append(g, single(-0.5f, 0, 3, 0.2f, 0.2f, 0.2f, 0.999f / 255.f));   // below: culled
   Camera cam = axis_camera();
   RunResult r = run(g, cam);
   expect_all_finite(r);
@@ -202,7 +202,8 @@ TEST(HardCases, ZeroQuaternionCulledUnnormalisedEqualsNormalised) {
   auto c = test::compare(rb.out.rgb, std::vector<double>(ra.out.rgb.begin(), ra.out.rgb.end()), 1e-6, 1e-5);
   EXPECT_EQ(c.violations, 0u);
   // The gradient w.r.t. a 1000x longer quaternion is 1000x smaller.
-  for (int k = 0; k < 4; ++k) EXPECT_NEAR(rb.grads.quats[k] * 1000.f, ra.grads.quats[k], 1e-3f + 1e-3f * std::abs(ra.grads.quats[k]));
+  for (int k = 0; k < 4; ++k)
+    EXPECT_NEAR(rb.grads.quats[k] * 1000.f, ra.grads.quats[k], 1e-3f + 1e-3f * std::abs(ra.grads.quats[k]));
 }
 
 TEST(HardCases, NanAndInfParametersAreCulled) {

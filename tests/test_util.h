@@ -5,7 +5,6 @@
 #include <gtest/gtest.h>
 
 #include <Eigen/Geometry>
-
 #include <cmath>
 #include <cstdint>
 #include <cstdio>
@@ -46,7 +45,7 @@ inline Camera look_at_origin(int w, int h, double dist = 4.0, double fov_scale =
 struct SceneSpec {
   size_t n = 100;
   int sh_degree = 1;
-  double extent = 1.0;        // means in [-extent, extent]^3
+  double extent = 1.0;  // means in [-extent, extent]^3
   double log_scale_lo = -4.0, log_scale_hi = -1.5;
   double opacity_lo = 0.05, opacity_hi = 1.0;
 };
