@@ -79,8 +79,7 @@ double median(std::vector<double> v) {
 }
 
 struct Errors {
-  double fwd_abs = 0, fwd_rel = 0, bwd_rel = -1;
-  size_t pixels = 0;
+  double fwd_abs = 0, fwd_rel = 0;
 };
 
 }  // namespace

@@ -532,6 +532,18 @@ std::vector<RefProjected> project(const GaussianSet& set, const Camera& camera, 
   return project(to_double(set), camera, settings);
 }
 
+// Writes one blended pixel's outputs at index k of the images.
+static void store_pixel(RefImages& img, size_t k, const PixelResult& r) {
+  for (int c = 0; c < 3; ++c) {
+    img.rgb[3 * k + c] = r.rgb[c];
+    img.feature[3 * k + c] = r.feat[c];
+  }
+  img.depth[k] = r.depth;
+  img.alpha[k] = 1 - r.T;
+  img.distortion[k] = r.A * r.M2;
+  img.n_contrib[k] = r.n;
+}
+
 RefImages blend(const std::vector<RefProjected>& P, const Camera& cam, const RenderSettings& settings) {
   check_camera(cam);
   const int W = cam.width, H = cam.height;
@@ -555,15 +567,7 @@ RefImages blend(const std::vector<RefProjected>& P, const Camera& cam, const Ren
     const std::vector<int> row = row_order(order, P, j + 0.5);
     for (int i = 0; i < W; ++i) {
       const size_t pix = static_cast<size_t>(j) * W + i;
-      const PixelResult r = blend_pixel(row, P, i + 0.5, j + 0.5, dmap, bg, nullptr, nullptr);
-      for (int c = 0; c < 3; ++c) {
-        img.rgb[3 * pix + c] = r.rgb[c];
-        img.feature[3 * pix + c] = r.feat[c];
-      }
-      img.depth[pix] = r.depth;
-      img.alpha[pix] = 1 - r.T;
-      img.distortion[pix] = r.A * r.M2;
-      img.n_contrib[pix] = r.n;
+      store_pixel(img, pix, blend_pixel(row, P, i + 0.5, j + 0.5, dmap, bg, nullptr, nullptr));
     }
   }
   return img;
@@ -608,15 +612,7 @@ RefImages render_pixels(const GaussianSet& set, const Camera& cam, const RenderS
       row = row_order(order, P, j + 0.5);
       current_row = j;
     }
-    const PixelResult r = blend_pixel(row, P, i + 0.5, j + 0.5, dmap, bg, nullptr, nullptr);
-    for (int c = 0; c < 3; ++c) {
-      img.rgb[3 * k + c] = r.rgb[c];
-      img.feature[3 * k + c] = r.feat[c];
-    }
-    img.depth[k] = r.depth;
-    img.alpha[k] = 1 - r.T;
-    img.distortion[k] = r.A * r.M2;
-    img.n_contrib[k] = r.n;
+    store_pixel(img, k, blend_pixel(row, P, i + 0.5, j + 0.5, dmap, bg, nullptr, nullptr));
   }
   return img;
 }
