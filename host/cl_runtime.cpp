@@ -251,10 +251,16 @@ cl::Program Runtime::program(const std::string& file, const std::map<std::string
 
 cl::Kernel Runtime::kernel(const std::string& file, const std::string& name,
                            const std::map<std::string, std::string>& defines) {
+  // Kernels are fetched every frame: look them up by a cheap key first, so the
+  // source is assembled and hashed only once per (file, name, defines).
+  std::string key = file + "|" + name;
+  for (auto& [k, v] : defines) key += "|" + k + "=" + v;
+  if (auto it = kernels_.find(key); it != kernels_.end()) return it->second;
   cl::Program p = program(file, defines);
   cl_int err = CL_SUCCESS;
   cl::Kernel k(p, name.c_str(), &err);
   if (err != CL_SUCCESS) throw ClError(err, "clCreateKernel(" + file + ":" + name + ")", __FILE__, __LINE__);
+  kernels_[key] = k;
   return k;
 }
 

@@ -96,6 +96,7 @@ class Runtime {
   int vector_width_ = 1;
   bool profiling_ = false;
   std::map<std::string, cl::Program> programs_;
+  std::map<std::string, cl::Kernel> kernels_;  // by file|name|defines
   std::vector<std::pair<std::string, cl::Event>> pending_events_;
   std::map<std::string, double> timings_;
   uint64_t allocated_ = 0, peak_ = 0;
