@@ -532,6 +532,21 @@ std::vector<RefProjected> project(const GaussianSet& set, const Camera& camera, 
   return project(to_double(set), camera, settings);
 }
 
+// Images of w x h pixels, all zero (radii left empty).
+static RefImages zero_images(int w, int h) {
+  const size_t npix = static_cast<size_t>(w) * h;
+  RefImages img;
+  img.width = w;
+  img.height = h;
+  img.rgb.assign(3 * npix, 0);
+  img.feature.assign(3 * npix, 0);
+  img.depth.assign(npix, 0);
+  img.alpha.assign(npix, 0);
+  img.distortion.assign(npix, 0);
+  img.n_contrib.assign(npix, 0);
+  return img;
+}
+
 // Writes one blended pixel's outputs at index k of the images.
 static void store_pixel(RefImages& img, size_t k, const PixelResult& r) {
   for (int c = 0; c < 3; ++c) {
@@ -547,16 +562,7 @@ static void store_pixel(RefImages& img, size_t k, const PixelResult& r) {
 RefImages blend(const std::vector<RefProjected>& P, const Camera& cam, const RenderSettings& settings) {
   check_camera(cam);
   const int W = cam.width, H = cam.height;
-  const size_t npix = static_cast<size_t>(W) * H;
-  RefImages img;
-  img.width = W;
-  img.height = H;
-  img.rgb.assign(3 * npix, 0);
-  img.feature.assign(3 * npix, 0);
-  img.depth.assign(npix, 0);
-  img.alpha.assign(npix, 0);
-  img.distortion.assign(npix, 0);
-  img.n_contrib.assign(npix, 0);
+  RefImages img = zero_images(W, H);
   img.radii.resize(P.size());
   for (size_t i = 0; i < P.size(); ++i) img.radii[i] = P[i].visible ? P[i].radius : 0;
 
@@ -588,16 +594,8 @@ RefImages render_pixels(const GaussianSet& set, const Camera& cam, const RenderS
   const std::vector<int> order = depth_order(P);
   const DepthMap dmap = depth_map(settings);
   const double bg[3] = {settings.background[0], settings.background[1], settings.background[2]};
-  RefImages img;
-  img.width = static_cast<int>(pixels.size());
-  img.height = 1;
   const size_t n = pixels.size();
-  img.rgb.assign(3 * n, 0);
-  img.feature.assign(3 * n, 0);
-  img.depth.assign(n, 0);
-  img.alpha.assign(n, 0);
-  img.distortion.assign(n, 0);
-  img.n_contrib.assign(n, 0);
+  RefImages img = zero_images(static_cast<int>(n), 1);
   // Group the samples by row so each row's Gaussian list is built once.
   std::vector<size_t> idx(n);
   for (size_t k = 0; k < n; ++k) idx[k] = k;
