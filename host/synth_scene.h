@@ -1,0 +1,50 @@
+// A generator of synthetic scenes with exact ground truth: a small ray tracer
+// of textured primitives standing on a textured ground plane, seen by cameras
+// on a ring. It writes a complete scene directory in the formats of DESIGN.md
+// section 7, so every stage (training, clustering, queries, evaluation) can be
+// measured against truth that is known exactly. Everything is deterministic
+// from the seed (a counter-based hash, no global RNG state).
+//
+// Output layout of write_synth_scene(out_dir, options):
+//   images/view_NNN.png                 RGB, 8 bit
+//   sparse/0/{cameras,images,points3D}.bin   PINHOLE cameras; points sampled on
+//                                       the visible surfaces with their colours
+//   language_features/view_NNN_s.npy    float32 [4,H,W] SAM-like mask ids per
+//                                       level (default, small, medium, large),
+//                                       -1 = none, ids cumulative across levels
+//   language_features/view_NNN_f.npy    float32 [num masks, 512] CLIP-like
+//   masks/view_NNN.png                  16-bit ids of the level-3 masks + 1 (0 = none)
+//   gt/view_NNN.png                     16-bit exact object ids (0 = ground/sky)
+//   label/view_NNN.json                 LERF-style labelme polygons, test views
+//   vocab.json                          {"phrase": [512 floats]} per category
+//   clicks.json                         [{"frame","x","y","category"}] test views
+//   synth.json                          the objects (id, category, primitive,
+//                                       centre, size, colour), cameras, seed
+#pragma once
+
+#include <cstdint>
+#include <string>
+
+namespace ag2gs {
+
+struct SynthOptions {
+  uint64_t seed = 1;
+  int width = 160;
+  int height = 120;
+  int views = 24;        // cameras on a ring around the scene; every 8th is a test view
+  int objects = 5;       // number of objects (primitives) on the ground plane
+  int feature_dim = 512; // CLIP-like feature dimension
+  int samples = 2;       // supersampling per pixel axis (2 = 4 rays per pixel)
+  int points = 4000;     // SfM-like points written to points3D
+  // The hard settings of issue 6: two objects touching, two objects of
+  // similar colour, one thin object, and occlusion between objects.
+  bool hard = false;
+  bool text_model = false;  // write the COLMAP model as .txt instead of .bin
+};
+
+// Writes the scene into `out_dir` (created if missing; existing files of the
+// same names are replaced atomically). Throws std::invalid_argument for bad
+// options, std::runtime_error naming the path when writing fails.
+void write_synth_scene(const std::string& out_dir, const SynthOptions& options);
+
+}  // namespace ag2gs
