@@ -60,6 +60,7 @@ const ModelInfo* model_by_name(const std::string& name) {
 
 constexpr const char* kUndistortHint =
     "ag2gs renders only PINHOLE and SIMPLE_PINHOLE cameras. Undistort first with "
+    "`ag2gs undistort SCENE -o OUT` (runs COLMAP for you), or with "
     "`colmap image_undistorter --image_path IMAGES --input_path SPARSE --output_path OUT "
     "--output_type COLMAP` and use OUT as the scene";
 
@@ -341,21 +342,30 @@ bool ends_with(const std::string& s, const std::string& suffix) {
 }
 
 Camera make_camera(const RawImage& im, const RawCamera& raw, uint32_t camera_id, const std::string& cameras_path,
-                   const std::string& images_path) {
+                   const std::string& images_path, bool allow_distorted) {
   const std::string who = "camera " + std::to_string(camera_id) + " (used by image '" + im.name + "')";
   Camera cam;
   cam.name = im.name;
-  if (raw.model == "PINHOLE") {
-    cam.fx = raw.params[0];
-    cam.fy = raw.params[1];
-    cam.cx = raw.params[2];
-    cam.cy = raw.params[3];
-  } else if (raw.model == "SIMPLE_PINHOLE") {
+  const ModelInfo* model = model_by_name(raw.model);
+  if (!model || static_cast<int>(raw.params.size()) != model->num_params) {
+    fail(cameras_path, who + " has unknown camera model '" + raw.model + "'. " + kUndistortHint);
+  }
+  const bool pinhole = raw.model == "PINHOLE" || raw.model == "SIMPLE_PINHOLE";
+  if (!pinhole && !allow_distorted) {
+    fail(cameras_path, who + " has model " + raw.model + ". " + kUndistortHint);
+  }
+  // Models with one focal length list (f, cx, cy, ...); the others (fx, fy, cx, cy, ...).
+  const bool single_focal =
+      raw.model.rfind("SIMPLE_", 0) == 0 || raw.model == "RADIAL" || raw.model == "RADIAL_FISHEYE";
+  if (single_focal) {
     cam.fx = cam.fy = raw.params[0];
     cam.cx = raw.params[1];
     cam.cy = raw.params[2];
   } else {
-    fail(cameras_path, who + " has model " + raw.model + ". " + kUndistortHint);
+    cam.fx = raw.params[0];
+    cam.fy = raw.params[1];
+    cam.cx = raw.params[2];
+    cam.cy = raw.params[3];
   }
   if (raw.width == 0 || raw.height == 0 || raw.width > INT_MAX || raw.height > INT_MAX) {
     fail(cameras_path, who + " has an unusable size " + std::to_string(raw.width) + "x" + std::to_string(raw.height));
@@ -395,7 +405,7 @@ std::string trim(const std::string& s) {
 
 }  // namespace
 
-ColmapModel read_colmap_model(const std::string& sparse_dir) {
+ColmapModel read_colmap_model(const std::string& sparse_dir, bool allow_distorted) {
   if (!fs::is_directory(sparse_dir)) {
     fail(sparse_dir, "not a directory; pass the COLMAP model folder, e.g. scene/sparse/0");
   }
@@ -420,7 +430,9 @@ ColmapModel read_colmap_model(const std::string& sparse_dir) {
       fail(images_path, "image '" + im.name + "' (id " + std::to_string(im.image_id) + ") refers to camera " +
                             std::to_string(im.camera_id) + ", which " + cameras_path + " does not define");
     }
-    model.cameras_for_images.push_back(make_camera(im, it->second, im.camera_id, cameras_path, images_path));
+    model.cameras_for_images.push_back(
+        make_camera(im, it->second, im.camera_id, cameras_path, images_path, allow_distorted));
+    model.camera_models.push_back(it->second.model);
   }
 
   std::sort(points.begin(), points.end(), [](const RawPoint& a, const RawPoint& b) { return a.id < b.id; });
@@ -498,6 +510,10 @@ std::vector<Camera> select_views(const std::vector<Camera>& cameras, const std::
     }
   }
   return selected;
+}
+
+bool is_pinhole_model(const std::string& model_name) {
+  return model_name == "PINHOLE" || model_name == "SIMPLE_PINHOLE";
 }
 
 }  // namespace ag2gs
