@@ -8,6 +8,7 @@ PACKAGES=(
   ocl-icd-opencl-dev opencl-headers opencl-clhpp-headers pocl-opencl-icd clinfo
   libeigen3-dev libopencv-dev libspdlog-dev libgtest-dev
   libcli11-dev nlohmann-json3-dev
+  colmap
 )
 
 missing=()
