@@ -137,24 +137,6 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
   spdlog::info("wrote {} images to {}", cams.size(), (out_dir / "rgb").string());
 }
 
-// ------------------------------------------------------------------ info
-void cmd_info(const std::string& ply) {
-  GaussianSet set = read_ply(ply);
-  Eigen::Vector3f lo = Eigen::Vector3f::Constant(1e30f), hi = -lo;
-  double mean_opacity = 0;
-  for (size_t i = 0; i < set.size(); ++i) {
-    Eigen::Vector3f p(set.means[3 * i], set.means[3 * i + 1], set.means[3 * i + 2]);
-    lo = lo.cwiseMin(p);
-    hi = hi.cwiseMax(p);
-    mean_opacity += set.opacities[i];
-  }
-  std::printf("%s\n  Gaussians: %zu\n  SH degree: %d\n", ply.c_str(), set.size(), set.sh_degree);
-  if (set.size()) {
-    std::printf("  bounds: [%g %g %g] .. [%g %g %g]\n  mean opacity: %.4f\n", lo.x(), lo.y(), lo.z(), hi.x(), hi.y(),
-                hi.z(), mean_opacity / set.size());
-  }
-}
-
 }  // namespace
 
 void register_commands(CLI::App& app, GlobalOptions& global) {
@@ -173,10 +155,11 @@ void register_commands(CLI::App& app, GlobalOptions& global) {
   render->add_flag("--extras", ra->extras, "Also write OUT/depth (16-bit mm) and OUT/alpha (16-bit) PNGs");
   actions()[render] = [&global, ra] { cmd_render(global, *ra); };
 
-  auto ply = std::make_shared<std::string>();
-  auto* info = app.add_subcommand("info", "Summarise a Gaussian .ply");
-  info->add_option("ply", *ply, "Path to a point_cloud.ply")->required();
-  actions()[info] = [ply] { cmd_info(*ply); };
+  register_scene_commands(app, global);
+}
+
+void set_action(CLI::App* sub, std::function<void()> action) {
+  actions()[sub] = std::move(action);
 }
 
 int run_selected(CLI::App& app, const GlobalOptions& global) {

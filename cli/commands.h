@@ -13,6 +13,11 @@ struct GlobalOptions {
 
 // Adds every subcommand; each stores its action for run_selected().
 void register_commands(CLI::App& app, GlobalOptions& global);
+// Stores the action run when `sub` is the selected subcommand.
+void set_action(CLI::App* sub, std::function<void()> action);
+
+// Subcommands defined in their own files.
+void register_scene_commands(CLI::App& app, GlobalOptions& global);  // info, sfm, undistort (cmd_scene.cpp)
 // Runs the parsed subcommand; returns the process exit code.
 int run_selected(CLI::App& app, const GlobalOptions& global);
 

@@ -1,0 +1,237 @@
+// Scene-level subcommands: info (scene, model or .ply), sfm, undistort.
+#include <spdlog/spdlog.h>
+
+#include <algorithm>
+#include <cstdio>
+#include <filesystem>
+#include <map>
+#include <memory>
+
+#include "cli/commands.h"
+#include "host/colmap_reader.h"
+#include "host/model_io.h"
+#include "host/ply_io.h"
+#include "host/scene.h"
+#include "host/sfm.h"
+
+namespace fs = std::filesystem;
+
+namespace ag2gs::cli {
+namespace {
+
+void print_ply(const std::string& ply) {
+  GaussianSet set = read_ply(ply);
+  Eigen::Vector3f lo = Eigen::Vector3f::Constant(1e30f), hi = -lo;
+  double mean_opacity = 0;
+  for (size_t i = 0; i < set.size(); ++i) {
+    Eigen::Vector3f p(set.means[3 * i], set.means[3 * i + 1], set.means[3 * i + 2]);
+    lo = lo.cwiseMin(p);
+    hi = hi.cwiseMax(p);
+    mean_opacity += set.opacities[i];
+  }
+  std::printf("%s\n  Gaussians: %zu\n  SH degree: %d\n", ply.c_str(), set.size(), set.sh_degree);
+  if (set.size()) {
+    std::printf("  bounds: [%g %g %g] .. [%g %g %g]\n  mean opacity: %.4f\n", lo.x(), lo.y(), lo.z(), hi.x(), hi.y(),
+                hi.z(), mean_opacity / set.size());
+  }
+}
+
+void print_model(const std::string& path) {
+  const ModelArchive a = read_model_archive(path);
+  std::printf("%s\n  format version: %u\n", path.c_str(), kModelFormatVersion);
+  for (auto it = a.meta.begin(); it != a.meta.end(); ++it) {
+    std::string v = it.value().dump();
+    if (v.size() > 100) v = v.substr(0, 97) + "...";
+    std::printf("  %s: %s\n", it.key().c_str(), v.c_str());
+  }
+  std::printf("  arrays:\n");
+  for (const auto& [name, t] : a.arrays()) {
+    std::string shape;
+    for (size_t i = 0; i < t.shape.size(); ++i) shape += (i ? "x" : "") + std::to_string(t.shape[i]);
+    std::printf("    %-24s %-4s %s\n", name.c_str(), dtype_name(t.dtype), shape.c_str());
+  }
+  const fs::path ply = fs::path(path).parent_path() / "point_cloud.ply";
+  if (fs::exists(ply)) print_ply(ply.string());
+}
+
+struct InfoArgs {
+  std::string path;
+  int resolution = 1;
+  bool eval = false;
+  std::vector<int> sam_levels{3};
+  bool quick = false;
+};
+
+void print_scene(const InfoArgs& a) {
+  const fs::path root(a.path);
+  std::printf("scene: %s\n", a.path.c_str());
+  // First a tolerant read, so distorted models are described before the verdict.
+  const fs::path sparse = fs::is_directory(root / "sparse" / "0") ? root / "sparse" / "0" : root / "sparse";
+  if (fs::is_directory(sparse)) {
+    try {
+      const ColmapModel m = read_colmap_model(sparse.string(), true);
+      std::map<std::string, int> models;
+      for (const std::string& s : m.camera_models) ++models[s];
+      std::printf("  COLMAP model: %s (%s)\n  camera models:", sparse.string().c_str(),
+                  fs::exists(sparse / "images.bin") ? "binary" : "text");
+      for (const auto& [name, n] : models) std::printf(" %s x%d", name.c_str(), n);
+      std::printf("\n");
+    } catch (const std::exception&) {
+      // Scene::open below reports it.
+    }
+  }
+  SceneOptions opt;
+  opt.resolution = a.resolution;
+  opt.eval = a.eval;
+  opt.sam_levels = a.sam_levels;
+  std::unique_ptr<Scene> scene = Scene::open(a.path, opt);
+  const auto& views = scene->views();
+  int min_w = 1 << 30, max_w = 0, min_h = 1 << 30, max_h = 0, from_scaled = 0;
+  for (const SceneView& v : views) {
+    min_w = std::min(min_w, v.camera.width);
+    max_w = std::max(max_w, v.camera.width);
+    min_h = std::min(min_h, v.camera.height);
+    max_h = std::max(max_h, v.camera.height);
+    from_scaled += v.downscale ? 0 : (a.resolution > 1);
+  }
+  std::printf("  images: %zu", views.size());
+  if (min_w == max_w && min_h == max_h)
+    std::printf(" at %dx%d", min_w, min_h);
+  else
+    std::printf(" from %dx%d to %dx%d", min_w, min_h, max_w, max_h);
+  if (a.resolution > 1) {
+    std::printf(" (1/%d resolution; %d read from images_%d/, %zu downscaled on load)", a.resolution, from_scaled,
+                a.resolution, views.size() - from_scaled);
+  }
+  std::printf("\n  split: %zu train, %zu test%s\n", scene->train_views().size(), scene->test_views().size(),
+              a.eval ? " (every 8th image held out)" : " (pass --eval to hold out every 8th image)");
+  const SceneBounds& b = scene->bounds();
+  std::printf("  points: %d (%d inside the robust 1-99%% box)\n", b.points_total, b.points_kept);
+  if (b.points_total > 0) {
+    std::printf("  bounds: [%.3f %.3f %.3f] .. [%.3f %.3f %.3f], longest extent %.3f\n", b.lo.x(), b.lo.y(), b.lo.z(),
+                b.hi.x(), b.hi.y(), b.hi.z(), b.longest_extent());
+  }
+  std::printf("  camera rig: centre [%.3f %.3f %.3f], radius %.3f\n", b.camera_center.x(), b.camera_center.y(),
+              b.camera_center.z(), b.camera_radius);
+  std::printf("  semantics: %s\n", to_string(scene->semantics()));
+
+  std::vector<std::string> problems;
+  if (!a.quick) {
+    int with_masks = 0, min_m = 1 << 30, max_m = 0, dropped_c = 0, dropped_e = 0;
+    long total_m = 0;
+    for (const SceneView& v : views) {
+      try {
+        scene->image(v.index);
+      } catch (const std::exception& e) {
+        problems.push_back(e.what());
+      }
+      try {
+        auto m = scene->masks(v.index);
+        if (!m) continue;
+        ++with_masks;
+        min_m = std::min(min_m, m->count);
+        max_m = std::max(max_m, m->count);
+        total_m += m->count;
+        dropped_c += m->dropped_contained;
+        dropped_e += m->dropped_empty;
+      } catch (const std::exception& e) {
+        problems.push_back(e.what());
+      }
+    }
+    if (with_masks > 0) {
+      std::printf("  masks per view: min %d, mean %.1f, max %d over %d views", min_m,
+                  static_cast<double>(total_m) / with_masks, max_m, with_masks);
+      std::printf(" (dropped: %d contained in another mask, %d empty after rescaling)\n", dropped_c, dropped_e);
+      if (scene->feature_dim() > 0) std::printf("  feature dimension: %d\n", scene->feature_dim());
+    }
+  } else {
+    std::printf("  (--quick: images and masks not decoded)\n");
+  }
+  for (const std::string& n : scene->notes()) std::printf("  note: %s\n", n.c_str());
+  if (!problems.empty()) {
+    for (const std::string& p : problems) std::printf("  problem: %s\n", p.c_str());
+    throw std::runtime_error(std::to_string(problems.size()) + " problem(s) found in " + a.path);
+  }
+  if (scene->points().empty()) scene->require_points();
+  std::printf("  ok\n");
+}
+
+void cmd_info(const InfoArgs& a) {
+  const fs::path p(a.path);
+  if (fs::is_directory(p)) {
+    if (fs::exists(p / "model.ag2gs")) return print_model((p / "model.ag2gs").string());
+    if (fs::exists(p / "sparse") || fs::exists(p / "images")) return print_scene(a);
+    if (fs::exists(p / "point_cloud.ply")) return print_ply((p / "point_cloud.ply").string());
+    throw std::runtime_error(a.path + ": neither a scene (images/, sparse/0/) nor a model folder (model.ag2gs)");
+  }
+  if (!fs::exists(p)) throw std::runtime_error(a.path + ": no such file or folder");
+  if (p.extension() == ".ply") return print_ply(a.path);
+  return print_model(a.path);
+}
+
+struct SfmArgs {
+  std::string input, out, colmap = "colmap", camera_model = "OPENCV", matcher = "exhaustive";
+  bool per_image_camera = false, downscaled = false, force = false;
+  int max_image_size = 1600;
+};
+
+SfmOptions to_options(const SfmArgs& a, const GlobalOptions& global) {
+  SfmOptions o;
+  o.colmap = a.colmap;
+  o.camera_model = a.camera_model;
+  o.single_camera = !a.per_image_camera;
+  o.matcher = a.matcher;
+  o.max_image_size = a.max_image_size;
+  o.downscaled_copies = a.downscaled;
+  o.force = a.force;
+  if (!global.quiet) o.progress = [](const std::string& line) { spdlog::info("{}", line); };
+  return o;
+}
+
+void report(const SfmResult& r, const std::string& out) {
+  spdlog::info("scene ready in {}: {}/{} images registered, {} points, {:.1f} s (COLMAP log: {})", out,
+               r.images_registered, r.images_in, r.points, r.seconds, r.log_path);
+  if (r.images_registered < r.images_in) {
+    spdlog::warn("{} photos could not be registered and are left out", r.images_in - r.images_registered);
+  }
+}
+
+}  // namespace
+
+void register_scene_commands(CLI::App& app, GlobalOptions& global) {
+  auto ia = std::make_shared<InfoArgs>();
+  auto* info = app.add_subcommand("info", "Describe a scene directory, a model folder or a Gaussian .ply");
+  info->add_option("path", ia->path, "Scene directory, model folder (model.ag2gs) or .ply file")->required();
+  info->add_option("-r,--resolution", ia->resolution, "Resolution factor to check the images at (default 1)");
+  info->add_flag("--eval", ia->eval, "Show the every-8th-image train/test split");
+  info->add_option("--sam-level", ia->sam_levels, "SAM level(s) of language_features/ (0..3, default 3)");
+  info->add_flag("--quick", ia->quick, "Do not decode every image and mask");
+  set_action(info, [ia] { cmd_info(*ia); });
+
+  auto sa = std::make_shared<SfmArgs>();
+  auto* sfm = app.add_subcommand("sfm", "Structure from motion with COLMAP: photos in, a trainable scene out");
+  sfm->add_option("images", sa->input, "Folder of photos (jpg, png, ...)")->required();
+  sfm->add_option("-o,--out", sa->out, "Scene directory to create (images/ + sparse/0/)")->required();
+  sfm->add_option("--matcher", sa->matcher, "exhaustive (default) or sequential (video frames)");
+  sfm->add_option("--camera-model", sa->camera_model, "COLMAP camera model before undistortion (default OPENCV)");
+  sfm->add_flag("--per-image-camera", sa->per_image_camera, "Intrinsics per photo (mixed cameras or zoom)");
+  sfm->add_option("--max-image-size", sa->max_image_size, "Longest side SIFT works on (default 1600)");
+  sfm->add_flag("--downscaled", sa->downscaled, "Also write images_2/4/8 for -r 2/4/8");
+  sfm->add_flag("--force", sa->force, "Replace an existing output folder (only once the new scene is complete)");
+  sfm->add_option("--colmap", sa->colmap, "COLMAP program (default: colmap on PATH, or AG2GS_COLMAP)");
+  set_action(sfm, [sa, &global] { report(run_sfm(sa->input, sa->out, to_options(*sa, global)), sa->out); });
+
+  auto ua = std::make_shared<SfmArgs>();
+  auto* und = app.add_subcommand("undistort", "Undistort a scene with a distorted COLMAP camera model");
+  und->add_option("scene", ua->input, "Scene directory (images/ + sparse/0/)")->required();
+  und->add_option("-o,--out", ua->out, "New scene directory with PINHOLE cameras")->required();
+  und->add_flag("--downscaled", ua->downscaled, "Also write images_2/4/8 for -r 2/4/8");
+  und->add_flag("--force", ua->force, "Replace an existing output folder (only once complete)");
+  und->add_option("--colmap", ua->colmap, "COLMAP program (default: colmap on PATH, or AG2GS_COLMAP)");
+  set_action(und, [ua, &global] {
+    report(undistort_scene(ua->input, ua->out, to_options(*ua, global)), ua->out);
+    spdlog::warn("semantic files (language_features/, masks/) are not undistorted: recompute them on the new images");
+  });
+}
+
+}  // namespace ag2gs::cli

@@ -1,0 +1,54 @@
+// Structure from motion and undistortion through the `colmap` program:
+// photos in, a scene directory ag2gs trains on out (images/ undistorted,
+// sparse/0/ with PINHOLE cameras), as 3DGS's convert.py lays it out.
+#pragma once
+
+#include <functional>
+#include <string>
+#include <vector>
+
+namespace ag2gs {
+
+struct SfmOptions {
+  std::string colmap = "colmap";                     // program name or path (AG2GS_COLMAP overrides the default)
+  std::string camera_model = "OPENCV";               // model COLMAP fits before undistortion
+  bool single_camera = true;                         // one camera for all photos (one phone/lens)
+  std::string matcher = "exhaustive";                // exhaustive | sequential
+  int max_image_size = 1600;                         // SIFT works on images downscaled to this
+  int threads = -1;                                  // -1 = all cores
+  bool downscaled_copies = false;                    // also write images_2/4/8 (for -r 2/4/8)
+  bool force = false;                                // replace an existing scene directory
+  std::function<void(const std::string&)> progress;  // one line per step/update; may be empty
+};
+
+struct SfmResult {
+  int images_in = 0;
+  int images_registered = 0;
+  int points = 0;
+  double seconds = 0;
+  std::string log_path;
+};
+
+// Runs feature extraction (CPU), matching, mapping and undistortion on the
+// photos in `images_dir` and leaves `scene_dir`/images + sparse/0. Work happens
+// in a sibling temporary folder that replaces `scene_dir` only on success, so
+// an existing scene is never half-overwritten; without `force` an existing
+// non-empty `scene_dir` is an error. COLMAP's full output goes to
+// `scene_dir`/sfm_log.txt. Throws std::runtime_error saying which step
+// failed, the last lines COLMAP printed and where the log is; a missing
+// `colmap` program gets the install command.
+SfmResult run_sfm(const std::string& images_dir, const std::string& scene_dir, const SfmOptions& options);
+
+// Undistorts a scene whose COLMAP model uses a distorted camera model into
+// `out_dir` (images/ + sparse/0/ with PINHOLE cameras), via COLMAP's
+// image_undistorter. Same safety rules as run_sfm.
+SfmResult undistort_scene(const std::string& scene_dir, const std::string& out_dir, const SfmOptions& options);
+
+// Finds the COLMAP program: `name` if it contains a '/', else AG2GS_COLMAP,
+// else `name` on PATH. Throws std::runtime_error with the install command.
+std::string find_colmap(const std::string& name);
+
+// Image files (by extension) directly inside `dir`, sorted.
+std::vector<std::string> list_image_files(const std::string& dir);
+
+}  // namespace ag2gs
