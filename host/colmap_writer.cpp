@@ -167,14 +167,15 @@ std::string points_txt(const std::vector<Eigen::Vector3d>& points, const std::ve
 
 // ---------------------------------------------------------------- atomic write
 
-// Removes the temporary file unless the write was committed.
+// Removes the temporary file, once created, unless the write was committed.
 struct PendingFile {
   std::string path;
   std::FILE* file = nullptr;
+  bool created = false;  // never remove something at `path` that we did not make
   bool committed = false;
   ~PendingFile() {
     if (file) std::fclose(file);
-    if (!committed) std::remove(path.c_str());
+    if (created && !committed) std::remove(path.c_str());
   }
 };
 
@@ -182,6 +183,7 @@ void write_atomic(const std::string& path, const std::string& bytes) {
   PendingFile tmp;
   tmp.path = path + ".tmp." + std::to_string(static_cast<long>(AG2GS_GETPID()));
   tmp.file = std::fopen(tmp.path.c_str(), "wb");
+  tmp.created = tmp.file != nullptr;
   if (!tmp.file) {
     fail(path, "cannot create the temporary file '" + tmp.path + "': " + std::strerror(errno) +
                    "; check that the directory is writable");

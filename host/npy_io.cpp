@@ -393,14 +393,15 @@ std::string shape_text(const std::vector<int64_t>& shape) {
 
 // ---------------------------------------------------------------- writing
 
-// Removes the temporary file unless the write was committed.
+// Removes the temporary file, once created, unless the write was committed.
 struct PendingFile {
   std::string path;
   std::FILE* file = nullptr;
+  bool created = false;  // never remove something at `path` that we did not make
   bool committed = false;
   ~PendingFile() {
     if (file) std::fclose(file);
-    if (!committed) std::remove(path.c_str());
+    if (created && !committed) std::remove(path.c_str());
   }
 };
 
@@ -426,14 +427,13 @@ NpyArray read_npy(const std::string& path) {
 
   // Magic and version.
   unsigned char prefix[12];
-  if (file_size < 10) {
-    fail(path, "not a .npy file: only " + std::to_string(file_size) + " bytes (a .npy file starts with a 10-byte " +
-                   "preamble)");
-  }
-  read_exact(prefix, 8, "the preamble");
-  if (std::memcmp(prefix, kMagic, kMagicLen) != 0) {
+  if (file_size == 0) fail(path, "not a .npy file: the file is empty (0 bytes)");
+  const size_t head = static_cast<size_t>(std::min<uint64_t>(file_size, 8));
+  read_exact(prefix, head, "the preamble");
+  if (std::memcmp(prefix, kMagic, std::min(head, kMagicLen)) != 0) {
     fail(path, "not a .npy file (missing the \\x93NUMPY magic); expected an array written by numpy.save");
   }
+  if (head < 8) fail(path, "truncated .npy header: the file ends after " + std::to_string(head) + " bytes");
   const int major = prefix[6], minor = prefix[7];
   if (!((major == 1 || major == 2 || major == 3) && minor == 0)) {
     fail(path, "unsupported .npy format version " + std::to_string(major) + "." + std::to_string(minor) +
@@ -572,6 +572,7 @@ void write_npy(const std::string& path, const std::vector<float>& data, const st
   PendingFile tmp;
   tmp.path = path + ".tmp." + std::to_string(static_cast<long>(AG2GS_GETPID()));
   tmp.file = std::fopen(tmp.path.c_str(), "wb");
+  tmp.created = tmp.file != nullptr;
   if (!tmp.file) {
     fail(path, "cannot create the temporary file '" + tmp.path + "': " + std::strerror(errno) +
                    "; check that the directory exists and is writable");
