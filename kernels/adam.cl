@@ -1,0 +1,91 @@
+// Adam as torch.optim.Adam computes it (no weight decay, no amsgrad), one
+// parameter group per launch, and the buffer housekeeping around it: a
+// non-finite check of gradients and a row gather for adding/removing rows.
+//
+// Step t (the host passes step_size = lr / (1 - beta1^t) and
+// bc2_sqrt = sqrt(1 - beta2^t), computed in double):
+//   m = m + (1 - beta1) (g - m)              (torch: exp_avg.lerp_(grad, 1 - beta1))
+//   v = beta2 v + (1 - beta2) g^2
+//   p = p - step_size m / (sqrt(v) / bc2_sqrt + eps)
+// which is p - lr mhat / (sqrt(vhat) + eps) with mhat = m / (1 - beta1^t),
+// vhat = v / (1 - beta2^t).
+// The float coefficients 1 - beta1 and 1 - beta2 are rounded from double, as
+// torch rounds its Python scalars.
+
+inline void adam_update(size_t i, __global float* param, __global const float* grad, __global float* exp_avg,
+                        __global float* exp_avg_sq, float one_minus_beta1, float beta2, float one_minus_beta2,
+                        float eps, float step_size, float bc2_sqrt) {
+  const float g = grad[i];
+  float m = exp_avg[i];
+  m = m + one_minus_beta1 * (g - m);
+  const float v = beta2 * exp_avg_sq[i] + one_minus_beta2 * (g * g);
+  exp_avg[i] = m;
+  exp_avg_sq[i] = v;
+  const float denom = sqrt(v) / bc2_sqrt + eps;
+  param[i] = param[i] - step_size * (m / denom);
+}
+
+__kernel void adam_step(ulong n,
+                        __global float* param,       // [n]
+                        __global const float* grad,  // [n]
+                        __global float* exp_avg,     // [n] first moment
+                        __global float* exp_avg_sq,  // [n] second moment
+                        float one_minus_beta1, float beta2, float one_minus_beta2, float eps, float step_size,
+                        float bc2_sqrt) {
+  const size_t i = get_global_id(0);
+  if (i >= n) return;
+  adam_update(i, param, grad, exp_avg, exp_avg_sq, one_minus_beta1, beta2, one_minus_beta2, eps, step_size,
+              bc2_sqrt);
+}
+
+// Sparse variant (3DGS's sparse Adam): rows whose visible flag is 0 keep their
+// parameters and moments.
+__kernel void adam_step_visible(ulong n, int row_size,
+                                __global const int* visible,  // [n / row_size] nonzero: update the row
+                                __global float* param,        // [n]
+                                __global const float* grad,   // [n]
+                                __global float* exp_avg,      // [n]
+                                __global float* exp_avg_sq,   // [n]
+                                float one_minus_beta1, float beta2, float one_minus_beta2, float eps,
+                                float step_size, float bc2_sqrt) {
+  const size_t i = get_global_id(0);
+  if (i >= n || visible[i / (size_t)row_size] == 0) return;
+  adam_update(i, param, grad, exp_avg, exp_avg_sq, one_minus_beta1, beta2, one_minus_beta2, eps, step_size,
+              bc2_sqrt);
+}
+
+// Adds the number of NaN/Inf values of v to *count. Integer atomics: the
+// count is exact whatever the order. The exponent test does not depend on
+// the compiler's treatment of isfinite under relaxed-math options.
+__kernel void count_nonfinite(ulong n,
+                              __global const float* v,  // [n]
+                              __global uint* count) {   // [1] accumulated
+  __local uint group_count;
+  if (get_local_id(0) == 0) group_count = 0;
+  barrier(CLK_LOCAL_MEM_FENCE);
+  const size_t i = get_global_id(0);
+  if (i < n && (as_uint(v[i]) & 0x7f800000u) == 0x7f800000u) atomic_inc(&group_count);
+  barrier(CLK_LOCAL_MEM_FENCE);
+  if (get_local_id(0) == 0 && group_count != 0) atomic_add(count, group_count);
+}
+
+// dst row r = src row index[r]; index -1 gives a row of zeros (a new row),
+// an index outside [-1, src_rows) a row of NaN (a bug made visible).
+__kernel void gather_rows(ulong n_out,  // rows of dst * row_size
+                          int row_size, ulong src_rows,
+                          __global const int* index,  // [n_out / row_size]
+                          __global const float* src,  // [src_rows, row_size]
+                          __global float* dst) {      // [n_out / row_size, row_size]
+  const size_t i = get_global_id(0);
+  if (i >= n_out) return;
+  const size_t r = i / (size_t)row_size, c = i % (size_t)row_size;
+  const int s = index[r];
+  float v;
+  if (s == -1)
+    v = 0.f;
+  else if (s >= 0 && (ulong)s < src_rows)
+    v = src[(size_t)s * row_size + c];
+  else
+    v = NAN;
+  dst[i] = v;
+}
