@@ -366,7 +366,7 @@ VertexLayout map_vertex(const std::string& path, const PlyElement& vertex) {
 }
 
 // Applies the activations to one vertex's raw values.
-void store_vertex(const float* raw, size_t n, GaussianSet& gs) {
+void store_vertex(const float* raw, size_t n, GaussianSet& gs, PlyValues values) {
   const size_t k_count = static_cast<size_t>(gs.sh_coeffs());
   for (int i = 0; i < 3; ++i) gs.means[n * 3 + i] = raw[kSlotXyz + i];
   for (int c = 0; c < 3; ++c) gs.sh[(n * k_count) * 3 + c] = raw[kSlotDc + c];
@@ -375,9 +375,14 @@ void store_vertex(const float* raw, size_t n, GaussianSet& gs) {
       gs.sh[(n * k_count + k) * 3 + c] = raw[kSlotRest + c * (k_count - 1) + (k - 1)];
     }
   }
-  gs.opacities[n] = static_cast<float>(1.0 / (1.0 + std::exp(-static_cast<double>(raw[kSlotOpacity]))));
-  for (int i = 0; i < 3; ++i) {
-    gs.scales[n * 3 + i] = static_cast<float>(std::exp(static_cast<double>(raw[kSlotScale + i])));
+  if (values == PlyValues::stored) {
+    gs.opacities[n] = raw[kSlotOpacity];
+    for (int i = 0; i < 3; ++i) gs.scales[n * 3 + i] = raw[kSlotScale + i];
+  } else {
+    gs.opacities[n] = static_cast<float>(1.0 / (1.0 + std::exp(-static_cast<double>(raw[kSlotOpacity]))));
+    for (int i = 0; i < 3; ++i) {
+      gs.scales[n * 3 + i] = static_cast<float>(std::exp(static_cast<double>(raw[kSlotScale + i])));
+    }
   }
   for (int i = 0; i < 4; ++i) gs.quats[n * 4 + i] = raw[kSlotRot + i];
   for (int i = 0; i < 3; ++i) gs.features[n * 3 + i] = raw[kSlotFeat + i];
@@ -389,7 +394,7 @@ std::string truncated_message(uint64_t expected, uint64_t holds, const std::stri
 }
 
 void read_binary(const std::string& path, std::ifstream& in, uint64_t file_size, const PlyHeader& header,
-                 size_t vertex_index, const VertexLayout& layout, GaussianSet& gs) {
+                 size_t vertex_index, const VertexLayout& layout, GaussianSet& gs, PlyValues values) {
   uint64_t offset = header.data_offset;
   for (size_t e = 0; e < vertex_index; ++e) {
     const PlyElement& el = header.elements[e];
@@ -431,13 +436,13 @@ void read_binary(const std::string& path, std::ifstream& in, uint64_t file_size,
         const int s = layout.slot[p];
         if (s >= 0) raw[s] = load_value(vertex.props[p].type, base + layout.offset[p]);
       }
-      store_vertex(raw, start + v, gs);
+      store_vertex(raw, start + v, gs, values);
     }
   }
 }
 
 void read_ascii(const std::string& path, std::ifstream& in, uint64_t file_size, const PlyHeader& header,
-                size_t vertex_index, const VertexLayout& layout, GaussianSet& gs) {
+                size_t vertex_index, const VertexLayout& layout, GaussianSet& gs, PlyValues values) {
   const uint64_t left = file_size - std::min(file_size, header.data_offset);
   std::string text(static_cast<size_t>(left), '\0');
   in.clear();
@@ -496,7 +501,7 @@ void read_ascii(const std::string& path, std::ifstream& in, uint64_t file_size, 
       const int s = layout.slot[p];
       if (s >= 0) raw[s] = static_cast<float>(value);
     }
-    store_vertex(raw, static_cast<size_t>(v), gs);
+    store_vertex(raw, static_cast<size_t>(v), gs, values);
   }
 }
 
@@ -513,7 +518,7 @@ struct TempFile {
 
 }  // namespace
 
-GaussianSet read_ply(const std::string& path) {
+GaussianSet read_ply(const std::string& path, PlyValues values) {
   std::ifstream in(path, std::ios::binary);
   if (!in) fail(path, std::string("cannot open: ") + std::strerror(errno));
   in.seekg(0, std::ios::end);
@@ -537,14 +542,14 @@ GaussianSet read_ply(const std::string& path) {
   GaussianSet gs;
   gs.sh_degree = layout.sh_degree;
   if (header.format == PlyFormat::BinaryLittleEndian) {
-    read_binary(path, in, file_size, header, vertex_index, layout, gs);
+    read_binary(path, in, file_size, header, vertex_index, layout, gs, values);
   } else {
-    read_ascii(path, in, file_size, header, vertex_index, layout, gs);
+    read_ascii(path, in, file_size, header, vertex_index, layout, gs, values);
   }
   return gs;
 }
 
-void write_ply(const std::string& path, const GaussianSet& gs, bool with_features) {
+void write_ply(const std::string& path, const GaussianSet& gs, bool with_features, PlyValues values) {
   gs.validate();
   const size_t n = gs.size();
   const size_t k_count = static_cast<size_t>(gs.sh_coeffs());
@@ -592,10 +597,15 @@ void write_ply(const std::string& path, const GaussianSet& gs, bool with_feature
       for (size_t c = 0; c < 3; ++c) {
         for (size_t k = 1; k < k_count; ++k) row[j++] = gs.sh[(g * k_count + k) * 3 + c];
       }
-      const double o = std::clamp(static_cast<double>(gs.opacities[g]), 1e-7, 1.0 - 1e-7);
-      row[j++] = static_cast<float>(std::log(o / (1.0 - o)));
-      for (int i = 0; i < 3; ++i) {
-        row[j++] = static_cast<float>(std::log(std::max(static_cast<double>(gs.scales[g * 3 + i]), 1e-30)));
+      if (values == PlyValues::stored) {
+        row[j++] = gs.opacities[g];
+        for (int i = 0; i < 3; ++i) row[j++] = gs.scales[g * 3 + i];
+      } else {
+        const double o = std::clamp(static_cast<double>(gs.opacities[g]), 1e-7, 1.0 - 1e-7);
+        row[j++] = static_cast<float>(std::log(o / (1.0 - o)));
+        for (int i = 0; i < 3; ++i) {
+          row[j++] = static_cast<float>(std::log(std::max(static_cast<double>(gs.scales[g * 3 + i]), 1e-30)));
+        }
       }
       for (int i = 0; i < 4; ++i) row[j++] = gs.quats[g * 4 + i];
       if (with_features) {

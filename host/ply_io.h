@@ -20,20 +20,28 @@
 
 namespace ag2gs {
 
+// What the opacity and scale arrays of a GaussianSet hold when it crosses a
+// file: `activated` (opacity in [0,1], scale > 0; converted in double) or
+// `stored` (the file's own logit and log values, copied bit for bit: the
+// trainer's parameters, so an export and re-import is bit-exact).
+enum class PlyValues { activated, stored };
+
 // Reads a PLY in the layout above. Also accepts ascii PLYs, any scalar
 // property type (double, int, ...), extra properties (ignored) and a missing
 // nx/ny/nz or feat_0..2 (features read as zero). Throws std::runtime_error
 // naming the file and what is wrong: not a PLY, big-endian, truncated data,
 // a missing property, an f_rest count that is no SH degree.
-GaussianSet read_ply(const std::string& path);
+GaussianSet read_ply(const std::string& path, PlyValues values = PlyValues::activated);
 
 // Writes `gaussians` (validated first: std::invalid_argument when the array
 // sizes disagree) as a binary little-endian PLY, applying the inverse
 // activations logit(clamp(o, 1e-7, 1 - 1e-7)) and log(max(scale, 1e-30)).
-// with_features = false leaves out feat_0..2 (a plain 3DGS file). Atomic: the
+// with_features = false leaves out feat_0..2 (a plain 3DGS file); with
+// PlyValues::stored opacities and scales are written as they are. Atomic: the
 // data goes to "<path>.tmp.<pid>", renamed over `path` only when complete;
 // on failure the temporary file is removed, an existing `path` is left as it
 // was, and std::runtime_error says why.
-void write_ply(const std::string& path, const GaussianSet& gaussians, bool with_features = true);
+void write_ply(const std::string& path, const GaussianSet& gaussians, bool with_features = true,
+               PlyValues values = PlyValues::activated);
 
 }  // namespace ag2gs
