@@ -156,6 +156,7 @@ void register_commands(CLI::App& app, GlobalOptions& global) {
   actions()[render] = [&global, ra] { cmd_render(global, *ra); };
 
   register_scene_commands(app, global);
+  register_synth(app, global);
 }
 
 void set_action(CLI::App* sub, std::function<void()> action) {

@@ -31,11 +31,16 @@ struct SynthOptions {
   uint64_t seed = 1;
   int width = 160;
   int height = 120;
-  int views = 24;        // cameras on a ring around the scene; every 8th is a test view
-  int objects = 5;       // number of objects (primitives) on the ground plane
-  int feature_dim = 512; // CLIP-like feature dimension
-  int samples = 2;       // supersampling per pixel axis (2 = 4 rays per pixel)
-  int points = 4000;     // SfM-like points written to points3D
+  int views = 24;         // cameras on a ring around the scene; every 8th is a test view
+  int objects = 5;        // number of objects (primitives) on the ground plane
+  int feature_dim = 512;  // CLIP-like feature dimension
+  int samples = 2;        // supersampling per pixel axis (2 = 4 rays per pixel)
+  int points = 4000;      // SfM-like points written to points3D
+  // The SAM-like masks (language_features/, masks/) at 1/mask_factor of the
+  // image resolution, as the public LERF-OVS data often has them (DESIGN.md
+  // section 7: "masks may be smaller than the image"); width and height must
+  // be multiples of it. The exact GT (gt/, label/, clicks) is always full size.
+  int mask_factor = 1;
   // The hard settings of issue 6: two objects touching, two objects of
   // similar colour, one thin object, and occlusion between objects.
   bool hard = false;
