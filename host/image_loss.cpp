@@ -38,9 +38,11 @@ std::string float_literal(double v) {
   return buf;
 }
 
-std::map<std::string, std::string> loss_defines(int wg) {
-  std::map<std::string, std::string> d{
-      {"WG", std::to_string(wg)}, {"SSIM_C1", float_literal(kC1)}, {"SSIM_C2", float_literal(kC2)}};
+std::map<std::string, std::string> loss_defines(int wg, int lanes) {
+  std::map<std::string, std::string> d{{"WG", std::to_string(wg)},
+                                       {"LANES", std::to_string(lanes)},
+                                       {"SSIM_C1", float_literal(kC1)},
+                                       {"SSIM_C2", float_literal(kC2)}};
   const std::vector<double> g = ImageLoss::window();
   for (int k = 0; k <= kRadius; ++k) d["GW" + std::to_string(k)] = float_literal(g[kRadius + k]);
   return d;
@@ -74,9 +76,10 @@ std::vector<double> ImageLoss::window() {
   return g;
 }
 
-ImageLoss::ImageLoss(Runtime& rt, int work_group) : rt_(rt) {
+ImageLoss::ImageLoss(Runtime& rt, ImageLossOptions options) : rt_(rt) {
   for (DeviceBuffer* b : {&blur_, &coef_, &partials_, &norm_, &host_x_, &host_y_, &host_w_, &host_grad_}) b->bind(&rt_);
   const size_t device_max = rt_.info().max_work_group;
+  const int work_group = options.work_group;
   if (work_group != 0) {
     if (!is_power_of_two(work_group) || static_cast<size_t>(work_group) > device_max)
       throw std::invalid_argument("image loss: work-group size " + std::to_string(work_group) +
@@ -86,12 +89,15 @@ ImageLoss::ImageLoss(Runtime& rt, int work_group) : rt_(rt) {
     wg_ = 1;
     while (static_cast<size_t>(wg_) * 2 <= std::min<size_t>(256, device_max)) wg_ *= 2;
   }
+  lanes_ = options.lanes != 0 ? options.lanes : rt_.vector_width();
+  if (!is_power_of_two(lanes_) || lanes_ > 16)
+    throw std::invalid_argument("image loss: lanes must be 1, 2, 4, 8 or 16, got " + std::to_string(lanes_));
   // The kernel's own limit (registers, local memory) can be lower than the
   // device's: halve until every kernel accepts the size.
   for (;;) {
     size_t limit = device_max;
     for (const char* name : {"ssim_blur_h", "ssim_map", "loss_norm", "coef_blur_h", "image_loss_grad"}) {
-      cl::Kernel k = rt_.kernel("image_loss.cl", name, loss_defines(wg_));
+      cl::Kernel k = rt_.kernel("image_loss.cl", name, loss_defines(wg_, lanes_));
       limit = std::min(limit, k.getWorkGroupInfo<CL_KERNEL_WORK_GROUP_SIZE>(rt_.info().device));
     }
     if (static_cast<size_t>(wg_) <= limit) break;
@@ -124,7 +130,9 @@ void ImageLoss::enqueue(const DeviceBuffer& rendered, const DeviceBuffer& target
   const bool want_grad = grad_out != nullptr;
   const int planar = layout == ImageLayout::kPlanar ? 1 : 0;
   const int has_weights = weights ? 1 : 0;
-  groups_ = static_cast<int>((npix + wg_ - 1) / wg_);
+  // One work-item per segment of `lanes_` pixels of a row.
+  const size_t items = static_cast<size_t>(height) * ((width + lanes_ - 1) / lanes_);
+  groups_ = static_cast<int>((items + wg_ - 1) / wg_);
   lambda_ = lambda;
   blur_.reserve(npix * kBlurPlanes * sizeof(float));
   coef_.reserve(want_grad ? npix * kCoefPlanes * sizeof(float) : 4);
@@ -132,28 +140,28 @@ void ImageLoss::enqueue(const DeviceBuffer& rendered, const DeviceBuffer& target
   norm_.reserve(sizeof(float));
   const DeviceBuffer& w = weights ? *weights : norm_;  // never read without weights
 
-  const auto defs = loss_defines(wg_);
-  const cl::NDRange global(npix), local(wg_);
+  const auto defs = loss_defines(wg_, lanes_);
+  const cl::NDRange global(items), local(wg_);
   cl::Kernel blur_h = rt_.kernel("image_loss.cl", "ssim_blur_h", defs);
   set_args(blur_h, width, height, planar, rendered, target, blur_);
-  rt_.launch("image_loss", blur_h, global, local);
+  rt_.launch("loss_blur_h", blur_h, global, local);
   cl::Kernel map = rt_.kernel("image_loss.cl", "ssim_map", defs);
   set_args(map, width, height, planar, lambda, want_grad ? 1 : 0, has_weights, rendered, target, blur_, w, coef_,
            partials_);
-  rt_.launch("image_loss", map, global, local);
+  rt_.launch("loss_map", map, global, local);
   if (!want_grad) return;
 
   grad_out->reserve(npix * 3 * sizeof(float));
   cl::Kernel norm = rt_.kernel("image_loss.cl", "loss_norm", defs);
   set_args(norm, groups_, partials_, norm_);
-  rt_.launch("image_loss_bwd", norm, local, local);
+  rt_.launch("loss_norm", norm, local, local);
   // The forward blurs are consumed: the backward blurs reuse their buffer.
   cl::Kernel coef_h = rt_.kernel("image_loss.cl", "coef_blur_h", defs);
   set_args(coef_h, width, height, coef_, blur_);
-  rt_.launch("image_loss_bwd", coef_h, global, local);
+  rt_.launch("loss_coef_blur_h", coef_h, global, local);
   cl::Kernel grad = rt_.kernel("image_loss.cl", "image_loss_grad", defs);
   set_args(grad, width, height, planar, lambda, has_weights, rendered, target, w, blur_, norm_, *grad_out);
-  rt_.launch("image_loss_bwd", grad, global, local);
+  rt_.launch("loss_grad", grad, global, local);
 }
 
 ImageLossResult ImageLoss::result() {

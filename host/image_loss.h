@@ -8,7 +8,9 @@
 //
 // Deterministic: per work-group partial sums in a fixed tree order, summed on
 // the host in double; no floating-point atomics. Same inputs, same device and
-// same work-group size give the same bits.
+// same options give the same bits. Without weights the gradient is the same
+// bits whatever the options; only the grouping of the partial sums (and,
+// with weights, of sum w in the gradient's scale) depends on them.
 #pragma once
 
 #include <cmath>
@@ -38,11 +40,16 @@ enum class ImageLayout {
   kPlanar,       // [3,H,W], as the renderer's device images
 };
 
+// How the kernels split the work; the defaults suit the device. Tests set
+// them to exercise other devices' configurations on one device.
+struct ImageLossOptions {
+  int work_group = 0;  // work-items per group, a power of two; 0: the device's (at most 256)
+  int lanes = 0;       // pixels per work-item, 1/2/4/8/16; 0: Runtime::vector_width() (16 CPU, 1 GPU)
+};
+
 class ImageLoss {
  public:
-  // work_group: 0 picks it from the device (a power of two, at most 256);
-  // tests pass other powers of two to exercise GPU-like configurations.
-  explicit ImageLoss(Runtime& rt, int work_group = 0);
+  explicit ImageLoss(Runtime& rt, ImageLossOptions options = {});
 
   // Device-level API for the trainer; enqueues only, no host synchronisation.
   //   rendered, target: [H,W,3] or [3,H,W] floats per `layout`
@@ -67,12 +74,13 @@ class ImageLoss {
                                    const std::vector<float>* weights = nullptr);
 
   int work_group() const { return wg_; }
+  int lanes() const { return lanes_; }
   // The normalised 1D window, taps at offsets -5..5 (3DGS's gaussian(11, 1.5)).
   static std::vector<double> window();
 
  private:
   Runtime& rt_;
-  int wg_ = 0;
+  int wg_ = 0, lanes_ = 1;
   int groups_ = 0;  // of the last enqueue, 0 before the first
   float lambda_ = kSsimLambda;
   DeviceBuffer blur_, coef_, partials_, norm_;

@@ -2,11 +2,15 @@
 // double-precision reference (tests/reference/image_loss_reference.h), whose
 // analytic gradient is itself checked against central finite differences.
 //
-// Tolerances, measured on PoCL (float32 blurs; errors shown by the tests):
-//   loss, l1, ssim, mse: |dev - ref| <= kValueTol (worst measured 2.4e-7)
+// Tolerances, measured on PoCL (float32 blurs; the tests print the errors):
+//   loss, l1, ssim, mse: |dev - ref| <= kValueTol (worst measured 4.6e-7)
 //   gradient: |dev - ref| <= kGradTol * max|ref| per image (worst measured
-//     2.1e-6 of scale: cancellation in E[x^2] - mu^2 for low-variance windows)
-//   reference vs finite differences: <= kFdTol * max|grad| (worst 1.6e-9)
+//     1.8e-5 of scale: float cancellation in the raw-moment partials, the
+//     same formulation as 3DGS's autograd and fused-ssim);
+//   images with saturated flat regions: kGradTolSaturated (worst measured
+//     3e-5 here, 1e-4 on the benchmark's image pair: windows of zero variance,
+//     where partials of size ~1/C2 cancel)
+//   reference vs central finite differences: kFdTol * max|grad| (worst 3e-8)
 #include <gtest/gtest.h>
 
 #include <algorithm>
@@ -23,7 +27,8 @@ namespace ag2gs {
 namespace {
 
 constexpr double kValueTol = 2e-6;
-constexpr double kGradTol = 2e-5;
+constexpr double kGradTol = 5e-5;
+constexpr double kGradTolSaturated = 5e-4;
 constexpr double kFdTol = 2e-7;
 
 // A smooth random image in [0, 1] (a few plane waves and a little noise):
@@ -98,12 +103,13 @@ void check_grad(const std::vector<float>& dev, const std::vector<double>& ref) {
   EXPECT_EQ(c.nan_mismatch, 0u);
 }
 
-void check_against_reference(int w, int h, uint32_t seed, float lambda, bool weighted, int wg = 0) {
-  std::printf("%dx%d lambda %.2f%s wg %d\n", w, h, lambda, weighted ? " weighted" : "", wg);
+void check_against_reference(int w, int h, uint32_t seed, float lambda, bool weighted, ImageLossOptions opt = {}) {
+  std::printf("%dx%d lambda %.2f%s wg %d lanes %d\n", w, h, lambda, weighted ? " weighted" : "", opt.work_group,
+              opt.lanes);
   const auto target = smooth_image(w, h, seed);
   const auto rendered = perturbed(target, w, h, seed + 7);
   const auto weights = random_weights(w, h, seed + 3);
-  ImageLoss loss(test::runtime(), wg);
+  ImageLoss loss(test::runtime(), opt);
   std::vector<float> grad;
   ImageLossResult d = loss.forward_backward(rendered, target, w, h, lambda, &grad, weighted ? &weights : nullptr);
   ref::RefImageLoss r = ref::image_loss(rendered, target, w, h, lambda, true, weighted ? &weights : nullptr);
@@ -177,13 +183,46 @@ TEST(ImageLoss, LambdaExtremes) {
   check_against_reference(33, 20, 31, 1.f, false);  // SSIM only
 }
 
-// A work-group size a GPU would pick, and the degenerate 1: partial sums and
-// image edges fall differently, the results must not. (Each size is a
-// separate program build: kept to two for the test time.)
-TEST(ImageLoss, WorkGroupSizes) {
-  for (int wg : {1, 64})
-    if (static_cast<size_t>(wg) <= test::runtime().info().max_work_group)
-      check_against_reference(37, 23, 40, 0.2f, true, wg);
+// Another device's configuration on this one: the GPU layout (one pixel per
+// work-item, 64-wide groups). Partial sums and image edges fall differently;
+// the loss must still match the reference, and without weights the gradient
+// must be the same bits (with weights, 1 / (3 sum w) is a float sum grouped
+// by the configuration). One configuration only: each is a program build of
+// ~3 s on a cold kernel cache.
+TEST(ImageLoss, GpuLayout) {
+  const int w = 37, h = 23;
+  const ImageLossOptions gpu{64, 1};
+  if (static_cast<size_t>(gpu.work_group) > test::runtime().info().max_work_group) GTEST_SKIP();
+  check_against_reference(w, h, 40, kSsimLambda, true, gpu);
+  check_against_reference(w, h, 41, kSsimLambda, false, gpu);
+  const auto target = smooth_image(w, h, 42);
+  const auto rendered = perturbed(target, w, h, 43);
+  std::vector<float> g_default, g_gpu;
+  ImageLoss(test::runtime()).forward_backward(rendered, target, w, h, kSsimLambda, &g_default);
+  ImageLoss(test::runtime(), gpu).forward_backward(rendered, target, w, h, kSsimLambda, &g_gpu);
+  EXPECT_EQ(test::hash_vec(g_gpu), test::hash_vec(g_default));
+}
+
+// Saturated regions (pixels clamped at 0 or 1 in both images) are where
+// float loses most: windows of zero variance, D2 = C2, large partials that
+// cancel. Measured separately, with its own bound.
+TEST(ImageLoss, SaturatedRegions) {
+  const int w = 96, h = 64;
+  auto target = smooth_image(w, h, 45);
+  auto rendered = perturbed(target, w, h, 46);
+  for (size_t i = 0; i < target.size(); ++i) {
+    target[i] = std::clamp(3.f * (target[i] - 0.5f) + 0.5f, 0.f, 1.f);
+    rendered[i] = std::clamp(3.f * (rendered[i] - 0.5f) + 0.5f, 0.f, 1.f);
+  }
+  ImageLoss loss(test::runtime());
+  std::vector<float> grad;
+  ImageLossResult d = loss.forward_backward(rendered, target, w, h, kSsimLambda, &grad);
+  ref::RefImageLoss r = ref::image_loss(rendered, target, w, h, kSsimLambda, true);
+  check_values(d, r);
+  const double scale = max_abs(r.grad);
+  auto c = test::compare(grad, r.grad, kGradTolSaturated * scale, 0.0);
+  std::printf("  grad scale %.3g  max abs %.3g (%.2g of scale)\n", scale, c.max_abs, c.max_abs / scale);
+  EXPECT_EQ(c.violations, 0u);
 }
 
 TEST(ImageLoss, IdenticalImagesGiveSsimOneAndLossZero) {
@@ -297,7 +336,8 @@ TEST(ImageLoss, RejectsBadArguments) {
   x.upload(a);
   EXPECT_THROW(loss.enqueue(x, x, 4, 3, 0.2f, &x), std::invalid_argument);
   EXPECT_THROW(loss.enqueue(x, x, 40, 30), std::invalid_argument);  // buffer too small
-  EXPECT_THROW(ImageLoss(test::runtime(), 3), std::invalid_argument);
+  EXPECT_THROW(ImageLoss(test::runtime(), ImageLossOptions{3, 0}), std::invalid_argument);
+  EXPECT_THROW(ImageLoss(test::runtime(), ImageLossOptions{0, 3}), std::invalid_argument);
   ImageLoss fresh(test::runtime());
   EXPECT_THROW(fresh.result(), std::logic_error);
 }
