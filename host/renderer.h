@@ -20,6 +20,16 @@ struct DeviceGaussians {
   DeviceBuffer means, scales, quats, opacities, sh, features;
 };
 
+// Read-only view of per-Gaussian gradient buffers, shapes as in GaussianGrads
+// with N = n and K = (sh_degree+1)^2 (Renderer::device_grads(); tests may
+// point it at their own buffers).
+struct DeviceGaussianGrads {
+  size_t n = 0;
+  int sh_degree = 0;
+  const DeviceBuffer *means = nullptr, *scales = nullptr, *quats = nullptr, *opacities = nullptr, *sh = nullptr,
+                     *features = nullptr, *means2d = nullptr;
+};
+
 struct FrameStats {
   size_t n_gaussians = 0;
   size_t n_intersections = 0;
@@ -40,6 +50,12 @@ class Renderer {
   RenderOutput download_output();
   void backward(const OutputGrads& grads);
   GaussianGrads download_grads();
+  // The gradient buffers of the last backward(), left on the device; valid
+  // until the next forward()/backward().
+  DeviceGaussianGrads device_grads() const {
+    return {gaussians_ ? gaussians_->n : 0, gaussians_ ? gaussians_->sh_degree : 0, &v_means_, &v_scales_, &v_quats_,
+            &v_opacities_, &v_sh_, &v_features_, &v_means2d_};
+  }
 
   const FrameStats& stats() const { return stats_; }
   Runtime& runtime() { return rt_; }

@@ -1,0 +1,102 @@
+// Anchor -> Gaussian expansion (DESIGN.md section 2) and its backward pass.
+// Gaussian g = a * CHILDREN + i is child i of anchor a.
+// Defines: CHILDREN (K), SH_OUT (coefficients per channel the renderer's sh
+// buffer holds, (d+1)^2 for the active degree d), SH_IN (coefficients per
+// channel of the incoming v_sh gradient; the backward only).
+// The SH of a child are stored split, DC [N,3] and rest [N,15,3], so the
+// optimiser can step them with different learning rates.
+
+#define SH_REST 15
+// Each kernel uses one of these; the other keeps its default.
+#ifndef SH_OUT
+#define SH_OUT 1
+#endif
+#ifndef SH_IN
+#define SH_IN 1
+#endif
+
+// s = sigmoid(x) = 1 / (1 + e^-x).
+inline float sigmoid(float x) { return 1.f / (1.f + exp(-x)); }
+// ds/dx = s (1 - s) = sigmoid(x) sigmoid(-x): no cancellation in 1 - s when s -> 1.
+inline float sigmoid_vjp(float x, float v_s) { return v_s * (sigmoid(x) * sigmoid(-x)); }
+
+// mean = pos + offset * l, scale = sigmoid(scale_logit) * l, quat as stored,
+// opacity = sigmoid(opacity_logit), sh = (dc, rest[0 .. SH_OUT-2]),
+// feature = the anchor's feature.
+__kernel void expand_fwd(
+    int n,                                  // N = A * CHILDREN Gaussians
+    __global const float* pos,              // [A,3] voxel centres
+    __global const float* voxel,            // [A]   voxel edge l
+    __global const float* feature,          // [A,3]
+    __global const float* offset,           // [N,3] voxel units
+    __global const float* scale_logit,      // [N,3]
+    __global const float* quat,             // [N,4] w x y z
+    __global const float* opacity_logit,    // [N]
+    __global const float* sh_dc,            // [N,3]
+    __global const float* sh_rest,          // [N,15,3]
+    __global float* means,                  // [N,3]
+    __global float* scales,                 // [N,3]
+    __global float* quats,                  // [N,4]
+    __global float* opacities,              // [N]
+    __global float* sh,                     // [N,SH_OUT,3]
+    __global float* features) {             // [N,3]
+  const int g = get_global_id(0);
+  if (g >= n) return;
+  const int a = g / CHILDREN;
+  const float l = voxel[a];
+  vstore3(vload3(a, pos) + vload3(g, offset) * l, g, means);
+  const float3 sl = vload3(g, scale_logit);
+  vstore3((float3)(sigmoid(sl.x), sigmoid(sl.y), sigmoid(sl.z)) * l, g, scales);
+  vstore4(vload4(g, quat), g, quats);
+  opacities[g] = sigmoid(opacity_logit[g]);
+  vstore3(vload3(g, sh_dc), (size_t)g * SH_OUT, sh);
+  for (int k = 1; k < SH_OUT; ++k) vstore3(vload3((size_t)g * SH_REST + k - 1, sh_rest), (size_t)g * SH_OUT + k, sh);
+  vstore3(vload3(a, feature), g, features);
+}
+
+// Per Gaussian: v_offset = v_mean l, v_scale_logit = v_scale l s (1 - s),
+// v_quat = v_quat, v_opacity_logit = v_opacity o (1 - o), SH gradients copied
+// for the SH_IN coefficients the renderer had, zero above.
+__kernel void expand_bwd(
+    int n,                                  // N = A * CHILDREN
+    __global const float* voxel,            // [A]
+    __global const float* scale_logit,      // [N,3]
+    __global const float* opacity_logit,    // [N]
+    __global const float* v_means,          // [N,3]
+    __global const float* v_scales,         // [N,3]
+    __global const float* v_quats,          // [N,4]
+    __global const float* v_opacities,      // [N]
+    __global const float* v_sh,             // [N,SH_IN,3]
+    __global float* v_offset,               // [N,3]
+    __global float* v_scale_logit,          // [N,3]
+    __global float* v_quat,                 // [N,4]
+    __global float* v_opacity_logit,        // [N]
+    __global float* v_sh_dc,                // [N,3]
+    __global float* v_sh_rest) {            // [N,15,3]
+  const int g = get_global_id(0);
+  if (g >= n) return;
+  const float l = voxel[g / CHILDREN];
+  vstore3(vload3(g, v_means) * l, g, v_offset);
+  const float3 sl = vload3(g, scale_logit), vs = vload3(g, v_scales) * l;
+  vstore3((float3)(sigmoid_vjp(sl.x, vs.x), sigmoid_vjp(sl.y, vs.y), sigmoid_vjp(sl.z, vs.z)), g, v_scale_logit);
+  vstore4(vload4(g, v_quats), g, v_quat);
+  v_opacity_logit[g] = sigmoid_vjp(opacity_logit[g], v_opacities[g]);
+  vstore3(vload3((size_t)g * SH_IN, v_sh), g, v_sh_dc);
+  for (int k = 1; k <= SH_REST; ++k) {
+    const float3 v = k < SH_IN ? vload3((size_t)g * SH_IN + k, v_sh) : (float3)(0.f);
+    vstore3(v, (size_t)g * SH_REST + k - 1, v_sh_rest);
+  }
+}
+
+// v_feature(a) = sum over the anchor's children in child order: a fixed-order
+// loop per anchor (deterministic, no atomics).
+__kernel void expand_bwd_feature(
+    int n_anchors,                          // A
+    __global const float* v_features,       // [A*CHILDREN,3]
+    __global float* v_feature) {            // [A,3]
+  const int a = get_global_id(0);
+  if (a >= n_anchors) return;
+  float3 s = vload3((size_t)a * CHILDREN, v_features);
+  for (int i = 1; i < CHILDREN; ++i) s += vload3((size_t)a * CHILDREN + i, v_features);
+  vstore3(s, a, v_feature);
+}
