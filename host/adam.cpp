@@ -200,6 +200,8 @@ void Adam::step_visible(AdamGroup& group, DeviceBuffer& param, const DeviceBuffe
   if (visible.capacity() < group.rows() * sizeof(int))
     throw std::invalid_argument("adam: the visibility buffer of group '" + group.name() + "' holds fewer than " +
                                 std::to_string(group.rows()) + " ints");
+  if (group.size() > std::numeric_limits<cl_uint>::max())
+    throw std::invalid_argument("adam: group '" + group.name() + "' has 2^32 or more values; split it");
   const StepCoeffs c = step_coeffs(settings_, group.steps_ + 1, lr);
   ++group.steps_;
   const size_t n = group.size();
@@ -220,9 +222,11 @@ void Adam::accumulate_nonfinite(const DeviceBuffer& buf, size_t n) {
     throw std::invalid_argument("count_nonfinite: the buffer holds fewer than " + std::to_string(n) + " floats");
   if (n > std::numeric_limits<cl_uint>::max())
     throw std::invalid_argument("count_nonfinite: more than 2^32 values in one buffer");
+  constexpr size_t kChunk = 16;  // NONFINITE_CHUNK in adam.cl
+  const size_t groups = (n + kChunk * wg_ - 1) / (kChunk * wg_);
   cl::Kernel k = rt_.kernel("adam.cl", "count_nonfinite", kNoDefines);
   set_args(k, static_cast<cl_ulong>(n), buf, counter_);
-  rt_.launch("adam", k, cl::NDRange(n), cl::NDRange(wg_));
+  rt_.launch("adam", k, cl::NDRange(groups * wg_), cl::NDRange(wg_));
 }
 
 uint64_t Adam::read_nonfinite() {

@@ -49,24 +49,28 @@ __kernel void adam_step_visible(ulong n, int row_size,
                                 float one_minus_beta1, float beta2, float one_minus_beta2, float eps,
                                 float step_size, float bc2_sqrt) {
   const size_t i = get_global_id(0);
-  if (i >= n || visible[i / (size_t)row_size] == 0) return;
+  // n < 2^32 (checked by the host): a 32-bit division.
+  if (i >= n || visible[(uint)i / (uint)row_size] == 0) return;
   adam_update(i, param, grad, exp_avg, exp_avg_sq, one_minus_beta1, beta2, one_minus_beta2, eps, step_size,
               bc2_sqrt);
 }
 
-// Adds the number of NaN/Inf values of v to *count. Integer atomics: the
-// count is exact whatever the order. The exponent test does not depend on
-// the compiler's treatment of isfinite under relaxed-math options.
+// Adds the number of NaN/Inf values of v to *count. Each work-item checks
+// NONFINITE_CHUNK values, strided by the group size (coalesced on GPUs);
+// integer atomics make the count exact whatever the order. The exponent test
+// does not depend on the compiler's isfinite under relaxed-math options.
+#define NONFINITE_CHUNK 16
 __kernel void count_nonfinite(ulong n,
                               __global const float* v,  // [n]
                               __global uint* count) {   // [1] accumulated
-  __local uint group_count;
-  if (get_local_id(0) == 0) group_count = 0;
-  barrier(CLK_LOCAL_MEM_FENCE);
-  const size_t i = get_global_id(0);
-  if (i < n && (as_uint(v[i]) & 0x7f800000u) == 0x7f800000u) atomic_inc(&group_count);
-  barrier(CLK_LOCAL_MEM_FENCE);
-  if (get_local_id(0) == 0 && group_count != 0) atomic_add(count, group_count);
+  const size_t lsize = get_local_size(0);
+  const size_t base = get_group_id(0) * lsize * NONFINITE_CHUNK + get_local_id(0);
+  uint c = 0;
+  for (int k = 0; k < NONFINITE_CHUNK; ++k) {
+    const size_t i = base + k * lsize;
+    if (i < n && (as_uint(v[i]) & 0x7f800000u) == 0x7f800000u) ++c;
+  }
+  if (c != 0) atomic_add(count, c);
 }
 
 // dst row r = src row index[r]; index -1 gives a row of zeros (a new row),
