@@ -92,7 +92,9 @@ class AnchorModel {
 
   // Replaces the model by anchors at the centres of the voxels occupied by
   // `points` on config.init_layer (or on every layer with -1), in (layer,
-  // cell x, y, z) order. colors: [points] RGB 0..255 or empty (grey).
+  // cell x, y, z) order. Every finite point counts, also those outside the
+  // robust box (which only sizes the voxels). colors: [points] RGB 0..255 or
+  // empty (grey).
   // Per anchor: SH DC = (mean colour of its points - 0.5) / C0, other SH 0;
   // feature uniform in [-init_feature, init_feature]. Per child: offset
   // uniform in [-0.5, 0.5]^3 (the child starts inside the voxel), scale =

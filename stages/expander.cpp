@@ -1,6 +1,7 @@
 #include "stages/expander.h"
 
 #include <algorithm>
+#include <cstdint>
 #include <map>
 #include <stdexcept>
 #include <string>
@@ -138,6 +139,8 @@ void Expander::forward(const DeviceAnchors& anchors, DeviceGaussians& out, int a
     throw std::invalid_argument("expand: active SH degree " + std::to_string(active_sh_degree) + " is outside 0.." +
                                 std::to_string(anchors.sh_degree) + " (the model's SH degree)");
   const size_t n = anchors.gaussians();
+  if (n > static_cast<size_t>(INT32_MAX))
+    throw std::invalid_argument("expand: " + std::to_string(n) + " Gaussians exceed the 32-bit index range");
   const int sh_out = sh_coeffs_for_degree(active_sh_degree);
   out.n = n;
   out.sh_degree = active_sh_degree;

@@ -15,6 +15,12 @@
 // Gaussian row g = a * K + i is child i of anchor a in every per-child
 // buffer, in the expanded Gaussians and in the renderer's per-Gaussian
 // outputs (radii, means2d), so per-child statistics need no index map.
+//
+// Growing and pruning happen on the host model: download the device values
+// (anchors.download(model)), call add_anchor / remove_anchors, upload again,
+// and carry the optimiser state over with AdamGroup::gather: the rows are
+// remove_anchors()'s kept list (per anchor) or AnchorModel::child_rows() of it
+// (per child), plus -1 for each added anchor or child.
 #pragma once
 
 #include <cstddef>
