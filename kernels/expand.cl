@@ -1,19 +1,11 @@
 // Anchor -> Gaussian expansion (DESIGN.md section 2) and its backward pass.
 // Gaussian g = a * CHILDREN + i is child i of anchor a.
-// Defines: CHILDREN (K), SH_OUT (coefficients per channel the renderer's sh
-// buffer holds, (d+1)^2 for the active degree d), SH_IN (coefficients per
-// channel of the incoming v_sh gradient; the backward only).
+// Defines: CHILDREN (K). The SH coefficient counts are arguments, so one
+// program serves every degree.
 // The SH of a child are stored split, DC [N,3] and rest [N,15,3], so the
 // optimiser can step them with different learning rates.
 
 #define SH_REST 15
-// Each kernel uses one of these; the other keeps its default.
-#ifndef SH_OUT
-#define SH_OUT 1
-#endif
-#ifndef SH_IN
-#define SH_IN 1
-#endif
 
 // s = sigmoid(x) = 1 / (1 + e^-x).
 inline float sigmoid(float x) { return 1.f / (1.f + exp(-x)); }
@@ -21,7 +13,7 @@ inline float sigmoid(float x) { return 1.f / (1.f + exp(-x)); }
 inline float sigmoid_vjp(float x, float v_s) { return v_s * (sigmoid(x) * sigmoid(-x)); }
 
 // mean = pos + offset * l, scale = sigmoid(scale_logit) * l, quat as stored,
-// opacity = sigmoid(opacity_logit), sh = (dc, rest[0 .. SH_OUT-2]),
+// opacity = sigmoid(opacity_logit), sh = (dc, rest[0 .. sh_out-2]),
 // feature = the anchor's feature.
 __kernel void expand_fwd(
     int n,                                  // N = A * CHILDREN Gaussians
@@ -34,11 +26,12 @@ __kernel void expand_fwd(
     __global const float* opacity_logit,    // [N]
     __global const float* sh_dc,            // [N,3]
     __global const float* sh_rest,          // [N,15,3]
+    int sh_out,                             // coefficients per channel written, (d+1)^2
     __global float* means,                  // [N,3]
     __global float* scales,                 // [N,3]
     __global float* quats,                  // [N,4]
     __global float* opacities,              // [N]
-    __global float* sh,                     // [N,SH_OUT,3]
+    __global float* sh,                     // [N,sh_out,3]
     __global float* features) {             // [N,3]
   const int g = get_global_id(0);
   if (g >= n) return;
@@ -49,14 +42,14 @@ __kernel void expand_fwd(
   vstore3((float3)(sigmoid(sl.x), sigmoid(sl.y), sigmoid(sl.z)) * l, g, scales);
   vstore4(vload4(g, quat), g, quats);
   opacities[g] = sigmoid(opacity_logit[g]);
-  vstore3(vload3(g, sh_dc), (size_t)g * SH_OUT, sh);
-  for (int k = 1; k < SH_OUT; ++k) vstore3(vload3((size_t)g * SH_REST + k - 1, sh_rest), (size_t)g * SH_OUT + k, sh);
+  vstore3(vload3(g, sh_dc), (size_t)g * sh_out, sh);
+  for (int k = 1; k < sh_out; ++k) vstore3(vload3((size_t)g * SH_REST + k - 1, sh_rest), (size_t)g * sh_out + k, sh);
   vstore3(vload3(a, feature), g, features);
 }
 
 // Per Gaussian: v_offset = v_mean l, v_scale_logit = v_scale l s (1 - s),
 // v_quat = v_quat, v_opacity_logit = v_opacity o (1 - o), SH gradients copied
-// for the SH_IN coefficients the renderer had, zero above.
+// for the sh_in coefficients the renderer had, zero above.
 __kernel void expand_bwd(
     int n,                                  // N = A * CHILDREN
     __global const float* voxel,            // [A]
@@ -66,7 +59,8 @@ __kernel void expand_bwd(
     __global const float* v_scales,         // [N,3]
     __global const float* v_quats,          // [N,4]
     __global const float* v_opacities,      // [N]
-    __global const float* v_sh,             // [N,SH_IN,3]
+    __global const float* v_sh,             // [N,sh_in,3]
+    int sh_in,                              // coefficients per channel of v_sh
     __global float* v_offset,               // [N,3]
     __global float* v_scale_logit,          // [N,3]
     __global float* v_quat,                 // [N,4]
@@ -81,9 +75,9 @@ __kernel void expand_bwd(
   vstore3((float3)(sigmoid_vjp(sl.x, vs.x), sigmoid_vjp(sl.y, vs.y), sigmoid_vjp(sl.z, vs.z)), g, v_scale_logit);
   vstore4(vload4(g, v_quats), g, v_quat);
   v_opacity_logit[g] = sigmoid_vjp(opacity_logit[g], v_opacities[g]);
-  vstore3(vload3((size_t)g * SH_IN, v_sh), g, v_sh_dc);
+  vstore3(vload3((size_t)g * sh_in, v_sh), g, v_sh_dc);
   for (int k = 1; k <= SH_REST; ++k) {
-    const float3 v = k < SH_IN ? vload3((size_t)g * SH_IN + k, v_sh) : (float3)(0.f);
+    const float3 v = k < sh_in ? vload3((size_t)g * sh_in + k, v_sh) : (float3)(0.f);
     vstore3(v, (size_t)g * SH_REST + k - 1, v_sh_rest);
   }
 }

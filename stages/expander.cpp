@@ -151,11 +151,10 @@ void Expander::forward(const DeviceAnchors& anchors, DeviceGaussians& out, int a
   reserve_floats(out.sh, n * sh_out * 3);
   reserve_floats(out.features, n * 3);
   if (n == 0) return;
-  cl::Kernel k = rt_.kernel("expand.cl", "expand_fwd",
-                            {{"CHILDREN", std::to_string(anchors.children)}, {"SH_OUT", std::to_string(sh_out)}});
+  cl::Kernel k = rt_.kernel("expand.cl", "expand_fwd", {{"CHILDREN", std::to_string(anchors.children)}});
   set_args(k, static_cast<int>(n), anchors.pos, anchors.voxel, anchors.feature, anchors.offset, anchors.scale_logit,
-           anchors.quat, anchors.opacity_logit, anchors.sh_dc, anchors.sh_rest, out.means, out.scales, out.quats,
-           out.opacities, out.sh, out.features);
+           anchors.quat, anchors.opacity_logit, anchors.sh_dc, anchors.sh_rest, sh_out, out.means, out.scales,
+           out.quats, out.opacities, out.sh, out.features);
   rt_.launch("expand", k, cl::NDRange(n), cl::NDRange(kWorkGroup));
 }
 
@@ -184,11 +183,10 @@ void Expander::backward(const DeviceAnchors& anchors, const DeviceGaussianGrads&
   reserve_floats(out.sh_dc, n * 3);
   reserve_floats(out.sh_rest, n * kShRestCoeffs * 3);
   if (n == 0) return;
-  const std::map<std::string, std::string> defines{{"CHILDREN", std::to_string(anchors.children)},
-                                                   {"SH_IN", std::to_string(sh_in)}};
+  const std::map<std::string, std::string> defines{{"CHILDREN", std::to_string(anchors.children)}};
   cl::Kernel k = rt_.kernel("expand.cl", "expand_bwd", defines);
   set_args(k, static_cast<int>(n), anchors.voxel, anchors.scale_logit, anchors.opacity_logit, *grads.means,
-           *grads.scales, *grads.quats, *grads.opacities, *grads.sh, out.offset, out.scale_logit, out.quat,
+           *grads.scales, *grads.quats, *grads.opacities, *grads.sh, sh_in, out.offset, out.scale_logit, out.quat,
            out.opacity_logit, out.sh_dc, out.sh_rest);
   rt_.launch("expand_bwd", k, cl::NDRange(n), cl::NDRange(kWorkGroup));
   cl::Kernel kf = rt_.kernel("expand.cl", "expand_bwd_feature", defines);
