@@ -173,6 +173,7 @@ struct SfmArgs {
   std::string input, out, colmap = "colmap", camera_model = "OPENCV", matcher = "exhaustive";
   bool per_image_camera = false, downscaled = false, force = false;
   int max_image_size = 1600;
+  int init_min_inliers = 100, abs_pose_min_inliers = 30;
 };
 
 SfmOptions to_options(const SfmArgs& a, const GlobalOptions& global) {
@@ -182,6 +183,8 @@ SfmOptions to_options(const SfmArgs& a, const GlobalOptions& global) {
   o.single_camera = !a.per_image_camera;
   o.matcher = a.matcher;
   o.max_image_size = a.max_image_size;
+  o.init_min_inliers = a.init_min_inliers;
+  o.abs_pose_min_inliers = a.abs_pose_min_inliers;
   o.downscaled_copies = a.downscaled;
   o.force = a.force;
   if (!global.quiet) o.progress = [](const std::string& line) { spdlog::info("{}", line); };
@@ -216,6 +219,10 @@ void register_scene_commands(CLI::App& app, GlobalOptions& global) {
   sfm->add_option("--camera-model", sa->camera_model, "COLMAP camera model before undistortion (default OPENCV)");
   sfm->add_flag("--per-image-camera", sa->per_image_camera, "Intrinsics per photo (mixed cameras or zoom)");
   sfm->add_option("--max-image-size", sa->max_image_size, "Longest side SIFT works on (default 1600)");
+  sfm->add_option("--init-min-inliers", sa->init_min_inliers,
+                  "Inliers the initial image pair needs (default 100; lower for small or low-texture photos)");
+  sfm->add_option("--abs-pose-min-inliers", sa->abs_pose_min_inliers,
+                  "Inliers a further image needs to be registered (default 30)");
   sfm->add_flag("--downscaled", sa->downscaled, "Also write images_2/4/8 for -r 2/4/8");
   sfm->add_flag("--force", sa->force, "Replace an existing output folder (only once the new scene is complete)");
   sfm->add_option("--colmap", sa->colmap, "COLMAP program (default: colmap on PATH, or AG2GS_COLMAP)");

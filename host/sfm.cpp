@@ -283,11 +283,12 @@ SfmResult run_sfm(const std::string& images_dir, const std::string& scene_dir, c
             {colmap, o.matcher + "_matcher", "--database_path", db, "--SiftMatching.use_gpu", "0",
              "--SiftMatching.num_threads", threads, "--log_to_stderr", "1"}},
            log, log_path, o);
-  run_step(
-      {"mapping",
-       {colmap, "mapper", "--database_path", db, "--image_path", images, "--output_path", (work / "sparse").string(),
-        "--Mapper.num_threads", threads, "--Mapper.ba_global_function_tolerance", "0.000001", "--log_to_stderr", "1"}},
-      log, log_path, o);
+  run_step({"mapping",
+            {colmap, "mapper", "--database_path", db, "--image_path", images, "--output_path",
+             (work / "sparse").string(), "--Mapper.num_threads", threads, "--Mapper.ba_global_function_tolerance",
+             "0.000001", "--Mapper.init_min_num_inliers", std::to_string(o.init_min_inliers),
+             "--Mapper.abs_pose_min_num_inliers", std::to_string(o.abs_pose_min_inliers), "--log_to_stderr", "1"}},
+           log, log_path, o);
 
   // The mapper may leave several models (disconnected groups); keep the largest.
   fs::path best;

@@ -10,12 +10,16 @@
 namespace ag2gs {
 
 struct SfmOptions {
-  std::string colmap = "colmap";                     // program name or path (AG2GS_COLMAP overrides the default)
-  std::string camera_model = "OPENCV";               // model COLMAP fits before undistortion
-  bool single_camera = true;                         // one camera for all photos (one phone/lens)
-  std::string matcher = "exhaustive";                // exhaustive | sequential
-  int max_image_size = 1600;                         // SIFT works on images downscaled to this
-  int threads = -1;                                  // -1 = all cores
+  std::string colmap = "colmap";        // program name or path (AG2GS_COLMAP overrides the default)
+  std::string camera_model = "OPENCV";  // model COLMAP fits before undistortion
+  bool single_camera = true;            // one camera for all photos (one phone/lens)
+  std::string matcher = "exhaustive";   // exhaustive | sequential
+  int max_image_size = 1600;            // SIFT works on images downscaled to this
+  int threads = -1;                     // -1 = all cores
+  // Mapper thresholds (COLMAP's defaults); lower them for small or low-texture
+  // photo sets whose image pairs share fewer matches.
+  int init_min_inliers = 100;                        // inliers of the initial image pair
+  int abs_pose_min_inliers = 30;                     // inliers to register a further image
   bool downscaled_copies = false;                    // also write images_2/4/8 (for -r 2/4/8)
   bool force = false;                                // replace an existing scene directory
   std::function<void(const std::string&)> progress;  // one line per step/update; may be empty
