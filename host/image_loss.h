@@ -6,6 +6,12 @@
 // image (the target gets none). Optional per-pixel weights w [H,W] turn both
 // means into weighted means: sum_p w_p sum_c term / (3 sum_p w_p).
 //
+// Precision (float32, measured against a double reference in
+// tests/test_image_loss.cpp): loss within ~5e-7; gradient within ~2e-5 of
+// its largest entry, up to ~1e-4 on smooth low-contrast images, whose small
+// window variances make the SSIM partials large and cancelling (the same
+// formulation, and error, as 3DGS's autograd SSIM).
+//
 // Deterministic: per work-group partial sums in a fixed tree order, summed on
 // the host in double; no floating-point atomics. Same inputs, same device and
 // same options give the same bits. Without weights the gradient is the same
