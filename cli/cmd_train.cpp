@@ -1,0 +1,211 @@
+// train: stage 1 (appearance) of the anchor model on a scene directory
+// (stages/trainer.h), writing MODEL_DIR/model.ag2gs and point_cloud.ply.
+#include <spdlog/spdlog.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <filesystem>
+#include <memory>
+#include <nlohmann/json.hpp>
+
+#include "cli/commands.h"
+#include "host/cl_runtime.h"
+#include "host/scene.h"
+#include "stages/trainer.h"
+
+namespace fs = std::filesystem;
+
+namespace ag2gs::cli {
+namespace {
+
+struct TrainArgs {
+  std::string scene, out;
+  int resolution = 1;
+  bool eval = false;
+  int log_every = 100;
+  int test_every = 0;
+  int save_every = 0;
+  bool profile = false;
+  TrainConfig config;
+};
+
+std::string fmt_duration(double s) {
+  if (!std::isfinite(s) || s < 0) return "?";
+  char buf[32];
+  if (s >= 3600)
+    std::snprintf(buf, sizeof buf, "%dh%02dm", static_cast<int>(s / 3600), static_cast<int>(s / 60) % 60);
+  else if (s >= 60)
+    std::snprintf(buf, sizeof buf, "%dm%02ds", static_cast<int>(s / 60), static_cast<int>(s) % 60);
+  else
+    std::snprintf(buf, sizeof buf, "%.1fs", s);
+  return buf;
+}
+
+void cmd_train(const GlobalOptions& global, TrainArgs& a) {
+  a.config.validate();
+  if (a.resolution < 1) throw std::invalid_argument("-r must be >= 1 (it divides the camera resolution)");
+  // Before anything slow: a run must not fail at its end for want of a place to write.
+  check_model_dir_writable(a.out);
+  SceneOptions so;
+  so.resolution = a.resolution;
+  so.eval = a.eval;
+  std::unique_ptr<Scene> scene = Scene::open(a.scene, so);
+  scene->require_points();
+
+  Runtime rt(global.device);
+  rt.set_profiling(a.profile);
+  Trainer trainer(rt, *scene, a.config);
+  const TrainConfig& c = trainer.config();
+  const std::vector<int> test_views = scene->test_views();
+  spdlog::info("device [{}] {}", rt.info().index, rt.info().name);
+  spdlog::info("scene {}: {} training views, {} test views, {}x{} (-r {}), {} SfM points", scene->dir(),
+               scene->train_views().size(), test_views.size(), scene->views()[0].camera.width,
+               scene->views()[0].camera.height, a.resolution, scene->points().size());
+  {
+    std::string per_layer;
+    for (size_t l = 0; l < trainer.init_stats().anchors_per_layer.size(); ++l)
+      per_layer += (l ? "/" : "") + std::to_string(trainer.init_stats().anchors_per_layer[l]);
+    spdlog::info("anchors: {} (per layer {}), {} Gaussians ({} children each), voxel {:.4g} (top layer)",
+                 trainer.anchors(), per_layer, trainer.gaussians(), c.anchors.children,
+                 trainer.model().grid().voxel(0));
+  }
+  spdlog::info("{} iterations, seed {}, SH degree up to {} (+1 every {} iterations), background {}", c.iterations,
+               c.seed, c.anchors.sh_degree, c.effective_sh_interval(), c.white_background ? "white" : "black");
+
+  nlohmann::json metrics = {{"scene", scene->dir()},
+                            {"resolution", a.resolution},
+                            {"seed", c.seed},
+                            {"iterations", c.iterations},
+                            {"train_views", scene->train_views().size()},
+                            {"test_views", test_views.size()},
+                            {"test", nlohmann::json::array()}};
+  const fs::path metrics_path = fs::path(a.out) / "metrics.json";
+  auto run_eval = [&](int iteration) {
+    auto t = std::chrono::steady_clock::now();
+    EvalStats ev = trainer.evaluate(test_views);
+    double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count();
+    spdlog::info("[test] iteration {}: PSNR {:.3f} dB, SSIM {:.4f}, L1 {:.5f} over {} views ({:.2f} s)", iteration,
+                 ev.psnr, ev.ssim, ev.l1, ev.views, s);
+    metrics["test"].push_back({{"iteration", iteration}, {"psnr", ev.psnr}, {"ssim", ev.ssim}, {"l1", ev.l1}});
+    write_json_atomic(metrics_path.string(), metrics);
+    return ev;
+  };
+
+  const auto t0 = std::chrono::steady_clock::now();
+  auto t_last = t0;
+  int it_last = 0, skipped = 0;
+  double psnr0 = NAN;
+  // Running means over the iterations since the last progress line.
+  double sum_loss = 0, sum_psnr = 0, sum_l1 = 0, sum_ssim = 0, sum_dist = 0;
+  int count = 0;
+  for (int it = 0; it < c.iterations; ++it) {
+    const bool log_now = a.log_every > 0 && ((it + 1) % a.log_every == 0 || it + 1 == c.iterations || it == 0);
+    StepStats st = trainer.step(log_now);
+    if (st.skipped) ++skipped;
+    if (std::isnan(psnr0)) psnr0 = st.psnr;
+    sum_loss += st.loss - (st.with_offset_loss ? c.w_offset * st.offset_reg : 0);
+    sum_psnr += st.psnr;
+    sum_l1 += st.l1;
+    sum_ssim += st.ssim;
+    sum_dist += st.distortion;
+    ++count;
+    if (log_now) {
+      auto now = std::chrono::steady_clock::now();
+      const double dt = std::chrono::duration<double>(now - t_last).count();
+      const double its = (st.iteration - it_last) / std::max(dt, 1e-9);
+      const double elapsed = std::chrono::duration<double>(now - t0).count();
+      const double eta = (c.iterations - st.iteration) * elapsed / st.iteration;
+      spdlog::info(
+          "it {:>6}/{}  loss {:.5f} (L1 {:.5f}, SSIM {:.4f}, dist {:.3e}, L_in {:.4f})  PSNR {:.2f} dB  SH {}  "
+          "anchors {}  Gaussians {}  {:.1f} it/s  ETA {}",
+          st.iteration, c.iterations, sum_loss / count + c.w_offset * st.offset_reg, sum_l1 / count, sum_ssim / count,
+          sum_dist / count, st.offset_reg, sum_psnr / count, st.sh_degree, trainer.anchors(), trainer.gaussians(), its,
+          fmt_duration(eta));
+      t_last = now;
+      it_last = st.iteration;
+      sum_loss = sum_psnr = sum_l1 = sum_ssim = sum_dist = 0;
+      count = 0;
+    }
+    if (a.eval && a.test_every > 0 && st.iteration % a.test_every == 0 && st.iteration != c.iterations)
+      run_eval(st.iteration);
+    if (a.save_every > 0 && st.iteration % a.save_every == 0 && st.iteration != c.iterations) {
+      trainer.save(a.out);
+      spdlog::info("checkpoint at iteration {} in {}", st.iteration, a.out);
+    }
+  }
+  const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  spdlog::info("trained {} iterations in {:.1f} s ({:.2f} ms/iteration){}", c.iterations, seconds,
+               1000 * seconds / c.iterations, skipped ? fmt::format(", {} steps skipped", skipped) : "");
+  if (a.profile) {
+    auto timings = rt.take_timings();
+    double total = 0;
+    for (auto& [k, ms] : timings) total += ms;
+    spdlog::info("kernel time per iteration: {:.3f} ms in total", total / c.iterations);
+    for (auto& [k, ms] : timings)
+      spdlog::info("  {:<14} {:8.3f} ms ({:4.1f}%)", k, ms / c.iterations, total > 0 ? 100 * ms / total : 0.0);
+  }
+  trainer.save(a.out);
+  spdlog::info("wrote {} and {} ({} anchors, {} Gaussians, SH degree {})", (fs::path(a.out) / "model.ag2gs").string(),
+               (fs::path(a.out) / "point_cloud.ply").string(), trainer.anchors(), trainer.gaussians(),
+               trainer.active_sh_degree());
+  metrics["train_seconds"] = seconds;
+  metrics["ms_per_iteration"] = 1000 * seconds / c.iterations;
+  metrics["skipped_steps"] = skipped;
+  metrics["anchors"] = trainer.anchors();
+  metrics["gaussians"] = trainer.gaussians();
+  metrics["first_train_psnr"] = psnr0;
+  if (a.eval) {
+    EvalStats ev = run_eval(c.iterations);
+    metrics["final"] = {{"iteration", c.iterations}, {"psnr", ev.psnr}, {"ssim", ev.ssim}, {"l1", ev.l1}};
+    write_json_atomic(metrics_path.string(), metrics);
+  }
+}
+
+}  // namespace
+
+void register_train(CLI::App& app, GlobalOptions& global) {
+  auto a = std::make_shared<TrainArgs>();
+  TrainConfig& c = a->config;
+  auto* sub = app.add_subcommand("train",
+                                 "Train stage 1 (appearance) of the anchor model on a scene directory: writes "
+                                 "MODEL_DIR/model.ag2gs and MODEL_DIR/point_cloud.ply");
+  sub->add_option("scene_dir", a->scene, "Scene directory (images/, sparse/0/)")->required();
+  sub->add_option("-o,--out", a->out, "Model directory to write (created)")->required();
+  sub->add_option("--iters", c.iterations, "Training iterations (default 30000)")->check(CLI::Range(1, 100000000));
+  sub->add_option("--seed", c.seed, "Random seed: anchor init and view order (default 0)");
+  sub->add_option("-r,--resolution", a->resolution, "Divide the camera resolution by R (default 1)")
+      ->check(CLI::Range(1, 64));
+  sub->add_flag("--eval", a->eval, "Hold out every 8th view; test PSNR/SSIM to MODEL_DIR/metrics.json");
+  sub->add_option("--sh-degree", c.anchors.sh_degree, "Highest SH degree (default 3)")->check(CLI::Range(0, 3));
+  sub->add_option("--sh-interval", c.sh_interval,
+                  "Iterations per SH degree step (default 0 = min(1000, iters / (sh-degree + 1)))")
+      ->check(CLI::NonNegativeNumber);
+  sub->add_flag("--white-bg", c.white_background, "White background instead of black");
+  sub->add_option("--lambda-ssim", c.lambda_ssim, "Weight of 1 - SSIM in L_rgb (default 0.2)")
+      ->check(CLI::Range(0.0, 1.0));
+  sub->add_option("--w-offset", c.w_offset, "Weight of the offset regulariser L_in (default 0.5)");
+  sub->add_option("--w-dist", c.w_distortion, "Weight of the depth distortion L_d (default 50)");
+  sub->add_option("--dist-from", c.distortion_from, "First iteration with the distortion term (default 0)");
+  sub->add_option("--lr-offset", c.offset_lr_init, "Offset learning rate at the start (default 1e-3, voxel units)");
+  sub->add_option("--lr-offset-final", c.offset_lr_final, "Offset learning rate at the end (default 1e-4)");
+  sub->add_flag("--lr-offset-extent", c.offset_lr_extent, "Multiply the offset rates by the camera radius");
+  sub->add_option("--lr-sh", c.sh_dc_lr, "SH DC learning rate (default 0.0025)");
+  sub->add_option("--lr-sh-rest", c.sh_rest_lr, "Higher SH learning rate (default 0.0025 / 20)");
+  sub->add_option("--lr-opacity", c.opacity_lr, "Opacity logit learning rate (default 0.05)");
+  sub->add_option("--lr-scaling", c.scaling_lr, "Scale logit learning rate (default 0.005)");
+  sub->add_option("--lr-rotation", c.rotation_lr, "Rotation learning rate (default 0.001)");
+  sub->add_option("--top-cells", c.anchors.top_cells, "Top-layer voxels along the longest extent (default 200)")
+      ->check(CLI::PositiveNumber);
+  sub->add_option("--children", c.anchors.children, "Gaussians per anchor (default 5)")->check(CLI::Range(1, 64));
+  sub->add_option("--log-every", a->log_every, "Progress line every N iterations (default 100; 0 = none)")
+      ->check(CLI::NonNegativeNumber);
+  sub->add_option("--test-every", a->test_every, "With --eval: test metrics every N iterations (default 0 = end only)")
+      ->check(CLI::NonNegativeNumber);
+  sub->add_option("--save-every", a->save_every, "Checkpoint every N iterations (default 0 = end only)")
+      ->check(CLI::NonNegativeNumber);
+  sub->add_flag("--profile", a->profile, "Time every kernel and print the per-iteration breakdown");
+  set_action(sub, [&global, a] { cmd_train(global, *a); });
+}
+
+}  // namespace ag2gs::cli

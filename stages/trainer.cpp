@@ -1,0 +1,330 @@
+#include "stages/trainer.h"
+
+#include <spdlog/spdlog.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <stdexcept>
+#include <system_error>
+
+#include "host/model_io.h"
+#include "host/ply_io.h"
+
+namespace fs = std::filesystem;
+
+namespace ag2gs {
+
+namespace {
+
+uint64_t splitmix64(uint64_t x) {
+  x += 0x9e3779b97f4a7c15ull;
+  x = (x ^ (x >> 30)) * 0xbf58476d1ce4e5b9ull;
+  x = (x ^ (x >> 27)) * 0x94d049bb133111ebull;
+  return x ^ (x >> 31);
+}
+
+// Counter-based: a function of (seed, a, b) only.
+uint64_t hash3(uint64_t seed, uint64_t a, uint64_t b) {
+  return splitmix64(splitmix64(splitmix64(seed ^ 0x7261696e5f766965ull) ^ a) ^ b);
+}
+
+template <typename... Args>
+void set_kernel_args(cl::Kernel& k, Args&&... args) {
+  cl_uint i = 0;
+  auto one = [&](auto&& v) { AG2GS_CL_CHECK(k.setArg(i++, v)); };
+  (one(std::forward<Args>(args)), ...);
+}
+
+}  // namespace
+
+// ------------------------------------------------------------------ config
+void TrainConfig::validate() const {
+  auto bad = [](const std::string& what) { throw std::invalid_argument("TrainConfig: " + what); };
+  anchors.validate();
+  if (iterations < 1) bad("iterations is " + std::to_string(iterations) + "; it must be at least 1");
+  if (sh_interval < 0) bad("sh_interval is " + std::to_string(sh_interval) + "; use 0 (automatic) or more");
+  if (!(lambda_ssim >= 0 && lambda_ssim <= 1)) bad("lambda_ssim must be in [0, 1]");
+  if (!(w_offset >= 0) || !std::isfinite(w_offset)) bad("w_offset must be finite and >= 0");
+  if (!(w_distortion >= 0) || !std::isfinite(w_distortion)) bad("w_distortion must be finite and >= 0");
+  if (distortion_from < 0) bad("distortion_from must be >= 0");
+  const std::pair<const char*, double> rates[] = {
+      {"offset_lr_init", offset_lr_init}, {"offset_lr_final", offset_lr_final},
+      {"feature_lr", feature_lr},         {"sh_dc_lr", sh_dc_lr},
+      {"sh_rest_lr", sh_rest_lr},         {"opacity_lr", opacity_lr},
+      {"scaling_lr", scaling_lr},         {"rotation_lr", rotation_lr}};
+  for (const auto& [name, v] : rates)
+    if (!(v >= 0) || !std::isfinite(v)) bad(std::string(name) + " must be finite and >= 0");
+  if (offset_lr_init > 0 && !(offset_lr_final > 0))
+    bad("offset_lr_final must be > 0 when offset_lr_init is (exponential decay)");
+}
+
+int TrainConfig::effective_sh_interval() const {
+  if (sh_interval > 0) return sh_interval;
+  return std::max(1, std::min(1000, iterations / (anchors.sh_degree + 1)));
+}
+
+nlohmann::json TrainConfig::to_json() const {
+  nlohmann::json a = {{"children", anchors.children},     {"layers", anchors.layers},
+                      {"top_cells", anchors.top_cells},   {"layer_ratio", anchors.layer_ratio},
+                      {"init_layer", anchors.init_layer}, {"init_opacity", anchors.init_opacity},
+                      {"init_scale", anchors.init_scale}, {"init_feature", anchors.init_feature},
+                      {"sh_degree", anchors.sh_degree}};
+  return {{"iterations", iterations},
+          {"seed", seed},
+          {"anchors", a},
+          {"sh_interval", effective_sh_interval()},
+          {"lambda_ssim", lambda_ssim},
+          {"w_offset", w_offset},
+          {"w_distortion", w_distortion},
+          {"distortion_from", distortion_from},
+          {"offset_lr_init", offset_lr_init},
+          {"offset_lr_final", offset_lr_final},
+          {"offset_lr_extent", offset_lr_extent},
+          {"feature_lr", feature_lr},
+          {"sh_dc_lr", sh_dc_lr},
+          {"sh_rest_lr", sh_rest_lr},
+          {"opacity_lr", opacity_lr},
+          {"scaling_lr", scaling_lr},
+          {"rotation_lr", rotation_lr},
+          {"adam", {{"beta1", adam.beta1}, {"beta2", adam.beta2}, {"eps", adam.eps}}},
+          {"white_background", white_background}};
+}
+
+// ------------------------------------------------------------------ helpers
+void check_model_dir_writable(const std::string& dir) {
+  std::error_code ec;
+  fs::create_directories(dir, ec);
+  if (ec || !fs::is_directory(dir))
+    throw std::runtime_error("model directory " + dir + " cannot be created" + (ec ? ": " + ec.message() : "") +
+                             "; choose another -o");
+  const fs::path probe = fs::path(dir) / (".ag2gs_write_test." + std::to_string(::getpid()));
+  bool ok = false;
+  {
+    std::ofstream f(probe, std::ios::binary);
+    if (f) {
+      f << "ok";
+      f.close();
+      ok = static_cast<bool>(f);
+    }
+  }
+  fs::remove(probe, ec);
+  if (!ok) throw std::runtime_error("model directory " + dir + " is not writable; choose another -o");
+}
+
+void write_json_atomic(const std::string& path, const nlohmann::json& doc) {
+  const std::string tmp = path + ".tmp." + std::to_string(::getpid());
+  {
+    std::ofstream f(tmp, std::ios::binary | std::ios::trunc);
+    if (!f) throw std::runtime_error("cannot write " + tmp);
+    f << doc.dump(2) << "\n";
+    f.close();
+    if (!f) {
+      std::error_code ec;
+      fs::remove(tmp, ec);
+      throw std::runtime_error("cannot write " + tmp);
+    }
+  }
+  std::error_code ec;
+  fs::rename(tmp, path, ec);
+  if (ec) {
+    fs::remove(tmp, ec);
+    throw std::runtime_error("cannot rename " + tmp + " to " + path);
+  }
+}
+
+// ------------------------------------------------------------------ trainer
+Trainer::Trainer(Runtime& rt, Scene& scene, const TrainConfig& config)
+    : rt_(rt),
+      scene_(scene),
+      config_(config),
+      anchors_(rt),
+      grads_(rt),
+      gaussians_(rt),
+      expander_(rt),
+      renderer_(rt),
+      image_loss_(rt),
+      adam_(rt, config.adam) {
+  config_.validate();
+  scene_.require_points();
+  train_views_ = scene_.train_views();
+  if (train_views_.empty()) throw std::runtime_error("scene " + scene_.dir() + " has no training views");
+  const VoxelGrid grid = VoxelGrid::from_bounds(scene_.bounds(), config_.anchors);
+  init_stats_ = model_.initialise_from_points(scene_.points(), scene_.colors(), grid, config_.anchors, config_.seed);
+  if (model_.size() == 0)
+    throw std::runtime_error("scene " + scene_.dir() + ": no anchor could be placed from " +
+                             std::to_string(scene_.points().size()) + " SfM points (all non-finite or out of range)");
+  extent_ = scene_.bounds().camera_radius > 0 ? scene_.bounds().camera_radius : scene_.bounds().longest_extent();
+  anchors_.upload(model_);
+  const size_t n = model_.gaussians();
+  g_offset_ = std::make_unique<AdamGroup>(rt_, "offset", n, 3);
+  g_scale_ = std::make_unique<AdamGroup>(rt_, "scaling", n, 3);
+  g_quat_ = std::make_unique<AdamGroup>(rt_, "rotation", n, 4);
+  g_opacity_ = std::make_unique<AdamGroup>(rt_, "opacity", n, 1);
+  g_dc_ = std::make_unique<AdamGroup>(rt_, "sh_dc", n, 3);
+  g_rest_ = std::make_unique<AdamGroup>(rt_, "sh_rest", n, 3 * kShRestCoeffs);
+  reg_value_.bind(&rt_);
+}
+
+Trainer::~Trainer() = default;
+
+int Trainer::active_sh_degree() const {
+  return std::min(config_.anchors.sh_degree, iteration_ / config_.effective_sh_interval());
+}
+
+double Trainer::offset_lr(int it) const {
+  const double scale = config_.offset_lr_extent ? extent_ : 1.0;
+  if (config_.offset_lr_init <= 0) return 0;
+  const double p = std::clamp(static_cast<double>(it) / config_.iterations, 0.0, 1.0);
+  return scale * std::exp(std::log(config_.offset_lr_init) * (1 - p) + std::log(config_.offset_lr_final) * p);
+}
+
+int Trainer::view_for_iteration(int it) const {
+  const size_t n = train_views_.size();
+  const uint64_t epoch = static_cast<uint64_t>(it) / n;
+  const size_t pos = static_cast<size_t>(it) % n;
+  std::vector<int> perm(train_views_);
+  // Fisher-Yates with counter-based draws (unbiased enough for n << 2^64).
+  for (size_t i = n; i > 1; --i) {
+    const size_t j = static_cast<size_t>(hash3(config_.seed, epoch, i) % i);
+    std::swap(perm[i - 1], perm[j]);
+  }
+  return perm[pos];
+}
+
+const AnchorModel& Trainer::model() {
+  if (host_stale_) {
+    anchors_.download(model_);
+    host_stale_ = false;
+  }
+  return model_;
+}
+
+StepStats Trainer::step(bool compute_offset_loss) {
+  StepStats st;
+  const int it = iteration_;
+  st.iteration = it + 1;
+  st.view = view_for_iteration(it);
+  st.sh_degree = active_sh_degree();
+  const SceneView& view = scene_.views()[st.view];
+  std::shared_ptr<const Image> target = scene_.image(st.view);
+
+  RenderSettings settings;
+  const float bg = config_.white_background ? 1.f : 0.f;
+  settings.background = {bg, bg, bg};
+
+  expander_.forward(anchors_, gaussians_, st.sh_degree);
+  renderer_.forward(gaussians_, view.camera, settings);
+  st.intersections = renderer_.stats().n_intersections;
+  RenderOutput out = renderer_.download_output();
+  const int w = out.width, h = out.height;
+  const size_t npix = static_cast<size_t>(w) * h;
+
+  OutputGrads og;
+  ImageLossResult lr = image_loss_.forward_backward(out.rgb, target->rgb, w, h, config_.lambda_ssim, &og.rgb, nullptr);
+  st.l1 = lr.l1;
+  st.ssim = lr.ssim;
+  st.psnr = lr.psnr();
+  double dist_sum = 0;
+  for (float d : out.distortion) dist_sum += d;
+  st.distortion = dist_sum / static_cast<double>(npix);
+  st.loss = lr.loss;
+  const bool with_dist = config_.w_distortion > 0 && it >= config_.distortion_from;
+  if (with_dist) {
+    og.distortion.assign(npix, config_.w_distortion / static_cast<float>(npix));
+    st.loss += config_.w_distortion * st.distortion;
+  }
+
+  renderer_.backward(og);
+  expander_.backward(anchors_, renderer_.device_grads(), grads_);
+
+  const size_t n = anchors_.gaussians();
+  if (config_.w_offset > 0 && n > 0) {
+    reg_value_.reserve(n * 4);
+    cl::Kernel k = rt_.kernel("train.cl", "offset_reg", {});
+    set_kernel_args(k, static_cast<cl_int>(n), config_.w_offset / static_cast<float>(n), anchors_.offset.get(),
+                    grads_.offset.get(), reg_value_.get());
+    rt_.launch("offset_reg", k, cl::NDRange(n), cl::NDRange(64));
+    if (compute_offset_loss) {
+      std::vector<float> v;
+      reg_value_.download(v, n);
+      double s = 0;
+      for (float x : v) s += x;
+      st.offset_reg = s / static_cast<double>(n);
+      st.with_offset_loss = true;
+      st.loss += config_.w_offset * st.offset_reg;
+    }
+  }
+
+  adam_.clear_nonfinite();
+  adam_.accumulate_nonfinite(grads_.offset, n * 3);
+  adam_.accumulate_nonfinite(grads_.scale_logit, n * 3);
+  adam_.accumulate_nonfinite(grads_.quat, n * 4);
+  adam_.accumulate_nonfinite(grads_.opacity_logit, n);
+  adam_.accumulate_nonfinite(grads_.sh_dc, n * 3);
+  adam_.accumulate_nonfinite(grads_.sh_rest, n * 3 * kShRestCoeffs);
+  st.nonfinite = adam_.read_nonfinite();
+  if (st.nonfinite > 0 || !std::isfinite(st.loss)) {
+    st.skipped = true;
+    spdlog::warn("iteration {}: {} non-finite gradient values (loss {}); step skipped", st.iteration, st.nonfinite,
+                 st.loss);
+  } else {
+    adam_.step(*g_offset_, anchors_.offset, grads_.offset, offset_lr(it));
+    adam_.step(*g_scale_, anchors_.scale_logit, grads_.scale_logit, config_.scaling_lr);
+    adam_.step(*g_quat_, anchors_.quat, grads_.quat, config_.rotation_lr);
+    adam_.step(*g_opacity_, anchors_.opacity_logit, grads_.opacity_logit, config_.opacity_lr);
+    adam_.step(*g_dc_, anchors_.sh_dc, grads_.sh_dc, config_.sh_dc_lr);
+    adam_.step(*g_rest_, anchors_.sh_rest, grads_.sh_rest, config_.sh_rest_lr);
+    host_stale_ = true;
+  }
+  iteration_ = it + 1;
+  return st;
+}
+
+EvalStats Trainer::evaluate(const std::vector<int>& views) {
+  EvalStats ev;
+  if (views.empty()) return ev;
+  RenderSettings settings;
+  const float bg = config_.white_background ? 1.f : 0.f;
+  settings.background = {bg, bg, bg};
+  expander_.forward(anchors_, gaussians_, active_sh_degree());
+  for (int v : views) {
+    renderer_.forward(gaussians_, scene_.views()[v].camera, settings);
+    RenderOutput out = renderer_.download_output();
+    for (float& x : out.rgb) x = std::clamp(x, 0.f, 1.f);
+    std::shared_ptr<const Image> target = scene_.image(v);
+    ImageLossResult r = image_loss_.forward_backward(out.rgb, target->rgb, out.width, out.height, config_.lambda_ssim,
+                                                     nullptr, nullptr);
+    ev.psnr += r.psnr();
+    ev.ssim += r.ssim;
+    ev.l1 += r.l1;
+    ++ev.views;
+  }
+  ev.psnr /= ev.views;
+  ev.ssim /= ev.views;
+  ev.l1 /= ev.views;
+  return ev;
+}
+
+void Trainer::save(const std::string& model_dir) {
+  const AnchorModel& m = model();
+  ModelArchive archive;
+  m.to_archive(archive);
+  archive.meta["train"] = {{"stage", 1},
+                           {"iteration", iteration_},
+                           {"seed", config_.seed},
+                           {"active_sh_degree", active_sh_degree()},
+                           {"scene", scene_.dir()},
+                           {"resolution", scene_.options().resolution},
+                           {"eval_split", scene_.options().eval},
+                           {"config", config_.to_json()}};
+  fs::create_directories(model_dir);
+  write_model_archive((fs::path(model_dir) / "model.ag2gs").string(), archive);
+  GaussianSet set = expand_reference(m, active_sh_degree());
+  write_ply((fs::path(model_dir) / "point_cloud.ply").string(), set, true, PlyValues::activated);
+}
+
+}  // namespace ag2gs

@@ -1,0 +1,166 @@
+// Stage-1 training (appearance, DESIGN.md sections 2, 3, 8, 9): anchors from
+// the scene's SfM points, then per iteration one training view
+//
+//   expand anchors -> render -> L = L_rgb + w_in L_in + w_d L_d
+//   -> renderer backward -> expander backward (+ dL_in/d offset)
+//   -> non-finite check (skip the step) -> Adam per parameter group
+//
+// with L_rgb = (1 - lambda) L1 + lambda (1 - SSIM) (host/image_loss.h),
+// L_in = mean over offsets of exp(relu(|o|^2 - 1)) (offsets in voxel units),
+// L_d = mean over pixels of the renderer's distortion output.
+//
+// Not done yet: anchor growing and pruning, opacity reset, the mask losses
+// and the semantic features (stage-1 appearance only: the feature group gets
+// no gradient and is not stepped).
+//
+// Deterministic: the view order comes from a counter-based hash of (seed,
+// epoch); every kernel on the path is free of floating-point atomics, so the
+// same seed on the same device gives the same bits in the model files.
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <nlohmann/json.hpp>
+#include <string>
+#include <vector>
+
+#include "host/adam.h"
+#include "host/cl_runtime.h"
+#include "host/image_loss.h"
+#include "host/renderer.h"
+#include "host/scene.h"
+#include "stages/anchor_model.h"
+#include "stages/expander.h"
+
+namespace ag2gs {
+
+struct TrainConfig {
+  int iterations = 30000;
+  uint64_t seed = 0;
+
+  // Representation (children, layers, voxel size, init, highest SH degree).
+  AnchorConfig anchors;
+  // Iterations between SH degree increments; 0 = min(1000, iterations / (sh_degree + 1)), at least 1.
+  int sh_interval = 0;
+
+  // Losses.
+  float lambda_ssim = kSsimLambda;  // L_rgb = (1 - lambda) L1 + lambda (1 - SSIM)
+  float w_offset = 0.5f;            // w_in, offset regulariser (paper 0.5)
+  float w_distortion = 50.f;        // w_d, depth distortion (paper 50, official scripts 20)
+  int distortion_from = 0;          // first iteration with the distortion term (official: 10000 at 30k)
+
+  // Learning rates (DESIGN.md section 9). The offset rate decays
+  // exponentially from init to final over the run; offsets are in voxel
+  // units, so with offset_lr_extent the rates are multiplied by the scene's
+  // camera radius as the official code does for its (world-unit) offsets.
+  double offset_lr_init = 1e-3;
+  double offset_lr_final = 1e-4;
+  bool offset_lr_extent = false;
+  double feature_lr = 0.05;  // semantic features (not stepped in stage 1: no feature loss yet)
+  double sh_dc_lr = 0.0025;
+  double sh_rest_lr = 0.0025 / 20;
+  double opacity_lr = 0.05;
+  double scaling_lr = 0.005;
+  double rotation_lr = 0.001;
+  AdamSettings adam;
+
+  bool white_background = false;
+
+  // Throws std::invalid_argument naming the first field out of range.
+  void validate() const;
+  // Every field (for the model archive and metrics).
+  nlohmann::json to_json() const;
+  // The SH interval actually used.
+  int effective_sh_interval() const;
+};
+
+// What one iteration did.
+struct StepStats {
+  int iteration = 0;  // 1-based number of the step just taken
+  int view = -1;
+  bool skipped = false;  // non-finite gradients: no parameter changed
+  uint64_t nonfinite = 0;
+  double loss = 0;  // total (L_in only when computed, see with_offset_loss)
+  double l1 = 0, ssim = 1, psnr = 0;
+  double distortion = 0;  // mean over pixels (unweighted)
+  double offset_reg = 0;  // L_in (unweighted), 0 unless computed this step
+  bool with_offset_loss = false;
+  int sh_degree = 0;
+  size_t intersections = 0;
+};
+
+struct EvalStats {
+  int views = 0;
+  double psnr = 0, ssim = 0, l1 = 0;  // means over the views
+};
+
+class Trainer {
+ public:
+  // Opens nothing: `scene` is the caller's (its resolution and split are
+  // used as they are). Throws when the config is invalid or the scene has no
+  // points (Scene::require_points).
+  Trainer(Runtime& rt, Scene& scene, const TrainConfig& config);
+  ~Trainer();
+
+  // Anchors from the scene's SfM points (config.anchors, seed); uploads them
+  // and creates the optimiser state. Called by the constructor.
+  const AnchorInitStats& init_stats() const { return init_stats_; }
+
+  // One training iteration. With compute_offset_loss the (unweighted) L_in
+  // is read back and included in the stats' loss (a host synchronisation,
+  // for progress lines); the gradient is always applied.
+  StepStats step(bool compute_offset_loss = false);
+
+  // Mean PSNR/SSIM/L1 over `views` (rendered at the active SH degree, no
+  // clamping of the rendered colours).
+  EvalStats evaluate(const std::vector<int>& views);
+
+  // MODEL_DIR/model.ag2gs (anchors, config, iteration, seed) and
+  // MODEL_DIR/point_cloud.ply (the expanded Gaussians), both atomic.
+  void save(const std::string& model_dir);
+
+  int iteration() const { return iteration_; }
+  int active_sh_degree() const;
+  size_t anchors() const { return model_.size(); }
+  size_t gaussians() const { return model_.gaussians(); }
+  // The model with the device's current values.
+  const AnchorModel& model();
+  const TrainConfig& config() const { return config_; }
+  // The training view of iteration `it` (0-based): a permutation of the
+  // training views per epoch from a counter-based hash of (seed, epoch).
+  int view_for_iteration(int it) const;
+  double offset_lr(int it) const;
+
+ private:
+  Runtime& rt_;
+  Scene& scene_;
+  TrainConfig config_;
+  std::vector<int> train_views_;
+  AnchorModel model_;
+  AnchorInitStats init_stats_;
+  int iteration_ = 0;
+  bool host_stale_ = false;
+  double extent_ = 1;
+
+  DeviceAnchors anchors_;
+  DeviceAnchorGrads grads_;
+  DeviceGaussians gaussians_;
+  Expander expander_;
+  Renderer renderer_;
+  ImageLoss image_loss_;
+  Adam adam_;
+  std::unique_ptr<AdamGroup> g_offset_, g_scale_, g_quat_, g_opacity_, g_dc_, g_rest_;
+  DeviceBuffer reg_value_;
+};
+
+// Creates `dir` if needed and checks that a file can be written in it;
+// throws std::runtime_error naming the directory otherwise. The trainer's
+// caller runs this before training so a long run cannot fail at the end.
+void check_model_dir_writable(const std::string& dir);
+
+// A JSON document written atomically (temp file + rename).
+void write_json_atomic(const std::string& path, const nlohmann::json& doc);
+
+}  // namespace ag2gs
