@@ -3,7 +3,7 @@
 
 Usage: python3 fuzz/make_seeds.py OUT_DIR
 Creates OUT_DIR/<target>/<seed> for fuzz_npy, fuzz_ply, fuzz_colmap_bin and
-fuzz_colmap_txt from the sample scene in data_samples/ (tiny_scene: PLY and
+fuzz_colmap_txt from the sample scene, plus fuzz_model and fuzz_json seeds in data_samples/ (tiny_scene: PLY and
 text COLMAP model; tiny_scene_bin: binary model), kept small so the fuzzers
 run fast. Deterministic: a rerun writes the same bytes.
 """
@@ -143,6 +143,55 @@ def colmap_txt_seeds(out):
     put(out, "fuzz_colmap_txt", "models_and_names", three(cams, imgs, pts))
 
 
+# ------------------------------------------------------------------ model archive
+
+def fnv1a64(data):
+    h = 0xcbf29ce484222325
+    for b in data:
+        h ^= b
+        h = (h * 0x100000001b3) & 0xFFFFFFFFFFFFFFFF
+    return h
+
+
+def archive(meta, arrays):
+    """A model.ag2gs file laid out as host/model_io.cpp writes it."""
+    import json
+    entries, blobs, offset = [], b"", 0
+    for name, dtype, shape, payload in arrays:
+        entries.append({"name": name, "dtype": dtype, "shape": shape, "offset": offset, "bytes": len(payload),
+                        "fnv1a64": str(fnv1a64(payload))})
+        padded = payload + b"\0" * ((8 - len(payload) % 8) % 8)
+        blobs += padded
+        offset += len(padded)
+    header = json.dumps({"meta": meta, "arrays": entries}, separators=(",", ":")).encode()
+    head = b"AG2GSMDL" + struct.pack("<IIQ", 1, 0, len(header)) + header + struct.pack("<Q", fnv1a64(header))
+    head += b"\0" * ((8 - len(head) % 8) % 8)
+    return head + blobs
+
+
+def model_seeds(out):
+    put(out, "fuzz_model", "empty", archive({}, []))
+    put(out, "fuzz_model", "arrays", archive(
+        {"iteration": 7, "config": {"lr": 0.001}},
+        [("anchors/pos", "f32", [2, 3], struct.pack("<6f", 0, 1, 2, 3, 4, 5)),
+         ("anchors/layer", "i32", [2], struct.pack("<2i", 0, 1)),
+         ("rng", "u64", [1], struct.pack("<Q", 123)),
+         ("flags", "u8", [3], b"\1\0\1")]))
+
+
+# ------------------------------------------------------------------ JSON
+
+def json_seeds(out):
+    put(out, "fuzz_json", "vocab", b"\0" + b'{"red mug": [1, 0, 0.5], "ball": [0, 1, -2e-3]}')
+    put(out, "fuzz_json", "label", b"\1" + b'{"info": {"width": 16, "height": 12, "name": "f.jpg"}, "objects": '
+        b'[{"category": "cup", "segmentation": [[2, 2], [9, 2.5], [9, 9], [2, 9]], "bbox": [2, 2, 9, 9]}]}')
+    put(out, "fuzz_json", "clicks", b"\2" + b'[{"frame": "view_000", "x": 10.5, "y": 3, "category": "mug"}]')
+    for name in ("vocab.json", "clicks.json"):
+        path = os.path.join("synth_small", name)
+        if os.path.exists(os.path.join(SAMPLES, path)) and name == "clicks.json":
+            put(out, "fuzz_json", "sample_clicks", b"\2" + read(path))
+
+
 def main():
     if len(sys.argv) != 2:
         sys.exit("usage: make_seeds.py OUT_DIR")
@@ -151,6 +200,8 @@ def main():
     ply_seeds(out)
     colmap_bin_seeds(out)
     colmap_txt_seeds(out)
+    model_seeds(out)
+    json_seeds(out)
 
 
 if __name__ == "__main__":

@@ -6,7 +6,7 @@
 # and log-<date>.txt (one per run, with libFuzzer's final statistics).
 #
 # Usage: fuzz/run_fuzzers.sh [SECONDS_PER_TARGET (default 60)] [TARGET...]
-#   TARGET: fuzz_npy fuzz_ply fuzz_colmap_bin fuzz_colmap_txt (default: all)
+#   TARGET: fuzz_npy fuzz_ply fuzz_colmap_bin fuzz_colmap_txt fuzz_model fuzz_json (default: all)
 # Environment: CXX_FUZZ / CC_FUZZ (default clang++ / clang), JOBS (build
 # parallelism, default 2), FUZZ_ARGS (extra libFuzzer flags), FUZZ_TMPDIR
 # (where the targets write their inputs; default /dev/shm).
@@ -17,7 +17,7 @@ ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 SECONDS_PER_TARGET=${1:-60}
 shift || true
 TARGETS=("$@")
-[ ${#TARGETS[@]} -eq 0 ] && TARGETS=(fuzz_npy fuzz_ply fuzz_colmap_bin fuzz_colmap_txt)
+[ ${#TARGETS[@]} -eq 0 ] && TARGETS=(fuzz_npy fuzz_ply fuzz_colmap_bin fuzz_colmap_txt fuzz_model fuzz_json)
 
 pick() { for c in "$@"; do command -v "$c" >/dev/null 2>&1 && { command -v "$c"; return; }; done; }
 CXX_FUZZ=${CXX_FUZZ:-$(pick clang++ clang++-14)}
@@ -50,6 +50,8 @@ for t in "${TARGETS[@]}"; do
     fuzz_ply) dict=ply.dict ;;
     fuzz_colmap_bin) dict=colmap_bin.dict ;;
     fuzz_colmap_txt) dict=colmap_txt.dict ;;
+    fuzz_model) dict=model.dict ;;
+    fuzz_json) dict=json.dict ;;
     *) echo "run_fuzzers: unknown target '$t'" >&2; exit 2 ;;
   esac
   mkdir -p "$OUT/$t/corpus" "$OUT/$t/findings"
