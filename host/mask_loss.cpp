@@ -143,10 +143,10 @@ bool MaskLoss::set_masks(const ViewMasks& masks, int64_t key) {
   return true;
 }
 
-MaskLossResult MaskLoss::forward_backward(const DeviceBuffer& feature, const DeviceBuffer* alpha, int width, int height,
-                                          ImageLayout layout, float w_is, float w_ic, DeviceBuffer* grad_feature,
-                                          DeviceBuffer* grad_alpha) {
-  if (!loaded_) throw std::logic_error("MaskLoss::forward_backward() before set_masks()");
+void MaskLoss::enqueue(const DeviceBuffer& feature, const DeviceBuffer* alpha, int width, int height,
+                       ImageLayout layout, float w_is, float w_ic, DeviceBuffer* grad_feature,
+                       DeviceBuffer* grad_alpha) {
+  if (!loaded_) throw std::logic_error("MaskLoss: forward_backward() or enqueue() before set_masks()");
   if (width != width_ || height != height_)
     throw std::invalid_argument("mask loss: the feature map is " + std::to_string(width) + "x" +
                                 std::to_string(height) + " but the masks set last are " + std::to_string(width_) + "x" +
@@ -212,17 +212,24 @@ MaskLossResult MaskLoss::forward_backward(const DeviceBuffer& feature, const Dev
     rt_.launch("mask_grad", k, cl::NDRange(items), local);
   }
 
+  enqueued_ = true;
+  enqueued_count_ = count_;
+}
+
+MaskLossResult MaskLoss::result() {
+  if (!enqueued_) throw std::logic_error("MaskLoss::result() before enqueue()");
   // The losses: per-mask terms summed on the host in double, in mask order.
+  const int count = enqueued_count_;
   std::vector<int> stats;
   stats_.download(stats, 2);
   MaskLossResult r;
   r.masks = stats[0];
   r.mask_pixels = stats[1];
-  if (count_ > 0 && r.mask_pixels > 0) {
+  if (count > 0 && r.mask_pixels > 0) {
     std::vector<float> terms;
-    terms_.download(terms, static_cast<size_t>(count_) * 2);
+    terms_.download(terms, static_cast<size_t>(count) * 2);
     double is = 0, ic = 0;
-    for (int j = 0; j < count_; ++j) {
+    for (int j = 0; j < count; ++j) {
       is += terms[2 * j];
       ic += terms[2 * j + 1];
     }
@@ -230,6 +237,13 @@ MaskLossResult MaskLoss::forward_backward(const DeviceBuffer& feature, const Dev
     if (r.masks >= 2) r.l_ic = ic / (static_cast<double>(r.masks) * (r.masks - 1));
   }
   return r;
+}
+
+MaskLossResult MaskLoss::forward_backward(const DeviceBuffer& feature, const DeviceBuffer* alpha, int width, int height,
+                                          ImageLayout layout, float w_is, float w_ic, DeviceBuffer* grad_feature,
+                                          DeviceBuffer* grad_alpha) {
+  enqueue(feature, alpha, width, height, layout, w_is, w_ic, grad_feature, grad_alpha);
+  return result();
 }
 
 MaskLossResult MaskLoss::forward_backward(const std::vector<float>& feature, const std::vector<float>* alpha, int width,

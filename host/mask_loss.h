@@ -73,8 +73,8 @@ class MaskLoss {
   int64_t masks_key() const { return key_; }
   int mask_count() const { return count_; }
 
-  // Device API for the trainer (blocks only for the few per-mask values the
-  // result needs; the gradient kernels are enqueued before that read).
+  // Device API for the trainer: enqueues the kernels only, no host
+  // synchronisation; result() then reads the losses of the last enqueue().
   //   feature: [3,H,W] or [H,W,3] per `layout`, the rendered feature map F
   //   alpha: [H,W] accumulated alpha; non-null switches on normalise_by_alpha
   //   grad_feature: receives w_is dL_is/dF + w_ic dL_ic/dF in F's layout
@@ -82,6 +82,13 @@ class MaskLoss {
   //   grad_alpha: [H,W] receives the same for alpha (0 without alpha);
   //               overwritten; may be null
   // width and height must be those of the masks set last.
+  void enqueue(const DeviceBuffer& feature, const DeviceBuffer* alpha, int width, int height, ImageLayout layout,
+               float w_is, float w_ic, DeviceBuffer* grad_feature, DeviceBuffer* grad_alpha = nullptr);
+  // The losses of the last enqueue(): waits for it and sums the per-mask
+  // terms in double, in mask order.
+  MaskLossResult result();
+
+  // enqueue() + result().
   MaskLossResult forward_backward(const DeviceBuffer& feature, const DeviceBuffer* alpha, int width, int height,
                                   ImageLayout layout, float w_is, float w_ic, DeviceBuffer* grad_feature,
                                   DeviceBuffer* grad_alpha = nullptr);
@@ -100,7 +107,8 @@ class MaskLoss {
   Runtime& rt_;
   int wg_ = 0, lanes_ = 1;
   int64_t key_ = -1;
-  bool loaded_ = false;
+  bool loaded_ = false, enqueued_ = false;
+  int enqueued_count_ = 0;  // masks of the last enqueue()
   int width_ = 0, height_ = 0, layers_ = 0, count_ = 0, chunks_ = 0;
   DeviceBuffer labels_, pixels_, chunk_table_, mask_chunks_;  // per view
   DeviceBuffer sums_, means_, stats_, abs_, coef_, terms_;    // per call
