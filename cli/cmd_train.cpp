@@ -72,6 +72,11 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   }
   spdlog::info("{} iterations, seed {}, SH degree up to {} (+1 every {} iterations), background {}", c.iterations,
                c.seed, c.anchors.sh_degree, c.effective_sh_interval(), c.white_background ? "white" : "black");
+  if (c.grow_every > 0 && c.anchors.layers > 1 && c.grow_from <= c.effective_grow_until())
+    spdlog::info("anchor growing every {} iterations from {} to {} (threshold {:.3g})", c.grow_every, c.grow_from,
+                 c.effective_grow_until(), c.grow_threshold);
+  else
+    spdlog::info("anchor growing off");
 
   nlohmann::json metrics = {{"scene", scene->dir()},
                             {"resolution", a.resolution},
@@ -103,6 +108,9 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
     const bool log_now = a.log_every > 0 && ((it + 1) % a.log_every == 0 || it + 1 == c.iterations || it == 0);
     StepStats st = trainer.step(log_now);
     if (st.skipped) ++skipped;
+    if (st.grown > 0)
+      spdlog::info("iteration {}: grew {} anchors -> {} anchors, {} Gaussians", st.iteration, st.grown,
+                   trainer.anchors(), trainer.gaussians());
     if (std::isnan(psnr0)) psnr0 = st.psnr;
     sum_loss += st.loss - (st.with_offset_loss ? c.w_offset * st.offset_reg : 0);
     sum_psnr += st.psnr;
@@ -198,6 +206,18 @@ void register_train(CLI::App& app, GlobalOptions& global) {
   sub->add_option("--top-cells", c.anchors.top_cells, "Top-layer voxels along the longest extent (default 200)")
       ->check(CLI::PositiveNumber);
   sub->add_option("--children", c.anchors.children, "Gaussians per anchor (default 5)")->check(CLI::Range(1, 64));
+  sub->add_option("--grow-from", c.grow_from, "First iteration of anchor growing (default 500)")
+      ->check(CLI::NonNegativeNumber);
+  sub->add_option("--grow-until", c.grow_until, "Last iteration of anchor growing (default 0 = 2/3 of --iters)")
+      ->check(CLI::NonNegativeNumber);
+  sub->add_option("--grow-every", c.grow_every, "Iterations between growing rounds (default 100; 0 = no growing)")
+      ->check(CLI::NonNegativeNumber);
+  sub->add_option("--grow-threshold", c.grow_threshold,
+                  "Mean screen-space gradient (NDC units) above which a child grows a finer anchor (default 1.5e-4, "
+                  "x2 per layer)");
+  sub->add_option("--grow-min-seen", c.grow_min_seen,
+                  "Fraction of a round's iterations a child must be visible in to grow (default 0.4)")
+      ->check(CLI::Range(0.0, 1.0));
   sub->add_option("--log-every", a->log_every, "Progress line every N iterations (default 100; 0 = none)")
       ->check(CLI::NonNegativeNumber);
   sub->add_option("--test-every", a->test_every, "With --eval: test metrics every N iterations (default 0 = end only)")

@@ -8,6 +8,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <numeric>
 #include <stdexcept>
 #include <system_error>
 
@@ -58,6 +59,9 @@ void TrainConfig::validate() const {
       {"scaling_lr", scaling_lr},         {"rotation_lr", rotation_lr}};
   for (const auto& [name, v] : rates)
     if (!(v >= 0) || !std::isfinite(v)) bad(std::string(name) + " must be finite and >= 0");
+  if (grow_every < 0 || grow_from < 0 || grow_until < 0 || !(grow_min_seen >= 0 && grow_min_seen <= 1))
+    bad("grow_every, grow_from and grow_until must be >= 0 and grow_min_seen in [0, 1]");
+  if (!(grow_threshold > 0) || !std::isfinite(grow_threshold)) bad("grow_threshold must be finite and > 0");
   if (offset_lr_init > 0 && !(offset_lr_final > 0))
     bad("offset_lr_final must be > 0 when offset_lr_init is (exponential decay)");
 }
@@ -65,6 +69,10 @@ void TrainConfig::validate() const {
 int TrainConfig::effective_sh_interval() const {
   if (sh_interval > 0) return sh_interval;
   return std::max(1, std::min(1000, iterations / (anchors.sh_degree + 1)));
+}
+
+int TrainConfig::effective_grow_until() const {
+  return grow_until > 0 ? grow_until : static_cast<int>(static_cast<int64_t>(iterations) * 2 / 3);
 }
 
 nlohmann::json TrainConfig::to_json() const {
@@ -91,7 +99,13 @@ nlohmann::json TrainConfig::to_json() const {
           {"scaling_lr", scaling_lr},
           {"rotation_lr", rotation_lr},
           {"adam", {{"beta1", adam.beta1}, {"beta2", adam.beta2}, {"eps", adam.eps}}},
-          {"white_background", white_background}};
+          {"white_background", white_background},
+          {"grow",
+           {{"from", grow_from},
+            {"until", effective_grow_until()},
+            {"every", grow_every},
+            {"threshold", grow_threshold},
+            {"min_seen", grow_min_seen}}}};
 }
 
 // ------------------------------------------------------------------ helpers
@@ -167,6 +181,8 @@ Trainer::Trainer(Runtime& rt, Scene& scene, const TrainConfig& config)
   g_dc_ = std::make_unique<AdamGroup>(rt_, "sh_dc", n, 3);
   g_rest_ = std::make_unique<AdamGroup>(rt_, "sh_rest", n, 3 * kShRestCoeffs);
   reg_value_.bind(&rt_);
+  grad_sum_.assign(n, 0.0);
+  seen_.assign(n, 0);
 }
 
 Trainer::~Trainer() = default;
@@ -279,9 +295,76 @@ StepStats Trainer::step(bool compute_offset_loss) {
     adam_.step(*g_dc_, anchors_.sh_dc, grads_.sh_dc, config_.sh_dc_lr);
     adam_.step(*g_rest_, anchors_.sh_rest, grads_.sh_rest, config_.sh_rest_lr);
     host_stale_ = true;
+    const bool growing = config_.grow_every > 0 && config_.anchors.layers > 1;
+    if (growing && st.iteration <= config_.effective_grow_until()) {
+      accumulate_growth_stats(out);
+      if (st.iteration >= config_.grow_from && st.iteration % config_.grow_every == 0) st.grown = grow();
+    }
   }
   iteration_ = it + 1;
   return st;
+}
+
+void Trainer::accumulate_growth_stats(const RenderOutput& out) {
+  const size_t n = anchors_.gaussians();
+  DeviceGaussianGrads dg = renderer_.device_grads();
+  // The renderer's buffer, only read here.
+  const_cast<DeviceBuffer*>(dg.means2d)->download(means2d_host_, n * 2);
+  const double sx = 0.5 * out.width, sy = 0.5 * out.height;  // pixels -> NDC, as 3DGS's threshold expects
+  for (size_t g = 0; g < n; ++g) {
+    if (out.radii[g] <= 0) continue;
+    const double gx = means2d_host_[2 * g] * sx, gy = means2d_host_[2 * g + 1] * sy;
+    grad_sum_[g] += std::sqrt(gx * gx + gy * gy);
+    ++seen_[g];
+  }
+}
+
+int Trainer::grow() {
+  model();  // host values up to date
+  const size_t a0 = model_.size();
+  const size_t n0 = model_.gaussians();
+  const int K = model_.children();
+  const int layers = model_.config().layers;
+  const VoxelGrid& grid = model_.grid();
+  int added = 0;
+  const int min_seen = std::max(1, static_cast<int>(std::ceil(config_.grow_min_seen * config_.grow_every)));
+  for (size_t g = 0; g < n0; ++g) {
+    if (seen_[g] < min_seen) continue;
+    const size_t a = g / K;
+    const int layer = model_.layer()[a];
+    if (layer + 1 >= layers) continue;
+    const double avg = grad_sum_[g] / seen_[g];
+    if (!(avg > config_.grow_threshold * std::ldexp(1.0, layer))) continue;
+    const float l = model_.voxel()[a];
+    Eigen::Vector3d mean;
+    for (int k = 0; k < 3; ++k) mean[k] = double(model_.pos()[3 * a + k]) + double(model_.offset()[3 * g + k]) * l;
+    if (!mean.allFinite()) continue;
+    const Eigen::Vector3i cell = grid.cell_of(layer + 1, mean);
+    if (model_.add_anchor(layer + 1, cell, static_cast<int64_t>(g), config_.seed) >= 0) ++added;
+  }
+  if (spdlog::should_log(spdlog::level::debug)) {
+    size_t visible = 0, enough = 0, above = 0;
+    for (size_t g = 0; g < n0; ++g) {
+      visible += seen_[g] > 0;
+      enough += seen_[g] >= min_seen;
+      above += seen_[g] >= min_seen && grad_sum_[g] / seen_[g] > config_.grow_threshold;
+    }
+    spdlog::debug("grow at iteration {}: {} children, {} seen, {} seen >= {} times, {} of those above {:.3g}",
+                  iteration_ + 1, n0, visible, enough, min_seen, above, config_.grow_threshold);
+  }
+  std::fill(grad_sum_.begin(), grad_sum_.end(), 0.0);
+  std::fill(seen_.begin(), seen_.end(), 0);
+  if (added == 0) return 0;
+  std::vector<int> rows(a0 + added, -1);
+  std::iota(rows.begin(), rows.begin() + a0, 0);
+  const std::vector<int> child = AnchorModel::child_rows(rows, K);
+  anchors_.upload(model_);
+  for (AdamGroup* grp : {g_offset_.get(), g_scale_.get(), g_quat_.get(), g_opacity_.get(), g_dc_.get(), g_rest_.get()})
+    grp->gather(child);
+  const size_t n = model_.gaussians();
+  grad_sum_.assign(n, 0.0);
+  seen_.assign(n, 0);
+  return added;
 }
 
 EvalStats Trainer::evaluate(const std::vector<int>& views) {

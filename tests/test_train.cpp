@@ -6,6 +6,7 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <array>
 #include <cstdio>
 #include <filesystem>
@@ -107,9 +108,14 @@ TEST(Train, ViewOrderIsASeededPermutationPerEpoch) {
   EXPECT_GT(differ, 0);
 }
 
+// One growing round at iteration 40 (threshold raised so that it adds a few
+// dozen anchors, not thousands: keeps the test fast).
+const std::string kGrow = "--grow-from 40 --grow-every 40 --grow-threshold 1e-3";
+
 TEST(Train, SameSeedGivesByteIdenticalModelFiles) {
   test::ScratchDir dir("train_det");
-  const std::string args = "train " + sample_scene() + " -r 2 --top-cells 50 --iters 60 --seed 5 --log-every 0 -o ";
+  const std::string args =
+      "train " + sample_scene() + " -r 2 --top-cells 50 --iters 60 --seed 5 --log-every 0 " + kGrow + " -o ";
   Result r1 = run_cli(args + dir.file("a"));
   ASSERT_EQ(r1.code, 0) << r1.output;
   Result r2 = run_cli(args + dir.file("b"));
@@ -120,8 +126,8 @@ TEST(Train, SameSeedGivesByteIdenticalModelFiles) {
     ASSERT_FALSE(a.empty()) << f;
     EXPECT_TRUE(a == b) << f << " differs between two runs with the same seed";
   }
-  Result r3 =
-      run_cli("train " + sample_scene() + " -r 2 --top-cells 50 --iters 60 --seed 6 --log-every 0 -o " + dir.file("c"));
+  Result r3 = run_cli("train " + sample_scene() + " -r 2 --top-cells 50 --iters 60 --seed 6 --log-every 0 " + kGrow +
+                      " -o " + dir.file("c"));
   ASSERT_EQ(r3.code, 0) << r3.output;
   EXPECT_FALSE(test::read_bytes(dir.file("a/model.ag2gs")) == test::read_bytes(dir.file("c/model.ag2gs")));
 
@@ -132,6 +138,9 @@ TEST(Train, SameSeedGivesByteIdenticalModelFiles) {
   EXPECT_EQ(archive.meta["train"]["iteration"].get<int>(), 60);
   EXPECT_EQ(archive.meta["train"]["seed"].get<uint64_t>(), 5u);
   EXPECT_EQ(archive.meta["train"]["config"]["iterations"].get<int>(), 60);
+  const size_t grown = std::count(model.layer().begin(), model.layer().end(), 1);
+  EXPECT_GT(grown, 0u) << "no anchor grew on layer 1";
+  EXPECT_NE(r1.output.find("grew " + std::to_string(grown) + " anchors"), std::string::npos) << r1.output;
   GaussianSet ply = read_ply(dir.file("a/point_cloud.ply"));
   EXPECT_EQ(ply.size(), model.gaussians());
   EXPECT_EQ(ply.sh_degree, 3);
