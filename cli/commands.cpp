@@ -2,7 +2,10 @@
 
 #include <spdlog/spdlog.h>
 
+#include <algorithm>
+#include <array>
 #include <chrono>
+#include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <map>
@@ -12,6 +15,7 @@
 #include "host/cl_runtime.h"
 #include "host/colmap_reader.h"
 #include "host/image_io.h"
+#include "host/npy_io.h"
 #include "host/ply_io.h"
 #include "host/renderer.h"
 
@@ -63,7 +67,7 @@ void cmd_devices(const GlobalOptions& global) {
 
 // ------------------------------------------------------------------ render
 struct RenderArgs {
-  std::string ply, scene, out, views, bg = "0,0,0", sparse = "sparse/0";
+  std::string model, ply, scene, out, views, outputs = "rgb", bg = "0,0,0", sparse = "sparse/0";
   int resolution = 1;
   bool extras = false;
 };
@@ -89,19 +93,82 @@ std::array<float, 3> parse_rgb(const std::string& s) {
   return v;
 }
 
+std::vector<std::string> split_list(const std::string& s) {
+  std::vector<std::string> out;
+  std::stringstream ss(s);
+  std::string item;
+  while (std::getline(ss, item, ',')) {
+    item.erase(0, item.find_first_not_of(" \t"));
+    item.erase(item.find_last_not_of(" \t") + 1);
+    if (!item.empty()) out.push_back(item);
+  }
+  return out;
+}
+
+// --views: train | test (every 8th image in name order, as --eval holds out) | all | names.
+std::vector<Camera> pick_views(const std::vector<Camera>& all, const std::string& views) {
+  if (views.empty() || views == "all") return all;
+  if (views == "train" || views == "test") {
+    std::vector<Camera> out;
+    for (size_t i = 0; i < all.size(); ++i) {
+      if ((i % 8 == 0) == (views == "test")) out.push_back(all[i]);
+    }
+    return out;
+  }
+  return select_views(all, views);
+}
+
+// A feature vector as a colour: its direction mapped from [-1,1] to [0,1].
+std::vector<float> feature_colours(const std::vector<float>& feature, const std::vector<float>& alpha) {
+  std::vector<float> rgb(feature.size(), 0.f);
+  for (size_t p = 0; p < alpha.size(); ++p) {
+    const float* f = &feature[3 * p];
+    const float n = std::sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2]);
+    if (alpha[p] < 0.1f || n < 1e-12f) continue;
+    for (int c = 0; c < 3; ++c) rgb[3 * p + c] = 0.5f + 0.5f * f[c] / n;
+  }
+  return rgb;
+}
+
 void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
   if (a.resolution < 1) throw std::invalid_argument("-r must be >= 1 (it divides the camera resolution)");
+  std::string ply = a.ply;
+  if (!a.model.empty()) {
+    if (!ply.empty()) throw std::invalid_argument("give either MODEL_DIR or --ply, not both");
+    const fs::path candidate = fs::path(a.model) / "point_cloud.ply";
+    if (!fs::is_directory(a.model)) {
+      throw std::runtime_error(a.model + ": no such model folder (a folder written by `ag2gs train`)");
+    }
+    if (!fs::exists(candidate)) {
+      throw std::runtime_error(a.model + ": has no point_cloud.ply; is it a model folder written by `ag2gs train`?");
+    }
+    ply = candidate.string();
+  }
+  if (ply.empty()) throw std::invalid_argument("give a model folder (MODEL_DIR) or a Gaussian file (--ply FILE)");
+  std::vector<std::string> outputs = split_list(a.outputs);
+  if (a.extras) {
+    for (const char* o : {"depth", "alpha"}) {
+      if (std::find(outputs.begin(), outputs.end(), o) == outputs.end()) outputs.push_back(o);
+    }
+  }
+  for (const std::string& o : outputs) {
+    if (o != "rgb" && o != "depth" && o != "alpha" && o != "feature") {
+      throw std::invalid_argument("--outputs: unknown output '" + o + "'; choose from rgb,depth,alpha,feature");
+    }
+  }
+  if (outputs.empty()) throw std::invalid_argument("--outputs is empty; choose from rgb,depth,alpha,feature");
+  auto wants = [&](const char* o) { return std::find(outputs.begin(), outputs.end(), o) != outputs.end(); };
+
   RenderSettings settings;
   settings.background = parse_rgb(a.bg);
-  GaussianSet set = read_ply(a.ply);
+  GaussianSet set = read_ply(ply);
   fs::path sparse = fs::path(a.scene) / a.sparse;
   if (!fs::is_directory(sparse))
     throw std::runtime_error(sparse.string() + " is not a directory; --scene must hold a COLMAP model in " + a.sparse +
                              "/ (cameras, images, points3D as .bin or .txt)");
   ColmapModel model = read_colmap_model(sparse.string());
-  std::vector<Camera> cams =
-      a.views.empty() ? model.cameras_for_images : select_views(model.cameras_for_images, a.views);
-  if (cams.empty()) throw std::runtime_error(sparse.string() + " has no registered images to render");
+  std::vector<Camera> cams = pick_views(model.cameras_for_images, a.views);
+  if (cams.empty()) throw std::runtime_error(sparse.string() + " has no views to render for --views '" + a.views + "'");
 
   Runtime rt(global.device);
   spdlog::info("device [{}] {}; {} Gaussians (SH degree {}), {} views", rt.info().index, rt.info().name, set.size(),
@@ -110,31 +177,39 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
   DeviceGaussians dg(rt);
   dg.upload(set);
   fs::path out_dir(a.out);
-  fs::create_directories(out_dir / "rgb");
-  if (a.extras) {
-    fs::create_directories(out_dir / "depth");
-    fs::create_directories(out_dir / "alpha");
-  }
+  for (const std::string& o : outputs) fs::create_directories(out_dir / o);
   auto t0 = std::chrono::steady_clock::now();
   for (size_t i = 0; i < cams.size(); ++i) {
     Camera cam = scale_camera(cams[i], a.resolution);
     renderer.forward(dg, cam, settings);
     RenderOutput out = renderer.download_output();
-    std::string stem = fs::path(cam.name).stem().string();
-    write_rgb_png((out_dir / "rgb" / (stem + ".png")).string(), out.rgb, out.width, out.height);
-    if (a.extras) {
-      // Mean depth (metres, 16-bit millimetres) and alpha (16-bit).
+    const std::string stem = fs::path(cam.name).stem().string();
+    const int w = out.width, h = out.height;
+    auto file = [&](const char* o, const char* ext) { return (out_dir / o / (stem + ext)).string(); };
+    if (wants("rgb")) write_rgb_png(file("rgb", ".png"), out.rgb, w, h);
+    if (wants("depth")) {
+      // Mean depth along the ray (sum w z / alpha; 0 where nothing was hit).
       std::vector<float> depth(out.depth.size());
       for (size_t p = 0; p < depth.size(); ++p) depth[p] = out.alpha[p] > 1e-6f ? out.depth[p] / out.alpha[p] : 0.f;
-      write_gray16_png((out_dir / "depth" / (stem + ".png")).string(), depth, out.width, out.height, 1000.f);
-      write_gray16_png((out_dir / "alpha" / (stem + ".png")).string(), out.alpha, out.width, out.height, 65535.f);
+      write_gray16_png(file("depth", ".png"), depth, w, h, 1000.f);
+      write_npy(file("depth", ".npy"), depth, {h, w});
     }
-    double el = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-    double eta = el / (i + 1) * (cams.size() - i - 1);
-    spdlog::info("[{}/{}] {} {}x{}  {} intersections  {:.1f} s elapsed, ETA {:.1f} s", i + 1, cams.size(), cam.name,
-                 out.width, out.height, renderer.stats().n_intersections, el, eta);
+    if (wants("alpha")) {
+      write_gray16_png(file("alpha", ".png"), out.alpha, w, h, 65535.f);
+      write_npy(file("alpha", ".npy"), out.alpha, {h, w});
+    }
+    if (wants("feature")) {
+      write_rgb_png(file("feature", ".png"), feature_colours(out.feature, out.alpha), w, h);
+      write_npy(file("feature", ".npy"), out.feature, {h, w, 3});
+    }
+    const double el = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    const double eta = el / (i + 1) * (cams.size() - i - 1);
+    spdlog::info("[{}/{}] {} {}x{}  {} intersections  {:.1f} s elapsed, ETA {:.1f} s", i + 1, cams.size(), cam.name, w,
+                 h, renderer.stats().n_intersections, el, eta);
   }
-  spdlog::info("wrote {} images to {}", cams.size(), (out_dir / "rgb").string());
+  const double total = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  spdlog::info("wrote {} views x {} outputs to {} ({:.2f} views/s)", cams.size(), outputs.size(), out_dir.string(),
+               cams.size() / std::max(total, 1e-9));
 }
 
 }  // namespace
@@ -144,16 +219,20 @@ void register_commands(CLI::App& app, GlobalOptions& global) {
   actions()[dev] = [&global] { cmd_devices(global); };
 
   auto ra = std::make_shared<RenderArgs>();
-  auto* render = app.add_subcommand("render", "Render a 3DGS .ply from a scene's COLMAP cameras");
-  render->add_option("--ply", ra->ply, "Gaussians in the standard 3DGS point_cloud.ply layout")->required();
+  auto* render = app.add_subcommand("render", "Render a trained model (or a 3DGS .ply) from a scene's COLMAP cameras");
+  render->add_option("model", ra->model, "Model folder written by `ag2gs train` (uses MODEL_DIR/point_cloud.ply)");
+  render->add_option("--ply", ra->ply, "Instead of MODEL_DIR: Gaussians in the standard 3DGS point_cloud.ply layout");
   render->add_option("--scene", ra->scene, "Scene directory holding sparse/0/ (COLMAP model)")->required();
-  render->add_option("-o,--out", ra->out, "Output directory; images go to OUT/rgb/<image stem>.png")->required();
-  render->add_option("--views", ra->views, "Comma-separated image names or stems (default: all)");
+  render->add_option("-o,--out", ra->out, "Output directory: OUT/<output>/<image stem>.png (+ .npy for floats)")
+      ->required();
+  render->add_option("--views", ra->views,
+                     "train, test (every 8th image, as --eval), all (default), or comma-separated names/stems");
+  render->add_option("--outputs", ra->outputs, "Comma-separated: rgb (default), depth, alpha, feature");
   render->add_option("--bg", ra->bg, "Background colour R,G,B in [0,1] (default 0,0,0)");
   render->add_option("-r,--resolution", ra->resolution, "Divide the camera resolution by R (default 1)");
   render->add_option("--sparse", ra->sparse, "COLMAP model folder inside the scene (default sparse/0)");
-  render->add_flag("--extras", ra->extras, "Also write OUT/depth (16-bit mm) and OUT/alpha (16-bit) PNGs");
-  actions()[render] = [&global, ra] { cmd_render(global, *ra); };
+  render->add_flag("--extras", ra->extras, "Same as adding depth,alpha to --outputs");
+  set_action(render, [&global, ra] { cmd_render(global, *ra); });
 
   register_scene_commands(app, global);
   register_synth(app, global);

@@ -111,3 +111,40 @@ TEST(Cli, BadInputGivesAClearErrorAndNonZeroExit) {
 }
 
 }  // namespace
+
+TEST(Cli, RenderModelFolderWithViewSetsAndOutputs) {
+  const std::string scene = src() + "/data_samples/tiny_scene";
+  fs::path dir = temp("model");
+  fs::create_directories(dir / "model");
+  fs::copy_file(scene + "/gaussians.ply", dir / "model" / "point_cloud.ply");
+  // 4 views: test = every 8th in name order = view_000 only.
+  Result r = run("render " + (dir / "model").string() + " --scene " + scene + " -o " + (dir / "o").string() +
+                 " --views test --outputs rgb,depth,alpha,feature");
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_NE(r.output.find("views/s"), std::string::npos) << r.output;
+  for (const char* o : {"rgb", "depth", "alpha", "feature"}) {
+    EXPECT_TRUE(fs::exists(dir / "o" / o / "view_000.png")) << o;
+    EXPECT_FALSE(fs::exists(dir / "o" / o / "view_001.png")) << o;
+  }
+  for (const char* o : {"depth", "alpha", "feature"}) EXPECT_TRUE(fs::exists(dir / "o" / o / "view_000.npy")) << o;
+  EXPECT_FALSE(fs::exists(dir / "o" / "rgb" / "view_000.npy"));
+  r = run("render " + (dir / "model").string() + " --scene " + scene + " -o " + (dir / "t").string() +
+          " --views train");
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_FALSE(fs::exists(dir / "t" / "rgb" / "view_000.png"));
+  EXPECT_TRUE(fs::exists(dir / "t" / "rgb" / "view_003.png"));
+  EXPECT_FALSE(fs::exists(dir / "t" / "depth"));
+  // Errors: unknown output, a folder that is not a model, both sources.
+  r = run("render " + (dir / "model").string() + " --scene " + scene + " -o " + (dir / "x").string() +
+          " --outputs rgb,normals");
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.output.find("unknown output 'normals'"), std::string::npos) << r.output;
+  r = run("render " + dir.string() + " --scene " + scene + " -o " + (dir / "x").string());
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.output.find("no point_cloud.ply"), std::string::npos) << r.output;
+  r = run("render " + (dir / "model").string() + " --ply " + scene + "/gaussians.ply --scene " + scene + " -o " +
+          (dir / "x").string());
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.output.find("not both"), std::string::npos) << r.output;
+  fs::remove_all(dir);
+}
