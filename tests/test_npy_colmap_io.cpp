@@ -21,6 +21,7 @@
 
 #ifndef _WIN32
 #include <sys/resource.h>
+#include <sys/wait.h>
 #include <unistd.h>
 
 #include <csignal>
@@ -803,3 +804,138 @@ TEST(ColmapWriter, ColmapItselfReadsTheModel) {
   EXPECT_TRUE(fs::exists(dir.file("txt_as_bin/cameras.bin"))) << log;
   expect_same_model(read_colmap_model(dir.file("txt_as_bin")), s, 1e-12);
 }
+
+// ---------------------------------------------------------------- fuzz regressions
+//
+// Inputs that made a parser crash, hang or report undefined behaviour under
+// the fuzzers in fuzz/ (fuzz/README.md), replayed here: named cases as bytes,
+// and every file under tests/data/fuzz/<parser>/ as the fuzzer saved it.
+
+#ifndef _WIN32
+namespace {
+
+// Runs fn in a child process that must finish within `seconds` and may let
+// only std::exception subclasses escape. Returns what went wrong, or "".
+std::string run_isolated(const std::function<void()>& fn, unsigned seconds) {
+  std::fflush(nullptr);
+  const pid_t pid = ::fork();
+  if (pid < 0) return std::string("fork failed: ") + std::strerror(errno);
+  if (pid == 0) {
+    ::alarm(seconds);
+    try {
+      fn();
+    } catch (const std::exception&) {
+    } catch (...) {
+      std::_Exit(3);
+    }
+    std::_Exit(0);
+  }
+  int status = 0;
+  if (::waitpid(pid, &status, 0) != pid) return "waitpid failed";
+  if (WIFEXITED(status) && WEXITSTATUS(status) == 0) return "";
+  if (WIFSIGNALED(status) && WTERMSIG(status) == SIGALRM) {
+    return "did not finish within " + std::to_string(seconds) + " s (a hang)";
+  }
+  if (WIFSIGNALED(status)) return "crashed with signal " + std::to_string(WTERMSIG(status));
+  return "exit status " + std::to_string(WEXITSTATUS(status)) + " (an exception not derived from std::exception?)";
+}
+
+// The COLMAP targets' input layout (fuzz/fuzz_common.h): two little-endian
+// uint32 lengths, cameras, images, and the rest is points3D.
+void write_three_files(const std::string& dir, const std::string& input, const std::string& ext) {
+  auto u32 = [&](size_t at) {
+    uint32_t v = 0;
+    for (size_t b = 0; b < 4 && at + b < input.size(); ++b)
+      v |= uint32_t(static_cast<unsigned char>(input[at + b])) << (8 * b);
+    return size_t(v);
+  };
+  size_t at = std::min<size_t>(input.size(), 8);
+  const size_t lens[2] = {u32(0), u32(4)};
+  const char* stems[3] = {"cameras", "images", "points3D"};
+  for (int i = 0; i < 3; ++i) {
+    const size_t n = i < 2 ? std::min(lens[i], input.size() - at) : input.size() - at;
+    write_bytes(dir + "/" + stems[i] + ext, input.substr(at, n));
+    at += n;
+  }
+}
+
+// Parses `input` the way fuzz target `parser` does.
+void parse_like_fuzzer(const std::string& parser, const std::string& input, const TempDir& dir) {
+  if (parser == "npy") {
+    write_bytes(dir.file("input.npy"), input);
+    read_npy(dir.file("input.npy"));
+  } else if (parser == "ply") {
+    write_bytes(dir.file("input.ply"), input);
+    read_ply(dir.file("input.ply"));
+  } else {
+    write_three_files(dir.path().string(), input, parser == "colmap_bin" ? ".bin" : ".txt");
+    read_colmap_model(dir.path().string());
+  }
+}
+
+}  // namespace
+
+TEST(FuzzRegression, SavedInputsParseOrFailCleanly) {
+  const fs::path root = fs::path(source_dir()) / "tests" / "data" / "fuzz";
+  ASSERT_TRUE(fs::is_directory(root)) << root << " missing; set AG2GS_SOURCE_DIR to the source tree";
+  int replayed = 0;
+  for (const char* parser : {"npy", "ply", "colmap_bin", "colmap_txt"}) {
+    if (!fs::is_directory(root / parser)) continue;
+    for (const auto& entry : fs::directory_iterator(root / parser)) {
+      SCOPED_TRACE(entry.path().string());
+      const std::string input = read_bytes(entry.path().string());
+      TempDir dir;
+      EXPECT_EQ(run_isolated([&] { parse_like_fuzzer(parser, input, dir); }, 60), "");
+      ++replayed;
+    }
+  }
+  EXPECT_GT(replayed, 0);
+}
+
+namespace {
+
+std::string ply_header_lines(const std::string& format, const std::string& before_vertex, int vertices) {
+  std::string h =
+      "ply\nformat " + format + " 1.0\n" + before_vertex + "element vertex " + std::to_string(vertices) + "\n";
+  for (const char* p : {"x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
+                        "rot_0", "rot_1", "rot_2", "rot_3"}) {
+    h += std::string("property float ") + p + "\n";
+  }
+  return h + "end_header\n";
+}
+
+}  // namespace
+
+TEST(FuzzRegression, PlyAsciiElementWithoutPropertiesBeforeTheVertices) {
+  // fuzz_ply timeout: the reader skipped the values of an element with no
+  // properties once per declared item, 10^19 times.
+  TempDir dir;
+  const std::string path = dir.file("a.ply");
+  write_bytes(path, ply_header_lines("ascii", "element face 9999999999999999999\n", 1) +
+                        "1 2 3 0.5 0.5 0.5 0 -1 -1 -1 1 0 0 0\n");
+  GaussianSet gs;
+  EXPECT_EQ(run_isolated([&] { read_ply(path); }, 20), "");
+  ASSERT_NO_THROW(gs = read_ply(path));
+  ASSERT_EQ(gs.size(), 1u);
+  EXPECT_EQ(gs.means[2], 3.f);
+}
+
+TEST(FuzzRegression, PlyHeaderWithFiftyThousandProperties) {
+  // Found next to the one above: duplicate names were looked for pairwise, so
+  // a 1 MiB header of distinct properties took about 20 s to reject.
+  TempDir dir;
+  const std::string path = dir.file("a.ply");
+  std::string extra;
+  for (int i = 0; i < 50000; ++i) extra += "property char p" + std::to_string(i) + "\n";
+  std::string h = ply_header_lines("binary_little_endian", "", 0);
+  h.insert(h.find("end_header"), extra);
+  ASSERT_LT(h.size(), size_t(1) << 20);
+  write_bytes(path, h);
+  EXPECT_EQ(run_isolated([&] { read_ply(path); }, 20), "");
+  const GaussianSet gs = read_ply(path);
+  EXPECT_EQ(gs.size(), 0u);
+  h.insert(h.find("end_header"), "property char p77\n");
+  write_bytes(path, h);
+  expect_error<std::runtime_error>([&] { read_ply(path); }, {path, "'p77' appears twice"});
+}
+#endif  // _WIN32
