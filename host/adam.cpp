@@ -11,22 +11,6 @@ namespace ag2gs {
 
 namespace {
 
-template <typename T>
-void set_arg(cl::Kernel& k, cl_uint i, const T& v) {
-  AG2GS_CL_CHECK(k.setArg(i, v));
-}
-inline void set_arg(cl::Kernel& k, cl_uint i, const DeviceBuffer& b) {
-  AG2GS_CL_CHECK(k.setArg(i, const_cast<DeviceBuffer&>(b).get()));
-}
-inline void set_arg(cl::Kernel& k, cl_uint i, DeviceBuffer& b) {
-  AG2GS_CL_CHECK(k.setArg(i, b.get()));
-}
-template <typename... Args>
-void set_args(cl::Kernel& k, Args&&... args) {
-  cl_uint i = 0;
-  (set_arg(k, i++, std::forward<Args>(args)), ...);
-}
-
 const std::map<std::string, std::string> kNoDefines;
 
 // The largest power of two no larger than 256, the device's limit and the
@@ -79,7 +63,7 @@ void gather_rows(Runtime& rt, const DeviceBuffer& src, size_t src_rows, DeviceBu
   dst.reserve(std::max<size_t>(n * sizeof(float), 4));
   if (n == 0) return;
   cl::Kernel k = rt.kernel("adam.cl", "gather_rows", kNoDefines);
-  set_args(k, static_cast<cl_ulong>(n), row_size, static_cast<cl_ulong>(src_rows), index, src, dst);
+  set_kernel_args(k, static_cast<cl_ulong>(n), row_size, static_cast<cl_ulong>(src_rows), index, src, dst);
   rt.launch("adam", k, cl::NDRange(n), cl::NDRange(pick_work_group(rt, {"gather_rows"})));
 }
 
@@ -189,8 +173,8 @@ void Adam::step(AdamGroup& group, DeviceBuffer& param, const DeviceBuffer& grad,
   const size_t n = group.size();
   if (n == 0) return;
   cl::Kernel k = rt_.kernel("adam.cl", "adam_step", kNoDefines);
-  set_args(k, static_cast<cl_ulong>(n), param, grad, group.exp_avg(), group.exp_avg_sq(), c.one_minus_beta1, c.beta2,
-           c.one_minus_beta2, c.eps, c.step_size, c.bc2_sqrt);
+  set_kernel_args(k, static_cast<cl_ulong>(n), param, grad, group.exp_avg(), group.exp_avg_sq(), c.one_minus_beta1,
+                  c.beta2, c.one_minus_beta2, c.eps, c.step_size, c.bc2_sqrt);
   rt_.launch("adam", k, cl::NDRange(n), cl::NDRange(wg_));
 }
 
@@ -207,8 +191,8 @@ void Adam::step_visible(AdamGroup& group, DeviceBuffer& param, const DeviceBuffe
   const size_t n = group.size();
   if (n == 0) return;
   cl::Kernel k = rt_.kernel("adam.cl", "adam_step_visible", kNoDefines);
-  set_args(k, static_cast<cl_ulong>(n), group.row_size(), visible, param, grad, group.exp_avg(), group.exp_avg_sq(),
-           c.one_minus_beta1, c.beta2, c.one_minus_beta2, c.eps, c.step_size, c.bc2_sqrt);
+  set_kernel_args(k, static_cast<cl_ulong>(n), group.row_size(), visible, param, grad, group.exp_avg(),
+                  group.exp_avg_sq(), c.one_minus_beta1, c.beta2, c.one_minus_beta2, c.eps, c.step_size, c.bc2_sqrt);
   rt_.launch("adam", k, cl::NDRange(n), cl::NDRange(wg_));
 }
 
@@ -225,7 +209,7 @@ void Adam::accumulate_nonfinite(const DeviceBuffer& buf, size_t n) {
   constexpr size_t kChunk = 16;  // NONFINITE_CHUNK in adam.cl
   const size_t groups = (n + kChunk * wg_ - 1) / (kChunk * wg_);
   cl::Kernel k = rt_.kernel("adam.cl", "count_nonfinite", kNoDefines);
-  set_args(k, static_cast<cl_ulong>(n), buf, counter_);
+  set_kernel_args(k, static_cast<cl_ulong>(n), buf, counter_);
   rt_.launch("adam", k, cl::NDRange(groups * wg_), cl::NDRange(wg_));
 }
 

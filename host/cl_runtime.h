@@ -10,6 +10,7 @@
 #include <mutex>
 #include <stdexcept>
 #include <string>
+#include <utility>
 #include <vector>
 
 namespace ag2gs {
@@ -138,5 +139,23 @@ class DeviceBuffer {
   cl::Buffer buffer_;
   size_t capacity_ = 0;
 };
+
+// Sets every argument of `k` in order; buffers pass as DeviceBuffer, scalars
+// as themselves. Errors name the call and the file:line (AG2GS_CL_CHECK).
+template <typename T>
+void set_kernel_arg(cl::Kernel& k, cl_uint i, const T& v) {
+  AG2GS_CL_CHECK(k.setArg(i, v));
+}
+inline void set_kernel_arg(cl::Kernel& k, cl_uint i, const DeviceBuffer& b) {
+  AG2GS_CL_CHECK(k.setArg(i, const_cast<DeviceBuffer&>(b).get()));
+}
+inline void set_kernel_arg(cl::Kernel& k, cl_uint i, DeviceBuffer& b) {
+  AG2GS_CL_CHECK(k.setArg(i, b.get()));
+}
+template <typename... Args>
+void set_kernel_args(cl::Kernel& k, Args&&... args) {
+  cl_uint i = 0;
+  (set_kernel_arg(k, i++, std::forward<Args>(args)), ...);
+}
 
 }  // namespace ag2gs

@@ -16,22 +16,6 @@ constexpr double kC1 = 0.01 * 0.01, kC2 = 0.03 * 0.03;
 constexpr int kBlurPlanes = 15;  // (x, y, xx, yy, xy) x channel
 constexpr int kCoefPlanes = 9;   // (dS/dmx, dS/dExx, dS/dExy) x channel
 
-template <typename T>
-void set_arg(cl::Kernel& k, cl_uint i, const T& v) {
-  AG2GS_CL_CHECK(k.setArg(i, v));
-}
-inline void set_arg(cl::Kernel& k, cl_uint i, const DeviceBuffer& b) {
-  AG2GS_CL_CHECK(k.setArg(i, const_cast<DeviceBuffer&>(b).get()));
-}
-inline void set_arg(cl::Kernel& k, cl_uint i, DeviceBuffer& b) {
-  AG2GS_CL_CHECK(k.setArg(i, b.get()));
-}
-template <typename... Args>
-void set_args(cl::Kernel& k, Args&&... args) {
-  cl_uint i = 0;
-  (set_arg(k, i++, std::forward<Args>(args)), ...);
-}
-
 std::string float_literal(double v) {
   char buf[40];
   std::snprintf(buf, sizeof buf, "%.9ef", v);
@@ -143,24 +127,24 @@ void ImageLoss::enqueue(const DeviceBuffer& rendered, const DeviceBuffer& target
   const auto defs = loss_defines(wg_, lanes_);
   const cl::NDRange global(items), local(wg_);
   cl::Kernel blur_h = rt_.kernel("image_loss.cl", "ssim_blur_h", defs);
-  set_args(blur_h, width, height, planar, rendered, target, blur_);
+  set_kernel_args(blur_h, width, height, planar, rendered, target, blur_);
   rt_.launch("loss_blur_h", blur_h, global, local);
   cl::Kernel map = rt_.kernel("image_loss.cl", "ssim_map", defs);
-  set_args(map, width, height, planar, lambda, want_grad ? 1 : 0, has_weights, rendered, target, blur_, w, coef_,
-           partials_);
+  set_kernel_args(map, width, height, planar, lambda, want_grad ? 1 : 0, has_weights, rendered, target, blur_, w, coef_,
+                  partials_);
   rt_.launch("loss_map", map, global, local);
   if (!want_grad) return;
 
   grad_out->reserve(npix * 3 * sizeof(float));
   cl::Kernel norm = rt_.kernel("image_loss.cl", "loss_norm", defs);
-  set_args(norm, groups_, partials_, norm_);
+  set_kernel_args(norm, groups_, partials_, norm_);
   rt_.launch("loss_norm", norm, local, local);
   // The forward blurs are consumed: the backward blurs reuse their buffer.
   cl::Kernel coef_h = rt_.kernel("image_loss.cl", "coef_blur_h", defs);
-  set_args(coef_h, width, height, coef_, blur_);
+  set_kernel_args(coef_h, width, height, coef_, blur_);
   rt_.launch("loss_coef_blur_h", coef_h, global, local);
   cl::Kernel grad = rt_.kernel("image_loss.cl", "image_loss_grad", defs);
-  set_args(grad, width, height, planar, lambda, has_weights, rendered, target, w, blur_, norm_, *grad_out);
+  set_kernel_args(grad, width, height, planar, lambda, has_weights, rendered, target, w, blur_, norm_, *grad_out);
   rt_.launch("loss_grad", grad, global, local);
 }
 

@@ -11,22 +11,6 @@ namespace ag2gs {
 
 namespace {
 
-template <typename T>
-void set_arg(cl::Kernel& k, cl_uint i, const T& v) {
-  AG2GS_CL_CHECK(k.setArg(i, v));
-}
-inline void set_arg(cl::Kernel& k, cl_uint i, const DeviceBuffer& b) {
-  AG2GS_CL_CHECK(k.setArg(i, const_cast<DeviceBuffer&>(b).get()));
-}
-inline void set_arg(cl::Kernel& k, cl_uint i, DeviceBuffer& b) {
-  AG2GS_CL_CHECK(k.setArg(i, b.get()));
-}
-template <typename... Args>
-void set_args(cl::Kernel& k, Args&&... args) {
-  cl_uint i = 0;
-  (set_arg(k, i++, std::forward<Args>(args)), ...);
-}
-
 std::map<std::string, std::string> mask_defines(int wg, int lanes) {
   char alpha_min[40];
   std::snprintf(alpha_min, sizeof alpha_min, "%.9ef", static_cast<double>(kMaskAlphaMin));
@@ -180,22 +164,22 @@ void MaskLoss::enqueue(const DeviceBuffer& feature, const DeviceBuffer* alpha, i
   const cl::NDRange local(wg_);
   if (chunks_ > 0) {
     cl::Kernel k = rt_.kernel("mask_loss.cl", "mask_chunk_sums", defs);
-    set_args(k, planar, has_alpha, n, feature, a, pixels_, chunk_table_, sums_);
+    set_kernel_args(k, planar, has_alpha, n, feature, a, pixels_, chunk_table_, sums_);
     rt_.launch("mask_chunk_sums", k, cl::NDRange(static_cast<size_t>(chunks_) * wg_), local);
   }
   {
     cl::Kernel k = rt_.kernel("mask_loss.cl", "mask_means", defs);
-    set_args(k, count_, mask_chunks_, sums_, means_, stats_);
+    set_kernel_args(k, count_, mask_chunks_, sums_, means_, stats_);
     rt_.launch("mask_means", k, local, local);
   }
   if (chunks_ > 0) {
     cl::Kernel k = rt_.kernel("mask_loss.cl", "mask_chunk_abs", defs);
-    set_args(k, planar, has_alpha, n, feature, a, pixels_, chunk_table_, means_, abs_);
+    set_kernel_args(k, planar, has_alpha, n, feature, a, pixels_, chunk_table_, means_, abs_);
     rt_.launch("mask_chunk_abs", k, cl::NDRange(static_cast<size_t>(chunks_) * wg_), local);
   }
   if (count_ > 0) {
     cl::Kernel k = rt_.kernel("mask_loss.cl", "mask_coef", defs);
-    set_args(k, count_, w_is, w_ic, mask_chunks_, abs_, means_, stats_, coef_, terms_);
+    set_kernel_args(k, count_, w_is, w_ic, mask_chunks_, abs_, means_, stats_, coef_, terms_);
     rt_.launch("mask_coef", k, cl::NDRange(count_), local);
   }
   if (grad_feature || grad_alpha) {
@@ -206,8 +190,8 @@ void MaskLoss::enqueue(const DeviceBuffer& feature, const DeviceBuffer* alpha, i
     const int want_alpha_grad = grad_alpha ? 1 : 0;
     DeviceBuffer& ga = grad_alpha ? *grad_alpha : terms_;  // never written without grad_alpha
     cl::Kernel k = rt_.kernel("mask_loss.cl", "mask_grad", defs);
-    set_args(k, layers_, n, planar, has_alpha, want_alpha_grad, w_is, feature, a, labels_, means_, coef_, stats_, *gf,
-             ga);
+    set_kernel_args(k, layers_, n, planar, has_alpha, want_alpha_grad, w_is, feature, a, labels_, means_, coef_, stats_,
+                    *gf, ga);
     const size_t items = (npix + lanes_ - 1) / lanes_;
     rt_.launch("mask_grad", k, cl::NDRange(items), local);
   }

@@ -17,23 +17,6 @@ constexpr int kCamSize = 32;
 constexpr int kScanBlock = 1024;
 constexpr int kRadixBlock = 4096;
 
-template <typename T>
-void set_arg(cl::Kernel& k, cl_uint i, const T& v) {
-  AG2GS_CL_CHECK(k.setArg(i, v));
-}
-inline void set_arg(cl::Kernel& k, cl_uint i, DeviceBuffer& b) {
-  AG2GS_CL_CHECK(k.setArg(i, b.get()));
-}
-inline void set_arg(cl::Kernel& k, cl_uint i, const DeviceBuffer& b) {
-  AG2GS_CL_CHECK(k.setArg(i, const_cast<DeviceBuffer&>(b).get()));
-}
-
-template <typename... Args>
-void set_args(cl::Kernel& k, Args&&... args) {
-  cl_uint i = 0;
-  (set_arg(k, i++, std::forward<Args>(args)), ...);
-}
-
 size_t ceil_div(size_t a, size_t b) {
   return (a + b - 1) / b;
 }
@@ -95,11 +78,11 @@ void Renderer::sort_pairs(DeviceBuffer*& keys, DeviceBuffer*& vals, DeviceBuffer
   cl::Kernel scatter = rt_.kernel("bin.cl", "radix_scatter", bin_defines());
   const int ni = static_cast<int>(n);
   for (int shift = 0; shift < bits; shift += 8) {
-    set_args(hist, ni, shift, *keys, radix_counts_, nblocks);
+    set_kernel_args(hist, ni, shift, *keys, radix_counts_, nblocks);
     rt_.launch("sort", hist, cl::NDRange(nblocks));
-    set_args(scan, nblocks, radix_counts_);
+    set_kernel_args(scan, nblocks, radix_counts_);
     rt_.launch("sort", scan, cl::NDRange(256), cl::NDRange(256));
-    set_args(scatter, ni, shift, *keys, *vals, *keys_tmp, *vals_tmp, radix_counts_, nblocks);
+    set_kernel_args(scatter, ni, shift, *keys, *vals, *keys_tmp, *vals_tmp, radix_counts_, nblocks);
     rt_.launch("sort", scatter, cl::NDRange(nblocks));
     std::swap(keys, keys_tmp);
     std::swap(vals, vals_tmp);
@@ -161,29 +144,29 @@ void Renderer::forward(const DeviceGaussians& g, const Camera& cam, const Render
   size_t M = 0;
   if (n > 0) {
     cl::Kernel project = rt_.kernel("project.cl", "project_fwd", pdef);
-    set_args(project, ni, cam_buf_, g.means, g.scales, g.quats, g.opacities, g.sh, g.features, tiles_x_, tiles_y_,
-             records_, rects_, tile_counts_, depth_keys_, radii_);
+    set_kernel_args(project, ni, cam_buf_, g.means, g.scales, g.quats, g.opacities, g.sh, g.features, tiles_x_,
+                    tiles_y_, records_, rects_, tile_counts_, depth_keys_, radii_);
     rt_.launch("project", project, cl::NDRange(n), cl::NDRange(64));
 
     // Depth order of the Gaussians (stable: ties keep index order).
     cl::Kernel iota = rt_.kernel("bin.cl", "iota", bin_defines());
-    set_args(iota, ni, order_vals_);
+    set_kernel_args(iota, ni, order_vals_);
     rt_.launch("sort", iota, cl::NDRange(n), cl::NDRange(64));
     DeviceBuffer *keys = &depth_keys_, *vals = &order_vals_, *ktmp = &order_keys_tmp_, *vtmp = &order_vals_tmp_;
     sort_pairs(keys, vals, ktmp, vtmp, n, 32);
     sorted_order_ = vals;
 
     cl::Kernel gather = rt_.kernel("bin.cl", "gather_counts", bin_defines());
-    set_args(gather, ni, *sorted_order_, tile_counts_, counts_sorted_);
+    set_kernel_args(gather, ni, *sorted_order_, tile_counts_, counts_sorted_);
     rt_.launch("bin", gather, cl::NDRange(n), cl::NDRange(64));
     cl::Kernel sb = rt_.kernel("bin.cl", "scan_blocks", bin_defines());
-    set_args(sb, ni, counts_sorted_, offsets_, block_sums_);
+    set_kernel_args(sb, ni, counts_sorted_, offsets_, block_sums_);
     rt_.launch("bin", sb, cl::NDRange(nscan));
     cl::Kernel ss = rt_.kernel("bin.cl", "scan_block_sums", bin_defines());
-    set_args(ss, nscan, block_sums_);
+    set_kernel_args(ss, nscan, block_sums_);
     rt_.launch("bin", ss, cl::NDRange(1), cl::NDRange(1));
     cl::Kernel sa = rt_.kernel("bin.cl", "scan_add", bin_defines());
-    set_args(sa, ni, offsets_, block_sums_);
+    set_kernel_args(sa, ni, offsets_, block_sums_);
     rt_.launch("bin", sa, cl::NDRange(n), cl::NDRange(64));
     cl_uint total = 0;
     AG2GS_CL_CHECK(rt_.queue().enqueueReadBuffer(block_sums_.get(), CL_TRUE, nscan * 4, 4, &total));
@@ -207,8 +190,8 @@ void Renderer::forward(const DeviceGaussians& g, const Camera& cam, const Render
   sorted_isect_vals_ = &isect_vals_;
   if (M > 0) {
     cl::Kernel emit = rt_.kernel("bin.cl", "emit_isects", bin_defines());
-    set_args(emit, ni, *sorted_order_, rects_, offsets_, counts_sorted_, tiles_x_, tile_keys_, isect_vals_, isect_gid_,
-             isect_start_);
+    set_kernel_args(emit, ni, *sorted_order_, rects_, offsets_, counts_sorted_, tiles_x_, tile_keys_, isect_vals_,
+                    isect_gid_, isect_start_);
     rt_.launch("bin", emit, cl::NDRange(n), cl::NDRange(64));
     int bits = 1;
     while ((1 << bits) < ntiles) ++bits;
@@ -217,7 +200,7 @@ void Renderer::forward(const DeviceGaussians& g, const Camera& cam, const Render
     sorted_tile_keys_ = keys;
     sorted_isect_vals_ = vals;
     cl::Kernel tr = rt_.kernel("bin.cl", "tile_ranges", bin_defines());
-    set_args(tr, static_cast<int>(M), *sorted_tile_keys_, ranges_);
+    set_kernel_args(tr, static_cast<int>(M), *sorted_tile_keys_, ranges_);
     rt_.launch("bin", tr, cl::NDRange(M), cl::NDRange(64));
   }
 
@@ -234,8 +217,8 @@ void Renderer::forward(const DeviceGaussians& g, const Camera& cam, const Render
   cl::Kernel blend =
       rt_.kernel("blend_fwd.cl", "blend_fwd",
                  {{"BATCH", std::to_string(std::max(64, wg))}, {"NO_STAGING", rt_.info().is_gpu ? "0" : "1"}});
-  set_args(blend, cam.width, cam.height, tiles_x_, cam_buf_, ranges_, *sorted_isect_vals_, isect_gid_, records_,
-           out_rgb_, out_feat_, out_depth_, out_alpha_, out_dist_, out_aux_, out_last_, out_count_);
+  set_kernel_args(blend, cam.width, cam.height, tiles_x_, cam_buf_, ranges_, *sorted_isect_vals_, isect_gid_, records_,
+                  out_rgb_, out_feat_, out_depth_, out_alpha_, out_dist_, out_aux_, out_last_, out_count_);
   rt_.launch("blend_fwd", blend, cl::NDRange(static_cast<size_t>(ntiles) * wg), cl::NDRange(wg));
   have_frame_ = true;
 }
@@ -286,9 +269,9 @@ void Renderer::backward(const OutputGrads& grads) {
   const int wg = 256 / rt_.vector_width();
   const int batch = std::max(1, 512 / wg);
   cl::Kernel blend = rt_.kernel("blend_bwd.cl", "blend_bwd", {{"BATCH", std::to_string(batch)}});
-  set_args(blend, cam_.width, cam_.height, tiles_x_, cam_buf_, ranges_, *sorted_isect_vals_, isect_gid_, records_,
-           out_rgb_, out_feat_, out_depth_, out_aux_, out_last_, g_rgb_, g_feat_, g_depth_, g_alpha_, g_dist_,
-           isect_grads_);
+  set_kernel_args(blend, cam_.width, cam_.height, tiles_x_, cam_buf_, ranges_, *sorted_isect_vals_, isect_gid_,
+                  records_, out_rgb_, out_feat_, out_depth_, out_aux_, out_last_, g_rgb_, g_feat_, g_depth_, g_alpha_,
+                  g_dist_, isect_grads_);
   rt_.launch("blend_bwd", blend, cl::NDRange(static_cast<size_t>(ntiles) * wg), cl::NDRange(wg));
 
   const size_t n = std::max<size_t>(g.n, 1);
@@ -303,8 +286,9 @@ void Renderer::backward(const OutputGrads& grads) {
   if (g.n == 0) return;
   std::map<std::string, std::string> pdef{{"SH_K", std::to_string(K)}, {"SH_ACTIVE", std::to_string(sh_active_)}};
   cl::Kernel pb = rt_.kernel("project_bwd.cl", "project_bwd", pdef);
-  set_args(pb, static_cast<int>(g.n), cam_buf_, g.means, g.scales, g.quats, g.sh, records_, tile_counts_, isect_start_,
-           isect_grads_, v_means_, v_scales_, v_quats_, v_opacities_, v_sh_, v_features_, v_means2d_);
+  set_kernel_args(pb, static_cast<int>(g.n), cam_buf_, g.means, g.scales, g.quats, g.sh, records_, tile_counts_,
+                  isect_start_, isect_grads_, v_means_, v_scales_, v_quats_, v_opacities_, v_sh_, v_features_,
+                  v_means2d_);
   rt_.launch("project_bwd", pb, cl::NDRange(g.n), cl::NDRange(64));
 }
 

@@ -12,22 +12,6 @@ namespace {
 
 constexpr int kWorkGroup = 64;
 
-template <typename T>
-void set_arg(cl::Kernel& k, cl_uint i, const T& v) {
-  AG2GS_CL_CHECK(k.setArg(i, v));
-}
-inline void set_arg(cl::Kernel& k, cl_uint i, const DeviceBuffer& b) {
-  AG2GS_CL_CHECK(k.setArg(i, const_cast<DeviceBuffer&>(b).get()));
-}
-inline void set_arg(cl::Kernel& k, cl_uint i, DeviceBuffer& b) {
-  AG2GS_CL_CHECK(k.setArg(i, b.get()));
-}
-template <typename... Args>
-void set_args(cl::Kernel& k, Args&&... args) {
-  cl_uint i = 0;
-  (set_arg(k, i++, std::forward<Args>(args)), ...);
-}
-
 // Throws unless `b` holds at least `floats` floats.
 void need_floats(const DeviceBuffer* b, size_t floats, const char* what) {
   if (!b) throw std::invalid_argument(std::string("expand backward: gradient buffer '") + what + "' is missing");
@@ -152,9 +136,9 @@ void Expander::forward(const DeviceAnchors& anchors, DeviceGaussians& out, int a
   reserve_floats(out.features, n * 3);
   if (n == 0) return;
   cl::Kernel k = rt_.kernel("expand.cl", "expand_fwd", {{"CHILDREN", std::to_string(anchors.children)}});
-  set_args(k, static_cast<int>(n), anchors.pos, anchors.voxel, anchors.feature, anchors.offset, anchors.scale_logit,
-           anchors.quat, anchors.opacity_logit, anchors.sh_dc, anchors.sh_rest, sh_out, out.means, out.scales,
-           out.quats, out.opacities, out.sh, out.features);
+  set_kernel_args(k, static_cast<int>(n), anchors.pos, anchors.voxel, anchors.feature, anchors.offset,
+                  anchors.scale_logit, anchors.quat, anchors.opacity_logit, anchors.sh_dc, anchors.sh_rest, sh_out,
+                  out.means, out.scales, out.quats, out.opacities, out.sh, out.features);
   rt_.launch("expand", k, cl::NDRange(n), cl::NDRange(kWorkGroup));
 }
 
@@ -185,12 +169,12 @@ void Expander::backward(const DeviceAnchors& anchors, const DeviceGaussianGrads&
   if (n == 0) return;
   const std::map<std::string, std::string> defines{{"CHILDREN", std::to_string(anchors.children)}};
   cl::Kernel k = rt_.kernel("expand.cl", "expand_bwd", defines);
-  set_args(k, static_cast<int>(n), anchors.voxel, anchors.scale_logit, anchors.opacity_logit, *grads.means,
-           *grads.scales, *grads.quats, *grads.opacities, *grads.sh, sh_in, out.offset, out.scale_logit, out.quat,
-           out.opacity_logit, out.sh_dc, out.sh_rest);
+  set_kernel_args(k, static_cast<int>(n), anchors.voxel, anchors.scale_logit, anchors.opacity_logit, *grads.means,
+                  *grads.scales, *grads.quats, *grads.opacities, *grads.sh, sh_in, out.offset, out.scale_logit,
+                  out.quat, out.opacity_logit, out.sh_dc, out.sh_rest);
   rt_.launch("expand_bwd", k, cl::NDRange(n), cl::NDRange(kWorkGroup));
   cl::Kernel kf = rt_.kernel("expand.cl", "expand_bwd_feature", defines);
-  set_args(kf, static_cast<int>(anchors.anchors), *grads.features, out.feature);
+  set_kernel_args(kf, static_cast<int>(anchors.anchors), *grads.features, out.feature);
   rt_.launch("expand_bwd", kf, cl::NDRange(anchors.anchors), cl::NDRange(kWorkGroup));
 }
 

@@ -33,13 +33,6 @@ uint64_t hash3(uint64_t seed, uint64_t a, uint64_t b) {
   return splitmix64(splitmix64(splitmix64(seed ^ 0x7261696e5f766965ull) ^ a) ^ b);
 }
 
-template <typename... Args>
-void set_kernel_args(cl::Kernel& k, Args&&... args) {
-  cl_uint i = 0;
-  auto one = [&](auto&& v) { AG2GS_CL_CHECK(k.setArg(i++, v)); };
-  (one(std::forward<Args>(args)), ...);
-}
-
 }  // namespace
 
 // ------------------------------------------------------------------ config
