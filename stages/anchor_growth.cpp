@@ -1,0 +1,217 @@
+#include "stages/anchor_growth.h"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <numeric>
+#include <stdexcept>
+#include <string>
+#include <tuple>
+
+namespace ag2gs {
+
+namespace {
+
+constexpr int kWorkGroup = 64;
+
+[[noreturn]] void bad(const std::string& what) {
+  throw std::invalid_argument("growth config: " + what);
+}
+
+double sigmoid(double x) {
+  return 1.0 / (1.0 + std::exp(-x));
+}
+
+}  // namespace
+
+// ---------------------------------------------------------------- GrowthConfig
+
+void GrowthConfig::validate() const {
+  if (!(grad_threshold > 0) || !std::isfinite(grad_threshold)) bad("grad_threshold must be finite and > 0");
+  if (!(layer_factor > 0) || !std::isfinite(layer_factor)) bad("layer_factor must be finite and > 0");
+  if (start < 0 || stop < 0 || every < 0) bad("start, stop and every must be >= 0 (every = 0 turns growing off)");
+  if (min_observations < 1) bad("min_observations must be >= 1");
+  if (!(min_seen_fraction >= 0 && min_seen_fraction <= 1)) bad("min_seen_fraction must be in [0, 1]");
+  if (!(prune_opacity >= 0 && prune_opacity < 1)) bad("prune_opacity must be in [0, 1)");
+  if (unseen_window < 0) bad("unseen_window must be >= 0");
+}
+
+GrowthConfig GrowthConfig::scale_to(int iterations, int reference, int min_every) const {
+  if (iterations < 1 || reference < 1 || min_every < 1)
+    throw std::invalid_argument("GrowthConfig::scale_to: iterations, reference and min_every must be >= 1");
+  GrowthConfig c = *this;
+  if (iterations < reference && every > 0) {
+    const double f = static_cast<double>(iterations) / reference;
+    c.every = std::max(min_every, static_cast<int>(std::lround(every * f)));
+    c.start = std::max(c.every, static_cast<int>(std::lround(start * f)));
+    c.stop = static_cast<int>(std::lround(stop * f));
+  }
+  c.stop = std::min(c.stop, iterations);
+  return c;
+}
+
+bool GrowthConfig::due(int it) const {
+  return every > 0 && it >= start && it <= stop && it % every == 0;
+}
+
+bool GrowthConfig::collecting(int it) const {
+  return every > 0 && it > start - every && it <= stop;
+}
+
+// ---------------------------------------------------------------- AnchorGrowth
+
+AnchorGrowth::AnchorGrowth(Runtime& rt, const GrowthConfig& config)
+    : rt_(rt), config_(config), grad_sum_(&rt), count_(&rt), last_seen_(&rt), radii_upload_(&rt) {
+  config_.validate();
+}
+
+void AnchorGrowth::set_config(const GrowthConfig& config) {
+  config.validate();
+  config_ = config;
+}
+
+void AnchorGrowth::reset(size_t gaussians) {
+  if (gaussians > static_cast<size_t>(std::numeric_limits<int32_t>::max()))
+    throw std::invalid_argument("growth: " + std::to_string(gaussians) + " Gaussians exceed the 32-bit index range");
+  n_ = gaussians;
+  steps_ = 0;
+  const size_t bytes = std::max<size_t>(n_ * 4, 4);
+  grad_sum_.reserve(bytes);
+  count_.reserve(bytes);
+  grad_sum_.fill_zero(bytes);
+  count_.fill_zero(bytes);
+  last_seen_.upload(std::vector<int32_t>(n_, step_));
+}
+
+void AnchorGrowth::accumulate(const DeviceBuffer& v_means2d, const DeviceBuffer& radii, int width, int height) {
+  if (width <= 0 || height <= 0)
+    throw std::invalid_argument("growth accumulate: image size " + std::to_string(width) + "x" +
+                                std::to_string(height) + " is not positive");
+  if (v_means2d.capacity() < n_ * 2 * sizeof(float))
+    throw std::invalid_argument("growth accumulate: the means2d gradient holds " +
+                                std::to_string(v_means2d.capacity() / (2 * sizeof(float))) + " rows, expected " +
+                                std::to_string(n_) + " (call reset() after the model changed)");
+  if (radii.capacity() < n_ * sizeof(int32_t))
+    throw std::invalid_argument("growth accumulate: radii holds " + std::to_string(radii.capacity() / 4) +
+                                " entries, expected " + std::to_string(n_));
+  ++step_;
+  ++steps_;
+  if (n_ == 0) return;
+  const float sx = config_.ndc ? 0.5f * static_cast<float>(width) : 1.f;
+  const float sy = config_.ndc ? 0.5f * static_cast<float>(height) : 1.f;
+  cl::Kernel k = rt_.kernel("growth.cl", "growth_accumulate", {});
+  set_kernel_args(k, static_cast<int>(n_), v_means2d, radii, sx, sy, step_, grad_sum_, count_, last_seen_);
+  rt_.launch("growth_accumulate", k, cl::NDRange(n_), cl::NDRange(kWorkGroup));
+}
+
+void AnchorGrowth::accumulate(const DeviceBuffer& v_means2d, const std::vector<int>& radii, int width, int height) {
+  if (radii.size() != n_)
+    throw std::invalid_argument("growth accumulate: " + std::to_string(radii.size()) + " radii for " +
+                                std::to_string(n_) + " Gaussians (call reset() after the model changed)");
+  radii_upload_.upload(radii);
+  accumulate(v_means2d, radii_upload_, width, height);
+}
+
+GrowthStatsHost AnchorGrowth::download() {
+  GrowthStatsHost s;
+  s.steps = steps_;
+  s.step = step_;
+  grad_sum_.download(s.grad_sum, n_);
+  count_.download(s.count, n_);
+  last_seen_.download(s.last_seen, n_);
+  return s;
+}
+
+GrowthResult AnchorGrowth::step(AnchorModel& model, uint64_t seed) {
+  if (model.gaussians() != n_)
+    throw std::invalid_argument("growth step: the model has " + std::to_string(model.gaussians()) +
+                                " Gaussians, the statistics " + std::to_string(n_) +
+                                " (call reset() after the model changed)");
+  const GrowthStatsHost st = download();
+  const size_t A0 = model.size();
+  const int K = model.children();
+  const int layers = model.config().layers;
+  const VoxelGrid& grid = model.grid();
+  GrowthResult r;
+  r.anchors_before = A0;
+  r.gaussians_before = n_;
+
+  // 1. Grow: requests (voxel key, child row), sorted, first per voxel wins.
+  const int min_count = std::max(config_.min_observations,
+                                 static_cast<int>(std::ceil(static_cast<double>(config_.min_seen_fraction) * steps_)));
+  struct Request {
+    uint64_t key;
+    int64_t child;
+    int layer;
+    Eigen::Vector3i cell;
+  };
+  std::vector<Request> requests;
+  for (size_t g = 0; g < n_; ++g) {
+    if (st.count[g] < min_count) continue;
+    const size_t a = g / K;
+    const int layer = model.layer()[a];
+    if (layer + 1 >= layers) continue;
+    const double mean_grad = static_cast<double>(st.grad_sum[g]) / st.count[g];
+    const double threshold =
+        static_cast<double>(config_.grad_threshold) * std::pow(static_cast<double>(config_.layer_factor), layer);
+    if (!(mean_grad > threshold)) continue;
+    const double l = model.voxel()[a];
+    Eigen::Vector3d mean;
+    for (int k = 0; k < 3; ++k) mean[k] = double(model.pos()[3 * a + k]) + double(model.offset()[3 * g + k]) * l;
+    if (!mean.allFinite()) continue;
+    const Eigen::Vector3i cell = grid.cell_of(layer + 1, mean);
+    if ((cell.array() < -kMaxAnchorCell).any() || (cell.array() >= kMaxAnchorCell).any()) continue;
+    requests.push_back({anchor_voxel_key(layer + 1, cell), static_cast<int64_t>(g), layer + 1, cell});
+  }
+  r.requests = static_cast<int>(requests.size());
+  std::sort(requests.begin(), requests.end(),
+            [](const Request& x, const Request& y) { return std::tie(x.key, x.child) < std::tie(y.key, y.child); });
+  for (size_t i = 0; i < requests.size(); ++i) {
+    if (i > 0 && requests[i].key == requests[i - 1].key) continue;
+    if (model.find(requests[i].layer, requests[i].cell) >= 0) continue;
+    if (model.add_anchor(requests[i].layer, requests[i].cell, requests[i].child, seed) >= 0) ++r.added;
+  }
+
+  // 2. Prune the anchors that existed before this step.
+  const size_t A1 = model.size();
+  std::vector<uint8_t> keep(A1, 1);
+  const int window = std::max(config_.unseen_window, steps_);
+  for (size_t a = 0; a < A0; ++a) {
+    if (config_.prune_opacity > 0) {
+      double sum = 0;
+      for (int i = 0; i < K; ++i) sum += sigmoid(model.opacity_logit()[a * K + i]);
+      if (sum / K < config_.prune_opacity) {
+        keep[a] = 0;
+        ++r.pruned_opacity;
+        continue;
+      }
+    }
+    if (config_.prune_unseen && steps_ > 0) {
+      int32_t last = std::numeric_limits<int32_t>::min();
+      for (int i = 0; i < K; ++i) last = std::max(last, st.last_seen[a * K + i]);
+      if (static_cast<int64_t>(step_) - last >= window) {
+        keep[a] = 0;
+        ++r.pruned_unseen;
+      }
+    }
+  }
+  r.pruned = r.pruned_opacity + r.pruned_unseen;
+
+  std::vector<int> kept(A1);
+  std::iota(kept.begin(), kept.end(), 0);
+  if (r.pruned > 0) kept = model.remove_anchors(keep);
+  r.anchor_rows.resize(kept.size());
+  for (size_t i = 0; i < kept.size(); ++i) r.anchor_rows[i] = kept[i] < static_cast<int>(A0) ? kept[i] : -1;
+  r.child_rows = AnchorModel::child_rows(r.anchor_rows, K);
+  r.anchors_after = model.size();
+  r.gaussians_after = model.gaussians();
+
+  // 3. Fresh statistics; last_seen follows the rows (new rows: seen now).
+  std::vector<int32_t> last(r.gaussians_after);
+  for (size_t g = 0; g < last.size(); ++g) last[g] = r.child_rows[g] >= 0 ? st.last_seen[r.child_rows[g]] : step_;
+  reset(r.gaussians_after);
+  last_seen_.upload(last);
+  return r;
+}
+
+}  // namespace ag2gs
