@@ -358,10 +358,17 @@ void convert(const unsigned char* src, size_t count, const DType& dt, float* dst
 }
 
 // Fortran order (first index fastest) -> C order (last index fastest).
-std::vector<float> fortran_to_c(const std::vector<float>& f, const std::vector<int64_t>& shape) {
+std::vector<float> fortran_to_c(const std::vector<float>& f, const std::vector<int64_t>& full_shape) {
+  // Unit dimensions do not change the layout. Without them every dimension is
+  // at least 2, so there are at most 64 and the index carry below costs O(1)
+  // per element on average; with them, a header of 300k ones made it O(ndim).
+  std::vector<int64_t> shape;
+  for (int64_t d : full_shape) {
+    if (d != 1) shape.push_back(d);
+  }
   const size_t ndim = shape.size();
+  if (f.empty() || ndim <= 1) return f;
   std::vector<float> c(f.size());
-  if (f.empty()) return c;
   std::vector<size_t> stride(ndim);  // Fortran strides, in elements
   size_t s = 1;
   for (size_t d = 0; d < ndim; ++d) {

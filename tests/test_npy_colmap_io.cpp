@@ -299,6 +299,8 @@ TEST(Npy, FortranOrderIsTransposedIntoCOrder) {
   EXPECT_EQ(read_npy(path).data, (std::vector<float>{1, 4, 2, 5, 3, 6}));
   write_bytes(path, npy_file(numpy_dict("<i2", true, "(1, 6, 1)"), data));
   EXPECT_EQ(read_npy(path).data, (std::vector<float>{1, 4, 2, 5, 3, 6}));
+  write_bytes(path, npy_file(numpy_dict("<i2", true, "(2, 1, 3, 1)"), data));
+  EXPECT_EQ(read_npy(path).data, (std::vector<float>{1, 2, 3, 4, 5, 6}));
   write_bytes(path, npy_file(numpy_dict("<i2", true, "(3, 0, 2)"), ""));
   const NpyArray empty = read_npy(path);
   EXPECT_EQ(empty.shape, (std::vector<int64_t>{3, 0, 2}));
@@ -905,6 +907,25 @@ std::string ply_header_lines(const std::string& format, const std::string& befor
 }
 
 }  // namespace
+
+TEST(FuzzRegression, NpyFortranOrderWithManyUnitDimensions) {
+  // Found reviewing the fuzz_npy coverage: the Fortran-to-C transposition
+  // carried its index through every dimension, and a header may hold 300k
+  // unit dimensions: 10^5 elements took 3 10^10 steps.
+  TempDir dir;
+  const std::string path = dir.file("a.npy");
+  std::string shape = "(100000";
+  for (int i = 0; i < 300000; ++i) shape += ", 1";
+  shape += ")";
+  std::string data(100000, '\0');
+  for (size_t i = 0; i < data.size(); ++i) data[i] = static_cast<char>(i % 251);
+  write_bytes(path, npy_file(numpy_dict("|u1", true, shape), data, 2));
+  EXPECT_EQ(run_isolated([&] { read_npy(path); }, 20), "");
+  const NpyArray a = read_npy(path);
+  ASSERT_EQ(a.shape.size(), 300001u);
+  ASSERT_EQ(a.size(), 100000u);
+  EXPECT_EQ(a.data[99999], static_cast<float>(99999 % 251));
+}
 
 TEST(FuzzRegression, PlyAsciiElementWithoutPropertiesBeforeTheVertices) {
   // fuzz_ply timeout: the reader skipped the values of an element with no
