@@ -1,5 +1,7 @@
 #include "stages/anchor_growth.h"
 
+#include <spdlog/spdlog.h>
+
 #include <algorithm>
 #include <cmath>
 #include <limits>
@@ -205,6 +207,9 @@ GrowthResult AnchorGrowth::step(AnchorModel& model, uint64_t seed) {
   r.child_rows = AnchorModel::child_rows(r.anchor_rows, K);
   r.anchors_after = model.size();
   r.gaussians_after = model.gaussians();
+  if (r.anchors_after == 0 && r.anchors_before > 0)
+    spdlog::warn("growth: pruning removed every anchor ({} for opacity < {}, {} unseen)", r.pruned_opacity,
+                 config_.prune_opacity, r.pruned_unseen);
 
   // 3. Fresh statistics; last_seen follows the rows (new rows: seen now).
   std::vector<int32_t> last(r.gaussians_after);

@@ -68,6 +68,13 @@
 // After an opacity reset (3DGS sets every opacity near 0.01), turn the
 // opacity prune off for a while (set_config with prune_opacity = 0): the
 // mean opacity says nothing until training has restored it.
+//
+// Relation to Trainer::grow() (host statistics, growth only, commit ccc553c):
+// the same units and rule, so TrainConfig's grow_from / grow_until /
+// grow_every / grow_threshold / grow_min_seen map onto start / stop / every /
+// grad_threshold / min_seen_fraction (layer_factor 2); this module adds the
+// device statistics, one anchor per voxel in a fixed order, and pruning.
+// The gather maps are std::vector<int>, the type AdamGroup::gather takes.
 #pragma once
 
 #include <cstddef>
