@@ -8,26 +8,15 @@
 #include <fstream>
 #include <opencv2/imgcodecs.hpp>
 
+#include "cli_test_util.h"
+
 namespace fs = std::filesystem;
 
 namespace {
 
-struct Result {
-  int code;
-  std::string output;
-};
-
-Result run(const std::string& args) {
-  const char* bin = std::getenv("AG2GS_BINARY");
-  std::string cmd = std::string(bin ? bin : "./ag2gs") + " " + args + " 2>&1";
-  Result r{-1, ""};
-  FILE* p = popen(cmd.c_str(), "r");
-  if (!p) return r;
-  std::array<char, 4096> buf;
-  while (fgets(buf.data(), buf.size(), p)) r.output += buf.data();
-  int status = pclose(p);
-  r.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  return r;
+using Result = ag2gs::test::CliResult;
+inline Result run(const std::string& args) {
+  return ag2gs::test::run_cli(args);
 }
 
 std::string src() {

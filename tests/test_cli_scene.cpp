@@ -7,6 +7,7 @@
 #include <cstdio>
 #include <filesystem>
 
+#include "cli_test_util.h"
 #include "host/model_io.h"
 #include "io_test_util.h"
 
@@ -17,22 +18,9 @@ using ag2gs::test::write_bytes;
 
 namespace {
 
-struct Result {
-  int code;
-  std::string output;
-};
-
-Result run(const std::string& args) {
-  const char* bin = std::getenv("AG2GS_BINARY");
-  const std::string cmd = std::string(bin ? bin : "./ag2gs") + " " + args + " 2>&1";
-  Result r{-1, ""};
-  FILE* p = popen(cmd.c_str(), "r");
-  if (!p) return r;
-  std::array<char, 4096> buf;
-  while (fgets(buf.data(), buf.size(), p)) r.output += buf.data();
-  const int status = pclose(p);
-  r.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  return r;
+using Result = ag2gs::test::CliResult;
+inline Result run(const std::string& args) {
+  return ag2gs::test::run_cli(args);
 }
 
 void expect_has(const Result& r, const std::vector<std::string>& needles) {
