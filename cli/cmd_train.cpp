@@ -108,9 +108,9 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
     const bool log_now = a.log_every > 0 && ((it + 1) % a.log_every == 0 || it + 1 == c.iterations || it == 0);
     StepStats st = trainer.step(log_now);
     if (st.skipped) ++skipped;
-    if (st.grown > 0)
-      spdlog::info("iteration {}: grew {} anchors -> {} anchors, {} Gaussians", st.iteration, st.grown,
-                   trainer.anchors(), trainer.gaussians());
+    if (st.grown > 0 || st.pruned > 0)
+      spdlog::info("iteration {}: grew {} anchors, pruned {} -> {} anchors, {} Gaussians", st.iteration, st.grown,
+                   st.pruned, trainer.anchors(), trainer.gaussians());
     if (std::isnan(psnr0)) psnr0 = st.psnr;
     sum_loss += st.loss - (st.with_offset_loss ? c.w_offset * st.offset_reg : 0);
     sum_psnr += st.psnr;
@@ -218,6 +218,10 @@ void register_train(CLI::App& app, GlobalOptions& global) {
   sub->add_option("--grow-min-seen", c.grow_min_seen,
                   "Fraction of a round's iterations a child must be visible in to grow (default 0.4)")
       ->check(CLI::Range(0.0, 1.0));
+  sub->add_option("--prune-opacity", c.prune_opacity,
+                  "In growing rounds, remove anchors whose children's mean opacity is below this (default 0.01; 0 = "
+                  "off)")
+      ->check(CLI::Range(0.0, 0.999));
   sub->add_option("--log-every", a->log_every, "Progress line every N iterations (default 100; 0 = none)")
       ->check(CLI::NonNegativeNumber);
   sub->add_option("--test-every", a->test_every, "With --eval: test metrics every N iterations (default 0 = end only)")

@@ -52,6 +52,7 @@ void TrainConfig::validate() const {
       {"scaling_lr", scaling_lr},         {"rotation_lr", rotation_lr}};
   for (const auto& [name, v] : rates)
     if (!(v >= 0) || !std::isfinite(v)) bad(std::string(name) + " must be finite and >= 0");
+  if (!(prune_opacity >= 0 && prune_opacity < 1)) bad("prune_opacity must be in [0, 1)");
   if (grow_every < 0 || grow_from < 0 || grow_until < 0 || !(grow_min_seen >= 0 && grow_min_seen <= 1))
     bad("grow_every, grow_from and grow_until must be >= 0 and grow_min_seen in [0, 1]");
   if (!(grow_threshold > 0) || !std::isfinite(grow_threshold)) bad("grow_threshold must be finite and > 0");
@@ -98,7 +99,8 @@ nlohmann::json TrainConfig::to_json() const {
             {"until", effective_grow_until()},
             {"every", grow_every},
             {"threshold", grow_threshold},
-            {"min_seen", grow_min_seen}}}};
+            {"min_seen", grow_min_seen}}},
+          {"prune_opacity", prune_opacity}};
 }
 
 // ------------------------------------------------------------------ helpers
@@ -291,7 +293,11 @@ StepStats Trainer::step(bool compute_offset_loss) {
     const bool growing = config_.grow_every > 0 && config_.anchors.layers > 1;
     if (growing && st.iteration <= config_.effective_grow_until()) {
       accumulate_growth_stats(out);
-      if (st.iteration >= config_.grow_from && st.iteration % config_.grow_every == 0) st.grown = grow();
+      if (st.iteration >= config_.grow_from && st.iteration % config_.grow_every == 0) {
+        const GrowResult r = grow();
+        st.grown = r.added;
+        st.pruned = r.pruned;
+      }
     }
   }
   iteration_ = it + 1;
@@ -312,7 +318,7 @@ void Trainer::accumulate_growth_stats(const RenderOutput& out) {
   }
 }
 
-int Trainer::grow() {
+Trainer::GrowResult Trainer::grow() {
   model();  // host values up to date
   const size_t a0 = model_.size();
   const size_t n0 = model_.gaussians();
@@ -345,11 +351,36 @@ int Trainer::grow() {
     spdlog::debug("grow at iteration {}: {} children, {} seen, {} seen >= {} times, {} of those above {:.3g}",
                   iteration_ + 1, n0, visible, enough, min_seen, above, config_.grow_threshold);
   }
+  // Pruning: anchors seen enough this round whose children's mean opacity is
+  // below prune_opacity (anchors added just now are kept).
+  std::vector<uint8_t> keep(model_.size(), 1);
+  int pruned = 0;
+  if (config_.prune_opacity > 0) {
+    for (size_t a = 0; a < a0; ++a) {
+      double opacity = 0;
+      int seen = 0;
+      for (int i = 0; i < K; ++i) {
+        const size_t g = a * K + i;
+        opacity += 1.0 / (1.0 + std::exp(-double(model_.opacity_logit()[g])));
+        seen = std::max(seen, static_cast<int>(seen_[g]));
+      }
+      if (seen >= min_seen && opacity / K < config_.prune_opacity) {
+        keep[a] = 0;
+        ++pruned;
+      }
+    }
+    if (static_cast<size_t>(pruned) == model_.size()) pruned = 0;  // never prune everything
+  }
   std::fill(grad_sum_.begin(), grad_sum_.end(), 0.0);
   std::fill(seen_.begin(), seen_.end(), 0);
-  if (added == 0) return 0;
+  if (added == 0 && pruned == 0) return {};
   std::vector<int> rows(a0 + added, -1);
   std::iota(rows.begin(), rows.begin() + a0, 0);
+  if (pruned > 0) {
+    rows = model_.remove_anchors(keep);  // new anchor r = old (appended) anchor rows[r]
+    for (int& r : rows)
+      if (r >= static_cast<int>(a0)) r = -1;  // added this round: fresh optimiser state
+  }
   const std::vector<int> child = AnchorModel::child_rows(rows, K);
   anchors_.upload(model_);
   for (AdamGroup* grp : {g_offset_.get(), g_scale_.get(), g_quat_.get(), g_opacity_.get(), g_dc_.get(), g_rest_.get()})
@@ -357,7 +388,7 @@ int Trainer::grow() {
   const size_t n = model_.gaussians();
   grad_sum_.assign(n, 0.0);
   seen_.assign(n, 0);
-  return added;
+  return {added, pruned};
 }
 
 EvalStats Trainer::evaluate(const std::vector<int>& views) {

@@ -14,9 +14,11 @@
 // iterations where it was visible; every grow_every iterations in
 // [grow_from, grow_until] a child whose average exceeds grow_threshold *
 // 2^layer asks for an anchor of the next finer layer at the voxel holding its
-// mean (skipped when taken); the optimiser state follows the rows.
+// mean (skipped when taken); in the same rounds anchors whose children's mean
+// opacity is below prune_opacity are removed. The optimiser state follows
+// the rows.
 //
-// Not done yet: pruning, opacity reset, the mask losses and the semantic
+// Not done yet: pruning of never-seen children, opacity reset, the mask losses and the semantic
 // features (stage-1 appearance only: the feature group gets no gradient and
 // is not stepped).
 //
@@ -84,6 +86,9 @@ struct TrainConfig {
   // A child grows only when visible in at least this fraction of the
   // iterations since the last round (official: 0.4 = 40 of 100).
   double grow_min_seen = 0.4;
+  // In the same rounds: remove anchors (seen enough in the round) whose
+  // children's mean opacity is below this; 0 = no pruning.
+  double prune_opacity = 0.01;
 
   // Throws std::invalid_argument naming the first field out of range.
   void validate() const;
@@ -107,7 +112,8 @@ struct StepStats {
   bool with_offset_loss = false;
   int sh_degree = 0;
   size_t intersections = 0;
-  int grown = 0;  // anchors added after this step
+  int grown = 0;   // anchors added after this step
+  int pruned = 0;  // anchors removed after this step
 };
 
 struct EvalStats {
@@ -174,7 +180,10 @@ class Trainer {
   DeviceBuffer reg_value_;
 
   // Growing statistics per child since the last round.
-  int grow();
+  struct GrowResult {
+    int added = 0, pruned = 0;
+  };
+  GrowResult grow();
   void accumulate_growth_stats(const RenderOutput& out);
   std::vector<double> grad_sum_;
   std::vector<int32_t> seen_;

@@ -86,6 +86,43 @@ TEST(Train, LossFallsAndTrainingPsnrRises) {
   EXPECT_EQ(trainer.active_sh_degree(), 3);
 }
 
+TEST(Train, GrowingAndPruningKeepTheModelAndOptimiserConsistent) {
+  SceneOptions so;
+  so.resolution = 2;
+  auto scene = Scene::open(sample_scene(), so);
+  TrainConfig cfg;
+  cfg.iterations = 80;
+  cfg.anchors.top_cells = 50;
+  cfg.white_background = true;
+  cfg.grow_from = 40;
+  cfg.grow_every = 40;
+  cfg.grow_threshold = 1e-3;
+  cfg.prune_opacity = 0.12;  // above the initial 0.1: prunes anchors whose children did not gain opacity
+  Trainer trainer(test::runtime(), *scene, cfg);
+  const size_t a0 = trainer.anchors();
+  int grown = 0, pruned = 0;
+  for (int it = 0; it < cfg.iterations; ++it) {
+    StepStats st = trainer.step();
+    ASSERT_FALSE(st.skipped) << "iteration " << st.iteration;
+    ASSERT_TRUE(std::isfinite(st.loss)) << "iteration " << st.iteration;
+    grown += st.grown;
+    pruned += st.pruned;
+  }
+  std::printf("anchors %zu -> %zu: grew %d, pruned %d\n", a0, trainer.anchors(), grown, pruned);
+  EXPECT_GT(grown, 0);
+  EXPECT_GT(pruned, 0);
+  EXPECT_EQ(trainer.anchors(), a0 + grown - pruned);
+  const AnchorModel& m = trainer.model();
+  m.check();
+  EXPECT_EQ(m.size(), trainer.anchors());
+  for (float x : m.offset()) ASSERT_TRUE(std::isfinite(x));
+  for (float x : m.opacity_logit()) ASSERT_TRUE(std::isfinite(x));
+  // Every remaining voxel is taken once and findable.
+  for (size_t a = 0; a < m.size(); ++a)
+    ASSERT_EQ(m.find(m.layer()[a], Eigen::Vector3i(m.cell()[3 * a], m.cell()[3 * a + 1], m.cell()[3 * a + 2])),
+              static_cast<int>(a));
+}
+
 TEST(Train, ViewOrderIsASeededPermutationPerEpoch) {
   SceneOptions so;
   so.resolution = 2;
@@ -141,7 +178,7 @@ TEST(Train, SameSeedGivesByteIdenticalModelFiles) {
   EXPECT_EQ(archive.meta["train"]["config"]["iterations"].get<int>(), 60);
   const size_t grown = std::count(model.layer().begin(), model.layer().end(), 1);
   EXPECT_GT(grown, 0u) << "no anchor grew on layer 1";
-  EXPECT_NE(r1.output.find("grew " + std::to_string(grown) + " anchors"), std::string::npos) << r1.output;
+  EXPECT_NE(r1.output.find("grew " + std::to_string(grown) + " anchors, pruned"), std::string::npos) << r1.output;
   GaussianSet ply = read_ply(dir.file("a/point_cloud.ply"));
   EXPECT_EQ(ply.size(), model.gaussians());
   EXPECT_EQ(ply.sh_degree, 3);
