@@ -5,6 +5,7 @@
 
 #include <Eigen/Geometry>
 #include <algorithm>
+#include <cctype>
 #include <climits>
 #include <cmath>
 #include <cstdlib>
@@ -238,10 +239,10 @@ class TextReader {
     return v;
   }
   uint64_t integer(const std::string& tok, const char* what) const {
-    const double v = number(tok, what);
-    if (!(v >= 0 && v < 1.8e19) || std::floor(v) != v) {
-      bad(std::string("bad ") + what + " '" + tok + "' (expected a non-negative integer)");
-    }
+    // Digits only: "1e3" or "12.0" must not pass as 1 or 12.
+    const bool digits = !tok.empty() && tok.size() <= 19 &&
+                        std::all_of(tok.begin(), tok.end(), [](unsigned char c) { return std::isdigit(c); });
+    if (!digits) bad(std::string("bad ") + what + " '" + tok + "' (expected a non-negative integer)");
     return static_cast<uint64_t>(std::strtoull(tok.c_str(), nullptr, 10));
   }
   [[noreturn]] void bad(const std::string& what) const { fail(path_ + ":" + std::to_string(line_no_), what); }

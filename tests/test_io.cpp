@@ -623,3 +623,15 @@ TEST(CameraHelpers, SelectViewsByNameAndStem) {
   expect_error<std::invalid_argument>([&] { select_views(nested, "frame_1"); },
                                       {"ambiguous", "left/frame_1.jpg", "right/frame_1.jpg"});
 }
+
+TEST(Colmap, TextIntegersMustBePlainDigits) {
+  for (const char* bad_id : {"1e3", "12.0", "-1", "0x10"}) {
+    TempDir dir;
+    write_bytes(dir.file("cameras.txt"), std::string(bad_id) + " PINHOLE 4 3 2 2 2 1.5\n");
+    write_bytes(dir.file("images.txt"), "");
+    write_bytes(dir.file("points3D.txt"), "");
+    expect_error<std::runtime_error>([&] { read_colmap_model(dir.path().string()); },
+                                     {dir.file("cameras.txt") + ":1", std::string("'") + bad_id + "'",
+                                      "non-negative integer"});
+  }
+}
