@@ -15,13 +15,7 @@
 #include <string>
 #include <system_error>
 
-#ifdef _WIN32
-#include <process.h>
-#define AG2GS_GETPID _getpid
-#else
-#include <unistd.h>
-#define AG2GS_GETPID getpid
-#endif
+#include "host/atomic_file.h"
 
 namespace ag2gs {
 namespace {
@@ -167,46 +161,10 @@ std::string points_txt(const std::vector<Eigen::Vector3d>& points, const std::ve
 
 // ---------------------------------------------------------------- atomic write
 
-// Removes the temporary file, once created, unless the write was committed.
-struct PendingFile {
-  std::string path;
-  std::FILE* file = nullptr;
-  bool created = false;  // never remove something at `path` that we did not make
-  bool committed = false;
-  ~PendingFile() {
-    if (file) std::fclose(file);
-    if (created && !committed) std::remove(path.c_str());
-  }
-};
-
 void write_atomic(const std::string& path, const std::string& bytes) {
-  PendingFile tmp;
-  tmp.path = path + ".tmp." + std::to_string(static_cast<long>(AG2GS_GETPID()));
-  tmp.file = std::fopen(tmp.path.c_str(), "wb");
-  tmp.created = tmp.file != nullptr;
-  if (!tmp.file) {
-    fail(path, "cannot create the temporary file '" + tmp.path + "': " + std::strerror(errno) +
-                   "; check that the directory is writable");
-  }
-  if ((!bytes.empty() && std::fwrite(bytes.data(), 1, bytes.size(), tmp.file) != bytes.size()) ||
-      std::fflush(tmp.file) != 0) {
-    fail(path, "writing '" + tmp.path + "' failed: " + std::strerror(errno) +
-                   " (disk full?); the previous file, if any, is unchanged");
-  }
-#ifndef _WIN32
-  fsync(fileno(tmp.file));  // the data must be on disk before the rename publishes it
-#endif
-  const int close_rc = std::fclose(tmp.file);
-  tmp.file = nullptr;
-  if (close_rc != 0) {
-    fail(path,
-         "closing '" + tmp.path + "' failed: " + std::strerror(errno) + "; the previous file, if any, is unchanged");
-  }
-  if (std::rename(tmp.path.c_str(), path.c_str()) != 0) {
-    fail(path, "cannot move '" + tmp.path + "' into place: " + std::strerror(errno) +
-                   "; the previous file, if any, is unchanged");
-  }
-  tmp.committed = true;
+  AtomicFile out(path);
+  out.write(bytes.data(), bytes.size());
+  out.commit();
 }
 
 void check_inputs(const std::vector<Camera>& cameras, const std::vector<Eigen::Vector3d>& points,

@@ -10,6 +10,8 @@
 #include <limits>
 #include <stdexcept>
 
+#include "host/atomic_file.h"
+
 namespace ag2gs {
 namespace {
 
@@ -229,35 +231,18 @@ void write_model_archive(const std::string& path, const ModelArchive& archive) {
   if (target.has_parent_path() && !fs::is_directory(target.parent_path())) {
     fail(path, "cannot write: the folder " + target.parent_path().string() + " does not exist");
   }
-  const std::string tmp = path + ".tmp." + std::to_string(static_cast<long>(::getpid()));
-  {
-    std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
-    if (!out) fail(path, std::string("cannot write: ") + std::strerror(errno));
-    out.write(prefix.data(), static_cast<std::streamsize>(prefix.size()));
-    out.write(text.data(), static_cast<std::streamsize>(text.size()));
-    out.write(suffix.data(), static_cast<std::streamsize>(suffix.size()));
-    // Pad so the data section starts 8-aligned.
-    const size_t head = prefix.size() + text.size() + suffix.size();
-    const std::string pad((8 - head % 8) % 8, '\0');
-    out.write(pad.data(), static_cast<std::streamsize>(pad.size()));
-    for (const auto& [name, t] : archive.arrays()) {
-      out.write(reinterpret_cast<const char*>(t.bytes.data()), static_cast<std::streamsize>(t.bytes.size()));
-      const std::string tail((8 - t.bytes.size() % 8) % 8, '\0');
-      out.write(tail.data(), static_cast<std::streamsize>(tail.size()));
-    }
-    out.flush();
-    if (!out) {
-      out.close();
-      std::remove(tmp.c_str());
-      fail(path, "writing failed (disk full?); the previous file, if any, is unchanged");
-    }
+  AtomicFile out(path);
+  out.write(prefix);
+  out.write(text);
+  out.write(suffix);
+  // Pad so the data section starts 8-aligned.
+  const size_t head = prefix.size() + text.size() + suffix.size();
+  out.write(std::string((8 - head % 8) % 8, '\0'));
+  for (const auto& [name, t] : archive.arrays()) {
+    out.write(t.bytes.data(), t.bytes.size());
+    out.write(std::string((8 - t.bytes.size() % 8) % 8, '\0'));
   }
-  std::error_code ec;
-  fs::rename(tmp, path, ec);
-  if (ec) {
-    std::remove(tmp.c_str());
-    fail(path, "cannot replace the file: " + ec.message());
-  }
+  out.commit();
 }
 
 ModelArchive read_model_archive(const std::string& path) {

@@ -19,13 +19,7 @@
 #include <string>
 #include <vector>
 
-#ifdef _WIN32
-#include <process.h>
-#define AG2GS_GETPID _getpid
-#else
-#include <unistd.h>
-#define AG2GS_GETPID getpid
-#endif
+#include "host/atomic_file.h"
 
 namespace ag2gs {
 namespace {
@@ -400,18 +394,6 @@ std::string shape_text(const std::vector<int64_t>& shape) {
 
 // ---------------------------------------------------------------- writing
 
-// Removes the temporary file, once created, unless the write was committed.
-struct PendingFile {
-  std::string path;
-  std::FILE* file = nullptr;
-  bool created = false;  // never remove something at `path` that we did not make
-  bool committed = false;
-  ~PendingFile() {
-    if (file) std::fclose(file);
-    if (created && !committed) std::remove(path.c_str());
-  }
-};
-
 }  // namespace
 
 NpyArray read_npy(const std::string& path) {
@@ -576,20 +558,8 @@ void write_npy(const std::string& path, const std::vector<float>& data, const st
   preamble += '\0';
   for (size_t b = 0; b < len_bytes; ++b) preamble += static_cast<char>((dict.size() >> (8 * b)) & 0xff);
 
-  PendingFile tmp;
-  tmp.path = path + ".tmp." + std::to_string(static_cast<long>(AG2GS_GETPID()));
-  tmp.file = std::fopen(tmp.path.c_str(), "wb");
-  tmp.created = tmp.file != nullptr;
-  if (!tmp.file) {
-    fail(path, "cannot create the temporary file '" + tmp.path + "': " + std::strerror(errno) +
-                   "; check that the directory exists and is writable");
-  }
-  auto put = [&](const void* bytes, size_t n) {
-    if (n > 0 && std::fwrite(bytes, 1, n, tmp.file) != n) {
-      fail(path, "writing '" + tmp.path + "' failed: " + std::strerror(errno) +
-                     " (disk full?); the previous file, if any, is unchanged");
-    }
-  };
+  AtomicFile out(path);
+  auto put = [&](const void* bytes, size_t n) { out.write(bytes, n); };
   put(preamble.data(), preamble.size());
   put(dict.data(), dict.size());
 
@@ -606,24 +576,7 @@ void write_npy(const std::string& path, const std::vector<float>& data, const st
     put(bytes.data(), bytes.size());
   }
 
-  if (std::fflush(tmp.file) != 0) {
-    fail(path, "writing '" + tmp.path + "' failed: " + std::strerror(errno) +
-                   " (disk full?); the previous file, if any, is unchanged");
-  }
-#ifndef _WIN32
-  fsync(fileno(tmp.file));  // the data must be on disk before the rename publishes it
-#endif
-  const int close_rc = std::fclose(tmp.file);
-  tmp.file = nullptr;
-  if (close_rc != 0) {
-    fail(path,
-         "closing '" + tmp.path + "' failed: " + std::strerror(errno) + "; the previous file, if any, is unchanged");
-  }
-  if (std::rename(tmp.path.c_str(), path.c_str()) != 0) {
-    fail(path, "cannot move '" + tmp.path + "' into place: " + std::strerror(errno) +
-                   "; the previous file, if any, is unchanged");
-  }
-  tmp.committed = true;
+  out.commit();
 }
 
 }  // namespace ag2gs

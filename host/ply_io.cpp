@@ -16,13 +16,7 @@
 #include <string>
 #include <vector>
 
-#ifdef _WIN32
-#include <process.h>
-#define AG2GS_GETPID _getpid
-#else
-#include <unistd.h>
-#define AG2GS_GETPID getpid
-#endif
+#include "host/atomic_file.h"
 
 namespace ag2gs {
 namespace {
@@ -507,15 +501,6 @@ void read_ascii(const std::string& path, std::ifstream& in, uint64_t file_size, 
 }
 
 // Removes the temporary file unless the write was committed.
-struct TempFile {
-  std::string path;
-  std::FILE* file = nullptr;
-  bool committed = false;
-  ~TempFile() {
-    if (file) std::fclose(file);
-    if (!committed) std::remove(path.c_str());
-  }
-};
 
 }  // namespace
 
@@ -568,19 +553,8 @@ void write_ply(const std::string& path, const GaussianSet& gs, bool with_feature
   for (const std::string& name : names) header += "property float " + name + "\n";
   header += "end_header\n";
 
-  TempFile tmp;
-  tmp.path = path + ".tmp." + std::to_string(static_cast<long>(AG2GS_GETPID()));
-  tmp.file = std::fopen(tmp.path.c_str(), "wb");
-  if (!tmp.file) {
-    fail(path, "cannot create the temporary file '" + tmp.path + "': " + std::strerror(errno) +
-                   "; check that the directory exists and is writable");
-  }
-  auto write_or_fail = [&](const void* data, size_t bytes) {
-    if (bytes > 0 && std::fwrite(data, 1, bytes, tmp.file) != bytes) {
-      fail(path, "writing '" + tmp.path + "' failed: " + std::strerror(errno) +
-                     " (disk full?); the previous file, if any, is unchanged");
-    }
-  };
+  AtomicFile out(path);
+  auto write_or_fail = [&](const void* data, size_t bytes) { out.write(data, bytes); };
   write_or_fail(header.data(), header.size());
 
   const size_t stride = names.size() * 4;
@@ -618,24 +592,7 @@ void write_ply(const std::string& path, const GaussianSet& gs, bool with_feature
     write_or_fail(chunk.data(), chunk.size());
   }
 
-  if (std::fflush(tmp.file) != 0) {
-    fail(path, "writing '" + tmp.path + "' failed: " + std::strerror(errno) +
-                   " (disk full?); the previous file, if any, is unchanged");
-  }
-#ifndef _WIN32
-  fsync(fileno(tmp.file));  // the rename below must not outrun the data
-#endif
-  const int close_rc = std::fclose(tmp.file);
-  tmp.file = nullptr;
-  if (close_rc != 0) {
-    fail(path,
-         "closing '" + tmp.path + "' failed: " + std::strerror(errno) + "; the previous file, if any, is unchanged");
-  }
-  if (std::rename(tmp.path.c_str(), path.c_str()) != 0) {
-    fail(path, "cannot move '" + tmp.path + "' into place: " + std::strerror(errno) +
-                   "; the previous file, if any, is unchanged");
-  }
-  tmp.committed = true;
+  out.commit();
 }
 
 }  // namespace ag2gs

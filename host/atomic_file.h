@@ -1,0 +1,40 @@
+// Writing a file so that a reader never sees it half written: the bytes go to
+// "<path>.tmp.<pid>", which is flushed, synced and renamed over `path` only by
+// commit(). Until then an existing `path` is untouched; a writer destroyed
+// without commit() (an exception, a failed write) removes its temporary file,
+// and never a path it did not create itself.
+#pragma once
+
+#include <cstddef>
+#include <cstdio>
+#include <string>
+
+namespace ag2gs {
+
+class AtomicFile {
+ public:
+  // Opens the temporary file; throws std::runtime_error naming `path` when it
+  // cannot be created (missing folder, no permission).
+  explicit AtomicFile(std::string path);
+  ~AtomicFile();
+  AtomicFile(const AtomicFile&) = delete;
+  AtomicFile& operator=(const AtomicFile&) = delete;
+
+  // Appends bytes; throws std::runtime_error (disk full, I/O error).
+  void write(const void* data, size_t bytes);
+  void write(const std::string& s) { write(s.data(), s.size()); }
+  // Flushes, syncs, closes and renames into place; throws on failure.
+  void commit();
+
+  const std::string& path() const { return path_; }
+  const std::string& temp_path() const { return temp_; }
+
+ private:
+  [[noreturn]] void fail(const std::string& what);
+
+  std::string path_, temp_;
+  std::FILE* file_ = nullptr;
+  bool created_ = false, committed_ = false;
+};
+
+}  // namespace ag2gs
