@@ -12,6 +12,7 @@
 #include <stdexcept>
 #include <system_error>
 
+#include "host/atomic_file.h"
 #include "host/model_io.h"
 #include "host/ply_io.h"
 
@@ -125,24 +126,9 @@ void check_model_dir_writable(const std::string& dir) {
 }
 
 void write_json_atomic(const std::string& path, const nlohmann::json& doc) {
-  const std::string tmp = path + ".tmp." + std::to_string(::getpid());
-  {
-    std::ofstream f(tmp, std::ios::binary | std::ios::trunc);
-    if (!f) throw std::runtime_error("cannot write " + tmp);
-    f << doc.dump(2) << "\n";
-    f.close();
-    if (!f) {
-      std::error_code ec;
-      fs::remove(tmp, ec);
-      throw std::runtime_error("cannot write " + tmp);
-    }
-  }
-  std::error_code ec;
-  fs::rename(tmp, path, ec);
-  if (ec) {
-    fs::remove(tmp, ec);
-    throw std::runtime_error("cannot rename " + tmp + " to " + path);
-  }
+  AtomicFile f(path);
+  f.write(doc.dump(2) + "\n");
+  f.commit();
 }
 
 // ------------------------------------------------------------------ trainer

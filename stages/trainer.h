@@ -195,7 +195,7 @@ class Trainer {
 // caller runs this before training so a long run cannot fail at the end.
 void check_model_dir_writable(const std::string& dir);
 
-// A JSON document written atomically (temp file + rename).
+// A JSON document written atomically (host/atomic_file.h).
 void write_json_atomic(const std::string& path, const nlohmann::json& doc);
 
 }  // namespace ag2gs
