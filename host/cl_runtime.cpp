@@ -22,10 +22,11 @@ const char* cl_error_name(cl_int code) {
   case x:    \
     return #x;
     E(CL_DEVICE_NOT_FOUND)
-    E(CL_DEVICE_NOT_AVAILABLE) E(CL_COMPILER_NOT_AVAILABLE) E(CL_MEM_OBJECT_ALLOCATION_FAILURE) E(CL_OUT_OF_RESOURCES)
-        E(CL_OUT_OF_HOST_MEMORY) E(CL_PROFILING_INFO_NOT_AVAILABLE) E(CL_BUILD_PROGRAM_FAILURE) E(CL_INVALID_VALUE)
-            E(CL_INVALID_DEVICE) E(CL_INVALID_CONTEXT) E(CL_INVALID_COMMAND_QUEUE) E(CL_INVALID_MEM_OBJECT)
-                E(CL_INVALID_BINARY) E(CL_INVALID_BUILD_OPTIONS) E(CL_INVALID_PROGRAM) E(CL_INVALID_PROGRAM_EXECUTABLE)
+    E(CL_DEVICE_NOT_AVAILABLE)
+    E(CL_COMPILER_NOT_AVAILABLE) E(CL_MEM_OBJECT_ALLOCATION_FAILURE) E(CL_OUT_OF_RESOURCES) E(CL_OUT_OF_HOST_MEMORY)
+        E(CL_PROFILING_INFO_NOT_AVAILABLE) E(CL_BUILD_PROGRAM_FAILURE) E(CL_INVALID_VALUE) E(CL_INVALID_DEVICE)
+            E(CL_INVALID_CONTEXT) E(CL_INVALID_COMMAND_QUEUE) E(CL_INVALID_MEM_OBJECT) E(CL_INVALID_BINARY)
+                E(CL_INVALID_BUILD_OPTIONS) E(CL_INVALID_PROGRAM) E(CL_INVALID_PROGRAM_EXECUTABLE)
                     E(CL_INVALID_KERNEL_NAME) E(CL_INVALID_KERNEL) E(CL_INVALID_ARG_INDEX) E(CL_INVALID_ARG_VALUE)
                         E(CL_INVALID_ARG_SIZE) E(CL_INVALID_KERNEL_ARGS) E(CL_INVALID_WORK_DIMENSION)
                             E(CL_INVALID_WORK_GROUP_SIZE) E(CL_INVALID_WORK_ITEM_SIZE) E(CL_INVALID_GLOBAL_OFFSET)
@@ -364,6 +365,32 @@ std::string kernel_source(const std::string& name) {
   if (read_file(fs::path(AG2GS_SOURCE_KERNEL_DIR) / name, text)) return text;
   throw std::runtime_error("kernel source " + name + " not found (not embedded and not in " +
                            std::string(AG2GS_SOURCE_KERNEL_DIR) + "); set AG2GS_KERNEL_DIR to the kernels/ folder");
+}
+
+LaunchShape choose_launch_shape(Runtime& rt, const std::string& who, int work_group, int lanes,
+                                const std::function<size_t(int, int)>& kernel_limit) {
+  auto power_of_two = [](long v) { return v > 0 && (v & (v - 1)) == 0; };
+  const size_t device_max = rt.info().max_work_group;
+  LaunchShape shape;
+  if (work_group != 0) {
+    if (!power_of_two(work_group) || static_cast<size_t>(work_group) > device_max)
+      throw std::invalid_argument(who + ": work-group size " + std::to_string(work_group) +
+                                  " must be a power of two no larger than the device's " + std::to_string(device_max));
+    shape.work_group = work_group;
+  } else {
+    while (static_cast<size_t>(shape.work_group) * 2 <= std::min<size_t>(256, device_max)) shape.work_group *= 2;
+  }
+  shape.lanes = lanes != 0 ? lanes : rt.vector_width();
+  if (!power_of_two(shape.lanes) || shape.lanes > 16)
+    throw std::invalid_argument(who + ": lanes must be 1, 2, 4, 8 or 16, got " + std::to_string(shape.lanes));
+  for (;;) {
+    const size_t limit = std::min(device_max, kernel_limit(shape.work_group, shape.lanes));
+    if (static_cast<size_t>(shape.work_group) <= limit) return shape;
+    if (work_group != 0 || shape.work_group == 1)
+      throw std::runtime_error(who + ": the device runs these kernels with at most " + std::to_string(limit) +
+                               " work-items per group, fewer than " + std::to_string(shape.work_group));
+    shape.work_group /= 2;
+  }
 }
 
 }  // namespace ag2gs

@@ -5,6 +5,7 @@
 
 #include <CL/opencl.hpp>
 #include <cstdint>
+#include <functional>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -157,5 +158,20 @@ void set_kernel_args(cl::Kernel& k, Args&&... args) {
   cl_uint i = 0;
   (set_kernel_arg(k, i++, std::forward<Args>(args)), ...);
 }
+
+// Work-group size and pixels per work-item for a family of kernels that share
+// both as build defines. `work_group` 0 = the largest power of two up to 256
+// the device allows, halved until every kernel accepts it (a kernel's own
+// limit can be lower than the device's); `lanes` 0 = the runtime's vector
+// width. `kernel_limit(wg, lanes)` returns the smallest
+// CL_KERNEL_WORK_GROUP_SIZE over the family built with those defines.
+// Throws std::invalid_argument for bad requests and std::runtime_error when
+// no size fits; messages start with `who`.
+struct LaunchShape {
+  int work_group = 1;
+  int lanes = 1;
+};
+LaunchShape choose_launch_shape(Runtime& rt, const std::string& who, int work_group, int lanes,
+                                const std::function<size_t(int, int)>& kernel_limit);
 
 }  // namespace ag2gs

@@ -32,10 +32,6 @@ std::map<std::string, std::string> loss_defines(int wg, int lanes) {
   return d;
 }
 
-bool is_power_of_two(long v) {
-  return v > 0 && (v & (v - 1)) == 0;
-}
-
 void check_capacity(const DeviceBuffer& b, size_t bytes, const char* what) {
   if (b.capacity() < bytes)
     throw std::invalid_argument(std::string("image loss: buffer '") + what + "' holds " + std::to_string(b.capacity()) +
@@ -62,34 +58,17 @@ std::vector<double> ImageLoss::window() {
 
 ImageLoss::ImageLoss(Runtime& rt, ImageLossOptions options) : rt_(rt) {
   for (DeviceBuffer* b : {&blur_, &coef_, &partials_, &norm_, &host_x_, &host_y_, &host_w_, &host_grad_}) b->bind(&rt_);
-  const size_t device_max = rt_.info().max_work_group;
-  const int work_group = options.work_group;
-  if (work_group != 0) {
-    if (!is_power_of_two(work_group) || static_cast<size_t>(work_group) > device_max)
-      throw std::invalid_argument("image loss: work-group size " + std::to_string(work_group) +
-                                  " must be a power of two no larger than the device's " + std::to_string(device_max));
-    wg_ = work_group;
-  } else {
-    wg_ = 1;
-    while (static_cast<size_t>(wg_) * 2 <= std::min<size_t>(256, device_max)) wg_ *= 2;
-  }
-  lanes_ = options.lanes != 0 ? options.lanes : rt_.vector_width();
-  if (!is_power_of_two(lanes_) || lanes_ > 16)
-    throw std::invalid_argument("image loss: lanes must be 1, 2, 4, 8 or 16, got " + std::to_string(lanes_));
-  // The kernel's own limit (registers, local memory) can be lower than the
-  // device's: halve until every kernel accepts the size.
-  for (;;) {
-    size_t limit = device_max;
-    for (const char* name : {"ssim_blur_h", "ssim_map", "loss_norm", "coef_blur_h", "image_loss_grad"}) {
-      cl::Kernel k = rt_.kernel("image_loss.cl", name, loss_defines(wg_, lanes_));
-      limit = std::min(limit, k.getWorkGroupInfo<CL_KERNEL_WORK_GROUP_SIZE>(rt_.info().device));
-    }
-    if (static_cast<size_t>(wg_) <= limit) break;
-    if (work_group != 0 || wg_ == 1)
-      throw std::runtime_error("image loss: the device runs these kernels with at most " + std::to_string(limit) +
-                               " work-items per group, fewer than " + std::to_string(wg_));
-    wg_ /= 2;
-  }
+  const LaunchShape shape =
+      choose_launch_shape(rt_, "image loss", options.work_group, options.lanes, [&](int wg, int lanes) {
+        size_t limit = ~size_t(0);
+        for (const char* name : {"ssim_blur_h", "ssim_map", "loss_norm", "coef_blur_h", "image_loss_grad"}) {
+          cl::Kernel k = rt_.kernel("image_loss.cl", name, loss_defines(wg, lanes));
+          limit = std::min(limit, k.getWorkGroupInfo<CL_KERNEL_WORK_GROUP_SIZE>(rt_.info().device));
+        }
+        return limit;
+      });
+  wg_ = shape.work_group;
+  lanes_ = shape.lanes;
 }
 
 void ImageLoss::enqueue(const DeviceBuffer& rendered, const DeviceBuffer& target, int width, int height, float lambda,

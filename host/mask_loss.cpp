@@ -17,10 +17,6 @@ std::map<std::string, std::string> mask_defines(int wg, int lanes) {
   return {{"WG", std::to_string(wg)}, {"LANES", std::to_string(lanes)}, {"MASK_ALPHA_MIN", alpha_min}};
 }
 
-bool is_power_of_two(long v) {
-  return v > 0 && (v & (v - 1)) == 0;
-}
-
 void check_capacity(const DeviceBuffer& b, size_t bytes, const char* what) {
   if (b.capacity() < bytes)
     throw std::invalid_argument(std::string("mask loss: buffer '") + what + "' holds " + std::to_string(b.capacity()) +
@@ -35,33 +31,17 @@ MaskLoss::MaskLoss(Runtime& rt, MaskLossOptions options) : rt_(rt) {
   for (DeviceBuffer* b : {&labels_, &pixels_, &chunk_table_, &mask_chunks_, &sums_, &means_, &stats_, &abs_, &coef_,
                           &terms_, &host_f_, &host_a_, &host_gf_, &host_ga_})
     b->bind(&rt_);
-  const size_t device_max = rt_.info().max_work_group;
-  const int work_group = options.work_group;
-  if (work_group != 0) {
-    if (!is_power_of_two(work_group) || static_cast<size_t>(work_group) > device_max)
-      throw std::invalid_argument("mask loss: work-group size " + std::to_string(work_group) +
-                                  " must be a power of two no larger than the device's " + std::to_string(device_max));
-    wg_ = work_group;
-  } else {
-    wg_ = 1;
-    while (static_cast<size_t>(wg_) * 2 <= std::min<size_t>(256, device_max)) wg_ *= 2;
-  }
-  lanes_ = options.lanes != 0 ? options.lanes : rt_.vector_width();
-  if (!is_power_of_two(lanes_) || lanes_ > 16)
-    throw std::invalid_argument("mask loss: lanes must be 1, 2, 4, 8 or 16, got " + std::to_string(lanes_));
-  // The kernels' own limit can be lower than the device's: halve until all accept.
-  for (;;) {
-    size_t limit = device_max;
-    for (const char* name : kKernels) {
-      cl::Kernel k = rt_.kernel("mask_loss.cl", name, mask_defines(wg_, lanes_));
-      limit = std::min(limit, k.getWorkGroupInfo<CL_KERNEL_WORK_GROUP_SIZE>(rt_.info().device));
-    }
-    if (static_cast<size_t>(wg_) <= limit) break;
-    if (work_group != 0 || wg_ == 1)
-      throw std::runtime_error("mask loss: the device runs these kernels with at most " + std::to_string(limit) +
-                               " work-items per group, fewer than " + std::to_string(wg_));
-    wg_ /= 2;
-  }
+  const LaunchShape shape =
+      choose_launch_shape(rt_, "mask loss", options.work_group, options.lanes, [&](int wg, int lanes) {
+        size_t limit = ~size_t(0);
+        for (const char* name : kKernels) {
+          cl::Kernel k = rt_.kernel("mask_loss.cl", name, mask_defines(wg, lanes));
+          limit = std::min(limit, k.getWorkGroupInfo<CL_KERNEL_WORK_GROUP_SIZE>(rt_.info().device));
+        }
+        return limit;
+      });
+  wg_ = shape.work_group;
+  lanes_ = shape.lanes;
 }
 
 bool MaskLoss::set_masks(const ViewMasks& masks, int64_t key) {
