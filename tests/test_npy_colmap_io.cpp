@@ -31,73 +31,24 @@
 #include "host/colmap_writer.h"
 #include "host/npy_io.h"
 #include "host/ply_io.h"
+#include "io_test_util.h"
 
 namespace fs = std::filesystem;
 using namespace ag2gs;
 
 namespace {
 
+using TempDir = ag2gs::test::ScratchDir;
+using ag2gs::test::read_bytes;
+using ag2gs::test::write_bytes;
+
 std::string source_dir() {
-  const char* env = std::getenv("AG2GS_SOURCE_DIR");
-  return env && *env ? env : ".";
+  return ag2gs::test::source_path("");
 }
 
-// A fresh directory under the system temp folder, removed with its contents.
-class TempDir {
- public:
-  TempDir() {
-    static int counter = 0;
-    path_ = fs::temp_directory_path() / ("ag2gs_test_npy_colmap_" + std::to_string(static_cast<long>(::getpid())) +
-                                         "_" + std::to_string(counter++));
-    fs::remove_all(path_);
-    fs::create_directories(path_);
-  }
-  ~TempDir() {
-    std::error_code ec;
-    for (const auto& e : fs::recursive_directory_iterator(path_, ec)) {
-      fs::permissions(e.path(), fs::perms::owner_all, fs::perm_options::add, ec);
-    }
-    fs::permissions(path_, fs::perms::owner_all, fs::perm_options::add, ec);
-    fs::remove_all(path_, ec);
-  }
-  std::string file(const std::string& name) const { return (path_ / name).string(); }
-  const fs::path& path() const { return path_; }
-  std::vector<std::string> entries(const std::string& sub = "") const {
-    std::vector<std::string> names;
-    for (const auto& e : fs::directory_iterator(path_ / sub)) names.push_back(e.path().filename().string());
-    std::sort(names.begin(), names.end());
-    return names;
-  }
-
- private:
-  fs::path path_;
-};
-
-void write_bytes(const std::string& path, const std::string& bytes) {
-  std::ofstream out(path, std::ios::binary);
-  out.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
-}
-std::string read_bytes(const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
-  std::ostringstream ss;
-  ss << in.rdbuf();
-  return ss.str();
-}
-
-// Runs fn, expects an exception of type E whose message holds every needle.
 template <class E>
 void expect_error(const std::function<void()>& fn, const std::vector<std::string>& needles) {
-  try {
-    fn();
-    ADD_FAILURE() << "no exception; expected one mentioning '" << needles.front() << "'";
-  } catch (const E& e) {
-    const std::string msg = e.what();
-    for (const std::string& n : needles) {
-      EXPECT_NE(msg.find(n), std::string::npos) << "message lacks '" << n << "': " << msg;
-    }
-  } catch (const std::exception& e) {
-    ADD_FAILURE() << "wrong exception type: " << e.what();
-  }
+  ag2gs::test::expect_error_with<E>(fn, needles);
 }
 
 bool same_bits(const std::vector<float>& a, const std::vector<float>& b) {
