@@ -83,6 +83,10 @@ void register_synth(CLI::App& app, GlobalOptions& /*global*/) {
       ->check(CLI::Range(1, 4096));
   sub->add_flag("--hard", o.hard, "Hard cases: two objects touching, two of similar colour, a thin pole, occlusion");
   sub->add_flag("--text-model", o.text_model, "Write the COLMAP model as .txt instead of .bin");
+  sub->add_flag_callback(
+      "--no-backdrop", [a] { a->options.backdrop = false; },
+      "No textured backdrop (wall, floor ring, ceiling): rays that miss the objects and the ground see an "
+      "untextured sky");
   set_action(sub, [a] { cmd_synth(*a); });
 }
 

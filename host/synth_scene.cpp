@@ -4,7 +4,11 @@
 //
 // World frame: z up, the ground is the disc z = 0, |xy| <= kGroundRadius; the
 // objects stand on it inside kPlaceRadius. Cameras sit on a ring outside the
-// disc and look at kTarget (COLMAP convention, host/gaussians.h).
+// disc and look at kTarget (COLMAP convention, host/gaussians.h). With the
+// backdrop (the default) everything is enclosed by a textured cylinder of
+// radius kBackdropRadius: its wall up to kBackdropHeight, a floor ring from
+// the ground disc out to the wall and a ceiling at kBackdropHeight, so every
+// ray from inside meets textured, finite geometry (GT id 0, no masks).
 //
 // Randomness: every number is splitmix64 of (seed, stream, indices), so a
 // value depends only on what it is for, never on the order things ran in.
@@ -51,7 +55,13 @@ constexpr double kPi = 3.14159265358979323846;
 constexpr double kInf = std::numeric_limits<double>::infinity();
 
 // ------------------------------------------------------------------ scene constants
-constexpr double kGroundRadius = 3.0;  // the ground disc; beyond it the sky
+constexpr double kGroundRadius = 3.0;  // the ground disc; beyond it the backdrop's floor ring (or the sky)
+// The backdrop: wall beyond the camera ring (<= 3.8), tall enough that the
+// ring's cameras (z <= 1.75, looking 17-21 degrees down; their highest ray,
+// a top corner, rises ~4 degrees, so it meets the far wall below z ~2.4)
+// never see the ceiling; the ceiling closes the cylinder all the same.
+constexpr double kBackdropRadius = 5.5;
+constexpr double kBackdropHeight = 4.0;
 constexpr double kPlaceRadius = 1.5;   // object footprints stay inside this radius
 constexpr double kPlaceMargin = 0.06;  // minimum gap between footprints (except touching pairs)
 constexpr double kRingRadius = 3.7;    // camera ring (+- kRingJitter)
@@ -373,10 +383,15 @@ struct Ray {
   Vec3 o, d;  // d unit
 };
 
+// The surfaces of object 0.
+enum Surface { kSurfaceGround = 0, kSurfaceFloor, kSurfaceWall, kSurfaceCeiling };
+
 struct Hit {
   double t = kInf;
-  int object = -1;             // -1 sky, 0 ground, 1..K objects
-  int face = 0;                // box: 0..5 = +x,-x,+y,-y,+z,-z; cylinder: 0 side, 1 top, 2 bottom; sphere 0
+  int object = -1;  // -1 sky, 0 ground or backdrop, 1..K objects
+  // box: 0..5 = +x,-x,+y,-y,+z,-z; cylinder: 0 side, 1 top, 2 bottom; sphere 0;
+  // object 0: a Surface (ground disc, backdrop floor ring, wall, ceiling)
+  int face = 0;
   Vec3 local = Vec3::Zero();   // hit point in the object frame
   Vec3 normal = Vec3::Zero();  // world, unit, facing the ray
 };
@@ -503,21 +518,55 @@ struct Scene {
   std::vector<Object> objects;  // objects[k].id == k + 1
   Light light;
   uint64_t ground_key = 0;
+  bool backdrop = false;
+  uint64_t backdrop_key = 0;
 
   // Nearest hit along the ray. When `all_t` is given it receives, per object,
   // the nearest t at which the ray meets it (kInf when never): occlusion stats.
   Hit trace(const Ray& ray, std::vector<double>* all_t = nullptr) const {
     Hit h;
     if (all_t) all_t->assign(objects.size(), kInf);
-    // Ground disc, seen from above only.
+    auto set = [&](double t, int surface, const Vec3& normal) {
+      h.t = t;
+      h.object = 0;
+      h.face = surface;
+      h.local = ray.o + t * ray.d;
+      h.normal = normal;
+    };
+    // Ground disc (and the backdrop's floor ring out to the wall), seen from above only.
+    const double floor_radius = backdrop ? kBackdropRadius : kGroundRadius;
     if (ray.d.z() < 0 && ray.o.z() > 0) {
       double t = -ray.o.z() / ray.d.z();
       Vec3 p = ray.o + t * ray.d;
-      if (t > kTMin && p.x() * p.x() + p.y() * p.y() <= kGroundRadius * kGroundRadius) {
-        h.t = t;
-        h.object = 0;
-        h.local = p;
-        h.normal = Vec3(0, 0, 1);
+      double r2 = p.x() * p.x() + p.y() * p.y();
+      if (t > kTMin && r2 <= floor_radius * floor_radius)
+        set(t, r2 <= kGroundRadius * kGroundRadius ? kSurfaceGround : kSurfaceFloor, Vec3(0, 0, 1));
+    }
+    if (backdrop) {
+      // Ceiling disc, seen from below.
+      if (ray.d.z() > 0 && ray.o.z() < kBackdropHeight) {
+        double t = (kBackdropHeight - ray.o.z()) / ray.d.z();
+        Vec3 p = ray.o + t * ray.d;
+        if (t > kTMin && t < h.t && p.x() * p.x() + p.y() * p.y() <= kBackdropRadius * kBackdropRadius)
+          set(t, kSurfaceCeiling, Vec3(0, 0, -1));
+      }
+      // Wall: |o_xy + t d_xy| = R with 0 <= z <= height, nearest root.
+      double a = ray.d.x() * ray.d.x() + ray.d.y() * ray.d.y();
+      if (a > 0) {
+        double b = ray.o.x() * ray.d.x() + ray.o.y() * ray.d.y();
+        double c = ray.o.x() * ray.o.x() + ray.o.y() * ray.o.y() - kBackdropRadius * kBackdropRadius;
+        double disc = b * b - a * c;
+        if (disc >= 0) {
+          double sq = std::sqrt(disc);
+          for (double t : {(-b - sq) / a, (-b + sq) / a}) {
+            double z = ray.o.z() + t * ray.d.z();
+            if (t > kTMin && t < h.t && z >= 0 && z <= kBackdropHeight) {
+              Vec3 p = ray.o + t * ray.d;
+              set(t, kSurfaceWall, Vec3(-p.x(), -p.y(), 0).normalized());
+              break;
+            }
+          }
+        }
       }
     }
     for (size_t k = 0; k < objects.size(); ++k) {
@@ -555,6 +604,51 @@ Vec3 sky(const Vec3& d) {
   const Vec3 haze(0.74, 0.76, 0.78), horizon(0.86, 0.89, 0.93), zenith(0.38, 0.57, 0.86);
   if (d.z() < 0) return horizon + (haze - horizon) * smoothstep(0.0, 0.35, -d.z());
   return horizon + (zenith - horizon) * smoothstep(0.0, 0.7, d.z());
+}
+
+// The backdrop's textures: layered value noise over the world point (no
+// seams, no repeats), several colours, sharp-edged blobs and fine grain, so
+// every patch looks different (good for SIFT matching and for SfM).
+Vec3 lerp3(const Vec3& a, const Vec3& b, double t) {
+  return a + (b - a) * t;
+}
+
+Vec3 wall_albedo(const Scene& scene, const Vec3& p) {
+  const uint64_t k = scene.backdrop_key;
+  const Vec3 terracotta(0.66, 0.40, 0.30), sage(0.46, 0.57, 0.44), slate(0.36, 0.44, 0.60), sand(0.80, 0.72, 0.55);
+  Vec3 warp(fbm(splitmix64(k + 1), p * 0.7), fbm(splitmix64(k + 2), p * 0.7), 0.0);
+  Vec3 q = p + 1.5 * warp;
+  Vec3 a = lerp3(terracotta, sand, smoothstep(0.35, 0.65, fbm(splitmix64(k + 3), q * 0.9)));
+  Vec3 b = lerp3(slate, sage, smoothstep(0.35, 0.65, fbm(splitmix64(k + 4), q * 1.1)));
+  Vec3 c = lerp3(a, b, smoothstep(0.42, 0.58, fbm(splitmix64(k + 5), p * 0.6)));
+  // Irregular horizontal bands and dark and light blobs with sharp edges.
+  double band = std::sin(p.z() * 5.0 + 4.0 * fbm(splitmix64(k + 6), p * 0.8));
+  c *= 0.88 + 0.12 * band;
+  double blobs = value_noise(splitmix64(k + 7), p * 2.6);
+  c *= 1.0 - 0.5 * smoothstep(0.70, 0.74, blobs);
+  double spots = value_noise(splitmix64(k + 8), p * 3.7 + Vec3(0.3, 0.7, 0.1));
+  c = lerp3(c, Vec3(0.92, 0.90, 0.84), 0.7 * smoothstep(0.76, 0.80, spots));
+  double fine = value_noise(splitmix64(k + 9), p * 7.0);
+  return (c * (0.88 + 0.24 * fine)).cwiseMin(1.0);
+}
+
+Vec3 floor_albedo(const Scene& scene, const Vec3& p) {
+  const uint64_t k = splitmix64(scene.backdrop_key + 100);
+  const Vec3 soil(0.45, 0.37, 0.27), moss(0.36, 0.45, 0.26), stone(0.58, 0.57, 0.54);
+  Vec3 flat(p.x(), p.y(), 0.0);
+  Vec3 c = lerp3(soil, moss, smoothstep(0.38, 0.62, fbm(splitmix64(k + 1), flat * 1.2)));
+  double pebbles = value_noise(splitmix64(k + 2), flat * 3.5);
+  c = lerp3(c, stone, smoothstep(0.68, 0.72, pebbles));
+  double fine = value_noise(splitmix64(k + 3), flat * 8.0 + Vec3(0, 0, 0.5));
+  return (c * (0.85 + 0.3 * fine)).cwiseMin(1.0);
+}
+
+Vec3 ceiling_albedo(const Scene& scene, const Vec3& p) {
+  const uint64_t k = splitmix64(scene.backdrop_key + 200);
+  Vec3 flat(p.x(), p.y(), 0.0);
+  Vec3 c = lerp3(Vec3(0.85, 0.83, 0.78), Vec3(0.62, 0.66, 0.72), smoothstep(0.4, 0.6, fbm(k, flat * 0.8)));
+  c *= 1.0 - 0.4 * smoothstep(0.68, 0.72, value_noise(splitmix64(k + 1), flat * 2.2));
+  return (c * (0.88 + 0.24 * value_noise(splitmix64(k + 2), flat * 6.0))).cwiseMin(1.0);
 }
 
 Vec3 ground_albedo(const Scene& scene, const Vec3& p) {
@@ -606,7 +700,24 @@ Vec3 object_albedo(const Object& obj, const Vec3& q) {
 Vec3 radiance(const Scene& scene, const Ray& ray, const Hit& h) {
   if (h.object < 0) return sky(ray.d);
   Vec3 p = ray.o + h.t * ray.d;
-  Vec3 albedo = h.object == 0 ? ground_albedo(scene, p) : object_albedo(scene.objects[h.object - 1], h.local);
+  Vec3 albedo;
+  if (h.object > 0) {
+    albedo = object_albedo(scene.objects[h.object - 1], h.local);
+  } else {
+    switch (h.face) {
+      case kSurfaceFloor:
+        albedo = floor_albedo(scene, p);
+        break;
+      case kSurfaceWall:
+        albedo = wall_albedo(scene, p);
+        break;
+      case kSurfaceCeiling:
+        albedo = ceiling_albedo(scene, p);
+        break;
+      default:
+        albedo = ground_albedo(scene, p);
+    }
+  }
   double ndl = std::max(0.0, h.normal.dot(scene.light.direction));
   if (ndl > 0 && scene.shadowed(p, h.normal)) ndl = 0;
   return (albedo * (kAmbient + (1.0 - kAmbient) * ndl)).cwiseMin(1.0);
@@ -853,7 +964,7 @@ Layout layout_hard(const SynthOptions& opt, const Rng& rng, const std::vector<Ca
 // ------------------------------------------------------------------ per-view products
 struct ViewRender {
   std::vector<float> rgb;  // [H,W,3]
-  std::vector<int> gt;     // [H,W] object id, 0 = ground/sky
+  std::vector<int> gt;     // [H,W] object id, 0 = ground/backdrop/sky
   // (occluded id, occluder id) -> pixels whose centre ray meets the occluded
   // object behind the occluder.
   std::map<std::pair<int, int>, int> occlusion;
@@ -1074,6 +1185,8 @@ void write_synth_scene(const std::string& out_dir, const SynthOptions& opt) {
     scene.light.direction = Vec3(std::cos(az) * std::cos(el), std::sin(az) * std::cos(el), std::sin(el));
   }
   scene.ground_key = rng.bits(kStreamTexture, 0xffff);
+  scene.backdrop = opt.backdrop;
+  scene.backdrop_key = rng.bits(kStreamTexture, 0xfffe);
   std::vector<Feature> category_vec;
   for (const auto& o : scene.objects) category_vec.push_back(model.category(o.colour_name, o.family));
 
@@ -1211,7 +1324,7 @@ void write_synth_scene(const std::string& out_dir, const SynthOptions& opt) {
       double u = W * rng.uniform(kStreamPoints, n, attempt, 1), v = H * rng.uniform(kStreamPoints, n, attempt, 2);
       Ray r = camera_ray(cams[view], u, v);
       Hit h = scene.trace(r);
-      if (h.object < 0) continue;  // sky
+      if (h.object < 0) continue;  // sky (never with the backdrop)
       Vec3 c = radiance(scene, r, h);
       points.push_back(r.o + h.t * r.d);
       colors.emplace_back(static_cast<uint8_t>(std::lround(c.x() * 255.0)),
@@ -1318,14 +1431,24 @@ void write_synth_scene(const std::string& out_dir, const SynthOptions& opt) {
                {"points", opt.points},
                {"mask_factor", opt.mask_factor},
                {"hard", opt.hard},
-               {"text_model", opt.text_model}}},
-             {"world", {{"up", "+z"}, {"ground", {{"shape", "disc"}, {"z", 0.0}, {"radius", kGroundRadius}}}}},
+               {"text_model", opt.text_model},
+               {"backdrop", opt.backdrop}}},
+             {"world",
+              {{"up", "+z"},
+               {"ground", {{"shape", "disc"}, {"z", 0.0}, {"radius", kGroundRadius}}},
+               {"backdrop", opt.backdrop ? Json{{"shape", "closed cylinder around the z axis"},
+                                                {"radius", kBackdropRadius},
+                                                {"height", kBackdropHeight},
+                                                {"surfaces",
+                                                 "wall (radius, 0 <= z <= height), floor ring (z = 0, ground "
+                                                 "radius < r <= radius), ceiling (z = height, r <= radius)"}}
+                                         : Json(nullptr)}}},
              {"light", {{"direction", vec_json(scene.light.direction)}, {"ambient", kAmbient}, {"shadows", true}}},
              {"conventions",
               {{"size", "full extents in the object frame: sphere [2r,2r,2r], box [2hx,2hy,h], cylinder [2r,2r,h]"},
                {"centre", "geometric centre; objects stand on z = 0"},
                {"yaw", "rotation about +z from the object frame to the world"},
-               {"gt", "gt/<stem>.png: object id of the pixel centre ray (1..K), 0 ground/sky"},
+               {"gt", "gt/<stem>.png: object id of the pixel centre ray (1..K), 0 ground, backdrop or sky"},
                {"masks", "masks/<stem>.png = language_features level-3 id + 1 (0 none), nearest-upsampled"},
                {"mask_levels",
                 "0 default: box faces, cylinder side/top, sphere halves; 1 small: upper/lower halves; "

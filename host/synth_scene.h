@@ -1,6 +1,9 @@
 // A generator of synthetic scenes with exact ground truth: a small ray tracer
 // of textured primitives standing on a textured ground plane, seen by cameras
-// on a ring. It writes a complete scene directory in the formats of DESIGN.md
+// on a ring, all inside a textured backdrop (a cylindrical wall with a floor
+// ring and a ceiling, so every camera ray meets textured geometry that the
+// sparse points cover, as in a real capture; --no-backdrop gives the old
+// untextured sky instead). It writes a complete scene directory in the formats of DESIGN.md
 // section 7, so every stage (training, clustering, queries, evaluation) can be
 // measured against truth that is known exactly. Everything is deterministic
 // from the seed (a counter-based hash, no global RNG state).
@@ -14,7 +17,8 @@
 //                                       -1 = none, ids cumulative across levels
 //   language_features/view_NNN_f.npy    float32 [num masks, 512] CLIP-like
 //   masks/view_NNN.png                  16-bit ids of the level-3 masks + 1 (0 = none)
-//   gt/view_NNN.png                     16-bit exact object ids (0 = ground/sky)
+//   gt/view_NNN.png                     16-bit exact object ids (0 = ground,
+//                                       backdrop or sky; no masks there either)
 //   label/view_NNN.json                 LERF-style labelme polygons, test views
 //   vocab.json                          {"phrase": [512 floats]} per category
 //   clicks.json                         [{"frame","x","y","category"}] test views
@@ -45,6 +49,11 @@ struct SynthOptions {
   // similar colour, one thin object, and occlusion between objects.
   bool hard = false;
   bool text_model = false;  // write the COLMAP model as .txt instead of .bin
+  // A textured backdrop around the scene: a vertical cylindrical wall beyond
+  // the camera ring, a floor ring from the ground disc to the wall and a
+  // ceiling closing the wall, so no camera ray sees the (untextured, point-
+  // less) sky. Off: rays that miss the objects and the ground see the sky.
+  bool backdrop = true;
 };
 
 // Writes the scene into `out_dir` (created if missing; existing files of the

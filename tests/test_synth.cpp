@@ -130,6 +130,8 @@ struct Synth {
   std::vector<Cam> cams;
   std::vector<Obj> objs;
   double ground_radius = 0;
+  bool backdrop = false;  // the closed textured cylinder around everything
+  double backdrop_radius = 0, backdrop_height = 0;
 };
 
 Synth load(const fs::path& dir) {
@@ -162,6 +164,12 @@ Synth load(const fs::path& dir) {
     s.objs.push_back(ob);
   }
   s.ground_radius = s.json["world"]["ground"]["radius"];
+  const Json& bd = s.json["world"]["backdrop"];
+  s.backdrop = bd.is_object();
+  if (s.backdrop) {
+    s.backdrop_radius = bd["radius"];
+    s.backdrop_height = bd["height"];
+  }
   return s;
 }
 
@@ -213,14 +221,30 @@ double hit_distance(const Obj& ob, const Vec3& origin, const Vec3& dir) {
   return best;
 }
 
-// Object id first met by the ray (0 ground or sky) and the distance.
+// Object id first met by the ray (0 ground, backdrop or sky) and the distance.
 std::pair<int, double> cast(const Synth& s, const Vec3& origin, const Vec3& dir) {
   int id = 0;
   double best = std::numeric_limits<double>::infinity();
   if (dir.z() < 0) {
     double t = -origin.z() / dir.z();
     Vec3 p = origin + t * dir;
-    if (std::hypot(p.x(), p.y()) <= s.ground_radius) best = t;
+    if (std::hypot(p.x(), p.y()) <= (s.backdrop ? s.backdrop_radius : s.ground_radius)) best = t;
+  }
+  if (s.backdrop) {
+    // From inside the closed cylinder: the ceiling or the far root of the wall.
+    if (dir.z() > 0) {
+      double t = (s.backdrop_height - origin.z()) / dir.z();
+      Vec3 p = origin + t * dir;
+      if (std::hypot(p.x(), p.y()) <= s.backdrop_radius) best = std::min(best, t);
+    }
+    double a = dir.x() * dir.x() + dir.y() * dir.y();
+    double b = 2 * (origin.x() * dir.x() + origin.y() * dir.y());
+    double c = origin.x() * origin.x() + origin.y() * origin.y() - s.backdrop_radius * s.backdrop_radius;
+    if (a > 0 && b * b - 4 * a * c >= 0) {
+      double t = (-b + std::sqrt(b * b - 4 * a * c)) / (2 * a);
+      double z = origin.z() + t * dir.z();
+      if (t > 0 && z >= 0 && z <= s.backdrop_height) best = std::min(best, t);
+    }
   }
   for (const auto& ob : s.objs) {
     double t = hit_distance(ob, origin, dir);
@@ -597,6 +621,49 @@ TEST(Synth, ColmapModelReprojectsPointsWhereTheyAreVisible) {
   EXPECT_LT(p90, 0.15);
 }
 
+// With the backdrop (the default) no camera ray escapes to the sky: every
+// pixel meets finite geometry, and the sparse points cover the backdrop too
+// (SfM needs them there, as in a real capture). Without it the old sky is back.
+TEST(Synth, BackdropClosesTheSceneAndCarriesPoints) {
+  const fs::path& dir = scene("small");
+  Synth s = load(dir);
+  ASSERT_TRUE(s.backdrop);
+  EXPECT_TRUE(s.json["options"]["backdrop"].get<bool>());
+  EXPECT_GT(s.backdrop_radius, s.ground_radius);
+  for (const auto& cam : s.cams) {
+    Vec3 o = cam.centre();
+    EXPECT_LT(std::hypot(o.x(), o.y()), s.backdrop_radius) << cam.name;
+    for (int y = 0; y <= cam.height; y += 4)
+      for (int x = 0; x <= cam.width; x += 4) {
+        auto [id, t] = cast(s, o, pixel_ray(cam, x, y));
+        ASSERT_TRUE(std::isfinite(t)) << cam.name << " pixel " << x << "," << y << " sees the sky";
+      }
+  }
+  ag2gs::ColmapModel model = ag2gs::read_colmap_model((dir / "sparse" / "0").string());
+  size_t on_wall = 0;
+  for (const auto& X : model.points) {
+    double r = std::hypot(X.x(), X.y());
+    EXPECT_LE(r, s.backdrop_radius + 1e-6);
+    EXPECT_GE(X.z(), -1e-6);
+    EXPECT_LE(X.z(), s.backdrop_height + 1e-6);
+    on_wall += std::abs(r - s.backdrop_radius) < 1e-6;
+  }
+  EXPECT_GT(on_wall, model.points.size() / 10) << "no sparse points on the backdrop wall";
+
+  fs::path d = temp_dir("sky");
+  ag2gs::SynthOptions o = small_options(3);
+  o.views = 2;
+  o.backdrop = false;
+  ag2gs::write_synth_scene(d.string(), o);
+  Synth sky = load(d);
+  EXPECT_FALSE(sky.backdrop);
+  EXPECT_FALSE(sky.json["options"]["backdrop"].get<bool>());
+  EXPECT_TRUE(sky.json["world"]["backdrop"].is_null());
+  const Cam& cam = sky.cams[0];
+  auto [id, t] = cast(sky, cam.centre(), pixel_ray(cam, cam.width / 2.0, 0.5));
+  EXPECT_FALSE(std::isfinite(t)) << "the top of the image should see the sky without the backdrop";
+}
+
 TEST(Synth, ClicksLieInsideTheirCategorysGtMask) {
   for (const char* which : {"small", "hard"}) {
     const fs::path& dir = scene(which);
@@ -722,6 +789,7 @@ TEST(Synth, CommittedSamplesAreReproducible) {
     o.mask_factor = opt["mask_factor"];
     o.hard = opt["hard"];
     o.text_model = opt["text_model"];
+    o.backdrop = opt.value("backdrop", false);  // samples from before the backdrop have the sky
     fs::path d = temp_dir(std::string("sample_") + name);
     ag2gs::write_synth_scene(d.string(), o);
     for (const auto& f : j["files"]) {
