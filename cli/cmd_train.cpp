@@ -6,8 +6,10 @@
 #include <chrono>
 #include <cmath>
 #include <filesystem>
+#include <limits>
 #include <memory>
 #include <nlohmann/json.hpp>
+#include <string>
 
 #include "cli/commands.h"
 #include "host/cl_runtime.h"
@@ -72,11 +74,17 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   }
   spdlog::info("{} iterations, seed {}, SH degree up to {} (+1 every {} iterations), background {}", c.iterations,
                c.seed, c.anchors.sh_degree, c.effective_sh_interval(), c.white_background ? "white" : "black");
-  if (c.grow_every > 0 && c.anchors.layers > 1 && c.grow_from <= c.effective_grow_until())
-    spdlog::info("anchor growing every {} iterations from {} to {} (threshold {:.3g})", c.grow_every, c.grow_from,
-                 c.effective_grow_until(), c.grow_threshold);
-  else
+  if (c.grow_every > 0 && c.grow_from <= c.effective_grow_until()) {
+    const GrowthConfig g = c.growth_config(scene->train_views().size());
+    spdlog::info(
+        "anchor growing{} every {} iterations from {} to {} (threshold {:.3g}); pruning: opacity < {:.3g}{}, "
+        "unseen {}",
+        c.anchors.layers > 1 ? "" : " (one layer: pruning only)", c.grow_every, c.grow_from, c.effective_grow_until(),
+        c.grow_threshold, c.prune_opacity, c.prune_opacity > 0 ? "" : " (off)",
+        g.prune_unseen ? "in the last " + std::to_string(g.unseen_window) + " views" : std::string("off"));
+  } else {
     spdlog::info("anchor growing off");
+  }
 
   nlohmann::json metrics = {{"scene", scene->dir()},
                             {"resolution", a.resolution},
@@ -222,6 +230,10 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                   "In growing rounds, remove anchors whose children's mean opacity is below this (default 0.01; 0 = "
                   "off)")
       ->check(CLI::Range(0.0, 0.999));
+  sub->add_option("--prune-unseen-window", c.prune_unseen_window,
+                  "In growing rounds, remove anchors none of whose children was visible in the last N training views "
+                  "(default 0 = 2 x training views; -1 = off)")
+      ->check(CLI::Range(-1, std::numeric_limits<int>::max()));
   sub->add_option("--log-every", a->log_every, "Progress line every N iterations (default 100; 0 = none)")
       ->check(CLI::NonNegativeNumber);
   sub->add_option("--test-every", a->test_every, "With --eval: test metrics every N iterations (default 0 = end only)")

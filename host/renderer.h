@@ -56,6 +56,9 @@ class Renderer {
     return {gaussians_ ? gaussians_->n : 0, gaussians_ ? gaussians_->sh_degree : 0, &v_means_, &v_scales_, &v_quats_,
             &v_opacities_, &v_sh_, &v_features_, &v_means2d_};
   }
+  // [N] int radii of the last forward() (> 0 = visible), left on the device;
+  // valid until the next forward().
+  const DeviceBuffer& device_radii() const { return radii_; }
 
   const FrameStats& stats() const { return stats_; }
   Runtime& runtime() { return rt_; }

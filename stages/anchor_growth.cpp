@@ -139,8 +139,11 @@ GrowthResult AnchorGrowth::step(AnchorModel& model, uint64_t seed) {
   r.gaussians_before = n_;
 
   // 1. Grow: requests (voxel key, child row), sorted, first per voxel wins.
-  const int min_count = std::max(config_.min_observations,
-                                 static_cast<int>(std::ceil(static_cast<double>(config_.min_seen_fraction) * steps_)));
+  // The float fraction is a decimal a hair off (0.4f = 0.40000000596...):
+  // without the relative slack 0.4 of 40 steps would need 17 views, not 16.
+  const int min_count =
+      std::max(config_.min_observations,
+               static_cast<int>(std::ceil(static_cast<double>(config_.min_seen_fraction) * steps_ * (1 - 1e-6))));
   struct Request {
     uint64_t key;
     int64_t child;

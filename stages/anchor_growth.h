@@ -69,11 +69,11 @@
 // opacity prune off for a while (set_config with prune_opacity = 0): the
 // mean opacity says nothing until training has restored it.
 //
-// Relation to Trainer::grow() (host statistics, growth only, commit ccc553c):
-// the same units and rule, so TrainConfig's grow_from / grow_until /
-// grow_every / grow_threshold / grow_min_seen map onto start / stop / every /
-// grad_threshold / min_seen_fraction (layer_factor 2); this module adds the
-// device statistics, one anchor per voxel in a fixed order, and pruning.
+// The stage-1 Trainer (stages/trainer.h) calls it as above;
+// TrainConfig::growth_config() maps grow_from / grow_until / grow_every /
+// grow_threshold / grow_min_seen / prune_opacity / prune_unseen_window onto
+// start / stop / every / grad_threshold / min_seen_fraction / prune_opacity /
+// unseen_window (layer_factor 2, the schedule as given, not rescaled).
 // The gather maps are std::vector<int>, the type AdamGroup::gather takes.
 #pragma once
 

@@ -8,7 +8,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
-#include <numeric>
+#include <limits>
 #include <stdexcept>
 #include <system_error>
 
@@ -57,6 +57,9 @@ void TrainConfig::validate() const {
   if (grow_every < 0 || grow_from < 0 || grow_until < 0 || !(grow_min_seen >= 0 && grow_min_seen <= 1))
     bad("grow_every, grow_from and grow_until must be >= 0 and grow_min_seen in [0, 1]");
   if (!(grow_threshold > 0) || !std::isfinite(grow_threshold)) bad("grow_threshold must be finite and > 0");
+  if (prune_unseen_window < -1)
+    bad("prune_unseen_window is " + std::to_string(prune_unseen_window) +
+        "; use -1 (off), 0 (2 x training views) or a number of views");
   if (offset_lr_init > 0 && !(offset_lr_final > 0))
     bad("offset_lr_final must be > 0 when offset_lr_init is (exponential decay)");
 }
@@ -68,6 +71,23 @@ int TrainConfig::effective_sh_interval() const {
 
 int TrainConfig::effective_grow_until() const {
   return grow_until > 0 ? grow_until : static_cast<int>(static_cast<int64_t>(iterations) * 2 / 3);
+}
+
+GrowthConfig TrainConfig::growth_config(size_t train_views) const {
+  GrowthConfig g;
+  g.grad_threshold = static_cast<float>(grow_threshold);
+  g.layer_factor = 2.f;
+  g.start = grow_from;
+  g.stop = effective_grow_until();
+  g.every = grow_every;
+  g.min_observations = 1;
+  g.min_seen_fraction = static_cast<float>(grow_min_seen);
+  g.prune_opacity = static_cast<float>(prune_opacity);
+  g.prune_unseen = prune_unseen_window >= 0;
+  const size_t two_epochs = std::min<size_t>(2 * train_views, static_cast<size_t>(std::numeric_limits<int>::max()));
+  g.unseen_window = prune_unseen_window > 0 ? prune_unseen_window : static_cast<int>(two_epochs);
+  g.ndc = true;
+  return g;
 }
 
 nlohmann::json TrainConfig::to_json() const {
@@ -101,7 +121,8 @@ nlohmann::json TrainConfig::to_json() const {
             {"every", grow_every},
             {"threshold", grow_threshold},
             {"min_seen", grow_min_seen}}},
-          {"prune_opacity", prune_opacity}};
+          {"prune_opacity", prune_opacity},
+          {"prune_unseen_window", prune_unseen_window}};
 }
 
 // ------------------------------------------------------------------ helpers
@@ -142,7 +163,8 @@ Trainer::Trainer(Runtime& rt, Scene& scene, const TrainConfig& config)
       expander_(rt),
       renderer_(rt),
       image_loss_(rt),
-      adam_(rt, config.adam) {
+      adam_(rt, config.adam),
+      growth_(rt, GrowthConfig{}) {
   config_.validate();
   scene_.require_points();
   train_views_ = scene_.train_views();
@@ -162,8 +184,8 @@ Trainer::Trainer(Runtime& rt, Scene& scene, const TrainConfig& config)
   g_dc_ = std::make_unique<AdamGroup>(rt_, "sh_dc", n, 3);
   g_rest_ = std::make_unique<AdamGroup>(rt_, "sh_rest", n, 3 * kShRestCoeffs);
   reg_value_.bind(&rt_);
-  grad_sum_.assign(n, 0.0);
-  seen_.assign(n, 0);
+  growth_.set_config(config_.growth_config(train_views_.size()));
+  growth_.reset(n);
 }
 
 Trainer::~Trainer() = default;
@@ -276,105 +298,31 @@ StepStats Trainer::step(bool compute_offset_loss) {
     adam_.step(*g_dc_, anchors_.sh_dc, grads_.sh_dc, config_.sh_dc_lr);
     adam_.step(*g_rest_, anchors_.sh_rest, grads_.sh_rest, config_.sh_rest_lr);
     host_stale_ = true;
-    const bool growing = config_.grow_every > 0 && config_.anchors.layers > 1;
-    if (growing && st.iteration <= config_.effective_grow_until()) {
-      accumulate_growth_stats(out);
-      if (st.iteration >= config_.grow_from && st.iteration % config_.grow_every == 0) {
-        const GrowResult r = grow();
-        st.grown = r.added;
-        st.pruned = r.pruned;
-      }
+    // The renderer's gradients and radii of this view are still on the device.
+    if (growth_.collecting(st.iteration))
+      growth_.accumulate(*renderer_.device_grads().means2d, renderer_.device_radii(), w, h);
+  }
+  if (growth_.due(st.iteration)) {
+    model();  // host values current
+    const GrowthResult r = growth_.step(model_, config_.seed);
+    spdlog::debug("growing round at iteration {}: {} requests, {} anchors added, {} pruned ({} opacity, {} unseen)",
+                  st.iteration, r.requests, r.added, r.pruned, r.pruned_opacity, r.pruned_unseen);
+    st.grown = r.added;
+    st.pruned = r.pruned;
+    if (r.changed()) {
+      if (model_.size() == 0)
+        throw std::runtime_error("iteration " + std::to_string(st.iteration) + ": pruning removed every anchor (" +
+                                 std::to_string(r.pruned_opacity) + " with mean opacity below " +
+                                 std::to_string(config_.prune_opacity) + ", " + std::to_string(r.pruned_unseen) +
+                                 " unseen); lower --prune-opacity or raise --prune-unseen-window");
+      anchors_.upload(model_);
+      for (AdamGroup* grp :
+           {g_offset_.get(), g_scale_.get(), g_quat_.get(), g_opacity_.get(), g_dc_.get(), g_rest_.get()})
+        grp->gather(r.child_rows);
     }
   }
   iteration_ = it + 1;
   return st;
-}
-
-void Trainer::accumulate_growth_stats(const RenderOutput& out) {
-  const size_t n = anchors_.gaussians();
-  DeviceGaussianGrads dg = renderer_.device_grads();
-  // The renderer's buffer, only read here.
-  const_cast<DeviceBuffer*>(dg.means2d)->download(means2d_host_, n * 2);
-  const double sx = 0.5 * out.width, sy = 0.5 * out.height;  // pixels -> NDC, as 3DGS's threshold expects
-  for (size_t g = 0; g < n; ++g) {
-    if (out.radii[g] <= 0) continue;
-    const double gx = means2d_host_[2 * g] * sx, gy = means2d_host_[2 * g + 1] * sy;
-    grad_sum_[g] += std::sqrt(gx * gx + gy * gy);
-    ++seen_[g];
-  }
-}
-
-Trainer::GrowResult Trainer::grow() {
-  model();  // host values up to date
-  const size_t a0 = model_.size();
-  const size_t n0 = model_.gaussians();
-  const int K = model_.children();
-  const int layers = model_.config().layers;
-  const VoxelGrid& grid = model_.grid();
-  int added = 0;
-  const int min_seen = std::max(1, static_cast<int>(std::ceil(config_.grow_min_seen * config_.grow_every)));
-  for (size_t g = 0; g < n0; ++g) {
-    if (seen_[g] < min_seen) continue;
-    const size_t a = g / K;
-    const int layer = model_.layer()[a];
-    if (layer + 1 >= layers) continue;
-    const double avg = grad_sum_[g] / seen_[g];
-    if (!(avg > config_.grow_threshold * std::ldexp(1.0, layer))) continue;
-    const float l = model_.voxel()[a];
-    Eigen::Vector3d mean;
-    for (int k = 0; k < 3; ++k) mean[k] = double(model_.pos()[3 * a + k]) + double(model_.offset()[3 * g + k]) * l;
-    if (!mean.allFinite()) continue;
-    const Eigen::Vector3i cell = grid.cell_of(layer + 1, mean);
-    if (model_.add_anchor(layer + 1, cell, static_cast<int64_t>(g), config_.seed) >= 0) ++added;
-  }
-  if (spdlog::should_log(spdlog::level::debug)) {
-    size_t visible = 0, enough = 0, above = 0;
-    for (size_t g = 0; g < n0; ++g) {
-      visible += seen_[g] > 0;
-      enough += seen_[g] >= min_seen;
-      above += seen_[g] >= min_seen && grad_sum_[g] / seen_[g] > config_.grow_threshold;
-    }
-    spdlog::debug("grow at iteration {}: {} children, {} seen, {} seen >= {} times, {} of those above {:.3g}",
-                  iteration_ + 1, n0, visible, enough, min_seen, above, config_.grow_threshold);
-  }
-  // Pruning: anchors seen enough this round whose children's mean opacity is
-  // below prune_opacity (anchors added just now are kept).
-  std::vector<uint8_t> keep(model_.size(), 1);
-  int pruned = 0;
-  if (config_.prune_opacity > 0) {
-    for (size_t a = 0; a < a0; ++a) {
-      double opacity = 0;
-      int seen = 0;
-      for (int i = 0; i < K; ++i) {
-        const size_t g = a * K + i;
-        opacity += 1.0 / (1.0 + std::exp(-double(model_.opacity_logit()[g])));
-        seen = std::max(seen, static_cast<int>(seen_[g]));
-      }
-      if (seen >= min_seen && opacity / K < config_.prune_opacity) {
-        keep[a] = 0;
-        ++pruned;
-      }
-    }
-    if (static_cast<size_t>(pruned) == model_.size()) pruned = 0;  // never prune everything
-  }
-  std::fill(grad_sum_.begin(), grad_sum_.end(), 0.0);
-  std::fill(seen_.begin(), seen_.end(), 0);
-  if (added == 0 && pruned == 0) return {};
-  std::vector<int> rows(a0 + added, -1);
-  std::iota(rows.begin(), rows.begin() + a0, 0);
-  if (pruned > 0) {
-    rows = model_.remove_anchors(keep);  // new anchor r = old (appended) anchor rows[r]
-    for (int& r : rows)
-      if (r >= static_cast<int>(a0)) r = -1;  // added this round: fresh optimiser state
-  }
-  const std::vector<int> child = AnchorModel::child_rows(rows, K);
-  anchors_.upload(model_);
-  for (AdamGroup* grp : {g_offset_.get(), g_scale_.get(), g_quat_.get(), g_opacity_.get(), g_dc_.get(), g_rest_.get()})
-    grp->gather(child);
-  const size_t n = model_.gaussians();
-  grad_sum_.assign(n, 0.0);
-  seen_.assign(n, 0);
-  return {added, pruned};
 }
 
 EvalStats Trainer::evaluate(const std::vector<int>& views) {

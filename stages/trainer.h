@@ -9,16 +9,18 @@
 // L_in = mean over offsets of exp(relu(|o|^2 - 1)) (offsets in voxel units),
 // L_d = mean over pixels of the renderer's distortion output.
 //
-// Growing (DESIGN.md section 2): each child's screen-space positional
-// gradient norm (in 3DGS's NDC units: pixels * size / 2) is averaged over the
-// iterations where it was visible; every grow_every iterations in
-// [grow_from, grow_until] a child whose average exceeds grow_threshold *
+// Growing and pruning (DESIGN.md section 2) are AnchorGrowth's
+// (stages/anchor_growth.h): per child, the screen-space positional gradient
+// norm (3DGS's NDC units) is summed on the device over the views where it was
+// visible; every grow_every iterations in [grow_from, grow_until] a child seen
+// in at least grow_min_seen of the round whose mean exceeds grow_threshold *
 // 2^layer asks for an anchor of the next finer layer at the voxel holding its
-// mean (skipped when taken); in the same rounds anchors whose children's mean
-// opacity is below prune_opacity are removed. The optimiser state follows
-// the rows.
+// mean (one per voxel, in voxel-key order); in the same rounds anchors whose
+// children's mean opacity is below prune_opacity, or none of whose children
+// was seen in the last prune_unseen_window views, are removed. The optimiser
+// state follows the rows (GrowthResult's gather maps).
 //
-// Not done yet: pruning of never-seen children, opacity reset, the mask losses and the semantic
+// Not done yet: opacity reset, the mask losses and the semantic
 // features (stage-1 appearance only: the feature group gets no gradient and
 // is not stepped).
 //
@@ -40,6 +42,7 @@
 #include "host/image_loss.h"
 #include "host/renderer.h"
 #include "host/scene.h"
+#include "stages/anchor_growth.h"
 #include "stages/anchor_model.h"
 #include "stages/expander.h"
 
@@ -86,9 +89,14 @@ struct TrainConfig {
   // A child grows only when visible in at least this fraction of the
   // iterations since the last round (official: 0.4 = 40 of 100).
   double grow_min_seen = 0.4;
-  // In the same rounds: remove anchors (seen enough in the round) whose
-  // children's mean opacity is below this; 0 = no pruning.
+  // In the same rounds: remove anchors whose children's mean opacity is
+  // below this; 0 = no pruning.
   double prune_opacity = 0.01;
+  // In the same rounds: remove anchors none of whose children was visible in
+  // the last this many training views (at least a round); 0 = 2 x the number
+  // of training views (two epochs: anchors that only a few views see stay),
+  // -1 = no unseen pruning.
+  int prune_unseen_window = 0;
 
   // Throws std::invalid_argument naming the first field out of range.
   void validate() const;
@@ -97,6 +105,11 @@ struct TrainConfig {
   // The SH interval actually used.
   int effective_sh_interval() const;
   int effective_grow_until() const;
+  // AnchorGrowth's schedule and rules for a scene with `train_views`
+  // training views (grow_from/until/every -> start/stop/every as given, not
+  // rescaled; grow_threshold -> grad_threshold, layer factor 2; grow_min_seen
+  // -> min_seen_fraction; the prune fields as above).
+  GrowthConfig growth_config(size_t train_views) const;
 };
 
 // What one iteration did.
@@ -178,16 +191,7 @@ class Trainer {
   Adam adam_;
   std::unique_ptr<AdamGroup> g_offset_, g_scale_, g_quat_, g_opacity_, g_dc_, g_rest_;
   DeviceBuffer reg_value_;
-
-  // Growing statistics per child since the last round.
-  struct GrowResult {
-    int added = 0, pruned = 0;
-  };
-  GrowResult grow();
-  void accumulate_growth_stats(const RenderOutput& out);
-  std::vector<double> grad_sum_;
-  std::vector<int32_t> seen_;
-  std::vector<float> means2d_host_;
+  AnchorGrowth growth_;  // statistics on the device, decisions in growing rounds
 };
 
 // Creates `dir` if needed and checks that a file can be written in it;

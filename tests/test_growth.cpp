@@ -325,6 +325,19 @@ TEST(GrowthDecision, PrunesLowOpacityAndUnseenButNotNewAnchors) {
   EXPECT_EQ(run_scenario(f).r.added, 4);
 }
 
+TEST(GrowthDecision, MinSeenFractionIsInclusive) {
+  // Row 7 (large gradient, free voxel) visible in exactly 4 of 10 views:
+  // 0.4 of the round is enough, although 0.4f * 10 in double is 4.00000006.
+  Scenario s = scenario();
+  s.seen[7] = 4;
+  AnchorGrowth growth(runtime(), GrowthConfig{});
+  growth.reset(s.model.gaussians());
+  feed(growth, s.v_px, s.radii, 10, kW, kH, s.seen);
+  const GrowthResult r = growth.step(s.model, 5);
+  EXPECT_EQ(r.added, 4);
+  EXPECT_GE(s.model.find(1, {11, 2, 2}), 0);
+}
+
 TEST(GrowthDecision, UnseenWindowSpansDecisions) {
   Scenario s = scenario();
   GrowthConfig c;
