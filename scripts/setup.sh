@@ -9,8 +9,8 @@ scripts/install_deps.sh
 scripts/build.sh -DAG2GS_BUILD_TESTS=OFF
 build/ag2gs devices
 build/ag2gs info data_samples/synth_small --eval
-build/ag2gs train data_samples/synth_small -o out/synth_small --eval --iters 1000 --white-bg --top-cells 50 --seed 1
+build/ag2gs train data_samples/synth_small -o out/synth_small --eval --iters 1000 --top-cells 50 --seed 1
 build/ag2gs render out/synth_small --scene data_samples/synth_small --views test --outputs rgb,depth,alpha \
-  --bg 1,1,1 -o out/synth_small/test_renders
+  -o out/synth_small/test_renders
 echo "setup: done. Model in out/synth_small/ (point_cloud.ply, model.ag2gs, metrics.json);"
 echo "       renders of the held-out views in out/synth_small/test_renders/"
