@@ -24,36 +24,22 @@ constexpr size_t kPrefix = 8 + 4 + 4 + 8;  // magic, version, reserved, header l
   throw std::runtime_error(path + ": " + what);
 }
 
+// The archive dtype of each element type put()/get() accept.
 template <typename T>
 struct DTypeOf;
-template <>
-struct DTypeOf<float> {
-  static constexpr DType value = DType::f32;
-};
-template <>
-struct DTypeOf<double> {
-  static constexpr DType value = DType::f64;
-};
-template <>
-struct DTypeOf<int32_t> {
-  static constexpr DType value = DType::i32;
-};
-template <>
-struct DTypeOf<uint32_t> {
-  static constexpr DType value = DType::u32;
-};
-template <>
-struct DTypeOf<int64_t> {
-  static constexpr DType value = DType::i64;
-};
-template <>
-struct DTypeOf<uint64_t> {
-  static constexpr DType value = DType::u64;
-};
-template <>
-struct DTypeOf<uint8_t> {
-  static constexpr DType value = DType::u8;
-};
+#define AG2GS_DTYPE_OF(T, D)                 \
+  template <>                                \
+  struct DTypeOf<T> {                        \
+    static constexpr DType value = DType::D; \
+  };
+AG2GS_DTYPE_OF(float, f32)
+AG2GS_DTYPE_OF(double, f64)
+AG2GS_DTYPE_OF(int32_t, i32)
+AG2GS_DTYPE_OF(uint32_t, u32)
+AG2GS_DTYPE_OF(int64_t, i64)
+AG2GS_DTYPE_OF(uint64_t, u64)
+AG2GS_DTYPE_OF(uint8_t, u8)
+#undef AG2GS_DTYPE_OF
 
 bool parse_dtype(const std::string& s, DType* t) {
   for (DType d : {DType::f32, DType::f64, DType::i32, DType::u32, DType::i64, DType::u64, DType::u8}) {

@@ -330,3 +330,19 @@ inline void store_row_int(vint v, __global int* plane, PixelRow r, int width) {
   VSTORE(v, tmp);
   for (int l = 0; l < VW && r.x0 + l < width; ++l) p[l] = tmp[l];
 }
+
+#ifdef WG
+// Fixed-order tree sum over a work-group of WG items (a power of two), for the
+// kernels that define WG; every work-item must call it. Deterministic: the
+// same additions in the same order whatever the device's scheduling.
+inline float4 group_sum4(float4 v, __local float4* scratch) {
+  const int lid = get_local_id(0);
+  scratch[lid] = v;
+  barrier(CLK_LOCAL_MEM_FENCE);
+  for (int s = WG / 2; s > 0; s >>= 1) {
+    if (lid < s) scratch[lid] += scratch[lid + s];
+    barrier(CLK_LOCAL_MEM_FENCE);
+  }
+  return scratch[0];
+}
+#endif

@@ -167,18 +167,6 @@ inline lfloat blur_v(__global const float* plane, Segment s, int width, int heig
   return acc;
 }
 
-// Fixed-order tree sum over the work-group; every work-item must call it.
-inline float4 group_sum4(float4 v, __local float4* scratch) {
-  const int lid = get_local_id(0);
-  scratch[lid] = v;
-  barrier(CLK_LOCAL_MEM_FENCE);
-  for (int s = WG / 2; s > 0; s >>= 1) {
-    if (lid < s) scratch[lid] += scratch[lid + s];
-    barrier(CLK_LOCAL_MEM_FENCE);
-  }
-  return scratch[0];
-}
-
 // --------------------------------------------------------------- SSIM
 // S and its partials with respect to the raw moments (mx, Exx, Exy) of x,
 // from those with respect to the central moments (mx, sxx, sxy):

@@ -59,18 +59,6 @@ inline float l1_norm3(float3 v) {
   return (fabs(v.x) + fabs(v.y)) + fabs(v.z);
 }
 
-// Fixed-order tree sum over the work-group; every work-item must call it.
-inline float4 mask_group_sum4(float4 v, __local float4* scratch) {
-  const int lid = get_local_id(0);
-  scratch[lid] = v;
-  barrier(CLK_LOCAL_MEM_FENCE);
-  for (int s = WG / 2; s > 0; s >>= 1) {
-    if (lid < s) scratch[lid] += scratch[lid + s];
-    barrier(CLK_LOCAL_MEM_FENCE);
-  }
-  return scratch[0];
-}
-
 // Pass 1: per chunk, the sum of G and the number of valid pixels.
 __kernel void mask_chunk_sums(int planar, int has_alpha, int npix,
                               __global const float* feature,  // [3,H,W] or [H,W,3]
@@ -85,7 +73,7 @@ __kernel void mask_chunk_sums(int planar, int has_alpha, int npix,
     float3 g;
     if (load_g(feature, alpha, has_alpha, planar, (size_t)npix, (size_t)pixels[e], &g)) s += (float4)(g, 1.f);
   }
-  const float4 total = mask_group_sum4(s, scratch);
+  const float4 total = group_sum4(s, scratch);
   if (get_local_id(0) == 0) partials[get_group_id(0)] = total;
 }
 
@@ -141,7 +129,7 @@ __kernel void mask_chunk_abs(int planar, int has_alpha, int npix,
       s += (float4)(sign(d), l1_norm3(d));
     }
   }
-  const float4 total = mask_group_sum4(s, scratch);
+  const float4 total = group_sum4(s, scratch);
   if (get_local_id(0) == 0) partials[get_group_id(0)] = total;
 }
 
