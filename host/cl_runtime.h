@@ -129,7 +129,7 @@ class DeviceBuffer {
       AG2GS_CL_CHECK(rt_->queue().enqueueWriteBuffer(buffer_, CL_TRUE, 0, data.size() * sizeof(T), data.data()));
   }
   template <typename T>
-  void download(std::vector<T>& out, size_t count) {
+  void download(std::vector<T>& out, size_t count) const {
     out.resize(count);
     if (count) AG2GS_CL_CHECK(rt_->queue().enqueueReadBuffer(buffer_, CL_TRUE, 0, count * sizeof(T), out.data()));
   }

@@ -257,12 +257,39 @@ void Renderer::upload_plane(DeviceBuffer& buf, const std::vector<float>& hwc, in
 
 void Renderer::backward(const OutputGrads& grads) {
   if (!have_frame_) throw std::logic_error("backward() before forward()");
-  const DeviceGaussians& g = *gaussians_;
   upload_plane(g_rgb_, grads.rgb, 3, "rgb");
   upload_plane(g_feat_, grads.feature, 3, "feature");
   upload_plane(g_depth_, grads.depth, 1, "depth");
   upload_plane(g_alpha_, grads.alpha, 1, "alpha");
   upload_plane(g_dist_, grads.distortion, 1, "distortion");
+  backward_from(g_rgb_, g_feat_, g_depth_, g_alpha_, g_dist_);
+}
+
+void Renderer::backward(const DeviceOutputGrads& grads) {
+  if (!have_frame_) throw std::logic_error("backward() before forward()");
+  const size_t npix = static_cast<size_t>(cam_.width) * cam_.height;
+  // A given buffer is used in place; a missing one is a zeroed internal plane.
+  auto pick = [&](const DeviceBuffer* given, DeviceBuffer& zero, int channels,
+                  const char* what) -> const DeviceBuffer& {
+    const size_t bytes = npix * channels * sizeof(float);
+    if (!given) {
+      zero.fill_zero(bytes);
+      return zero;
+    }
+    if (given->capacity() < bytes)
+      throw std::invalid_argument(std::string("render backward: device gradient '") + what + "' holds " +
+                                  std::to_string(given->capacity()) + " bytes, the frame needs " +
+                                  std::to_string(bytes));
+    return *given;
+  };
+  backward_from(pick(grads.rgb, g_rgb_, 3, "rgb"), pick(grads.feature, g_feat_, 3, "feature"),
+                pick(grads.depth, g_depth_, 1, "depth"), pick(grads.alpha, g_alpha_, 1, "alpha"),
+                pick(grads.distortion, g_dist_, 1, "distortion"));
+}
+
+void Renderer::backward_from(const DeviceBuffer& g_rgb, const DeviceBuffer& g_feat, const DeviceBuffer& g_depth,
+                             const DeviceBuffer& g_alpha, const DeviceBuffer& g_dist) {
+  const DeviceGaussians& g = *gaussians_;
   const size_t M = stats_.n_intersections;
   isect_grads_.reserve(std::max<size_t>(M, 1) * kG2Size * 4);
   const int ntiles = tiles_x_ * tiles_y_;
@@ -270,8 +297,8 @@ void Renderer::backward(const OutputGrads& grads) {
   const int batch = std::max(1, 512 / wg);
   cl::Kernel blend = rt_.kernel("blend_bwd.cl", "blend_bwd", {{"BATCH", std::to_string(batch)}});
   set_kernel_args(blend, cam_.width, cam_.height, tiles_x_, cam_buf_, ranges_, *sorted_isect_vals_, isect_gid_,
-                  records_, out_rgb_, out_feat_, out_depth_, out_aux_, out_last_, g_rgb_, g_feat_, g_depth_, g_alpha_,
-                  g_dist_, isect_grads_);
+                  records_, out_rgb_, out_feat_, out_depth_, out_aux_, out_last_, g_rgb, g_feat, g_depth, g_alpha,
+                  g_dist, isect_grads_);
   rt_.launch("blend_bwd", blend, cl::NDRange(static_cast<size_t>(ntiles) * wg), cl::NDRange(wg));
 
   const size_t n = std::max<size_t>(g.n, 1);

@@ -53,12 +53,37 @@ class Renderer {
   // The gradient buffers of the last backward(), left on the device; valid
   // until the next forward()/backward().
   DeviceGaussianGrads device_grads() const {
-    return {gaussians_ ? gaussians_->n : 0, gaussians_ ? gaussians_->sh_degree : 0, &v_means_, &v_scales_, &v_quats_,
-            &v_opacities_, &v_sh_, &v_features_, &v_means2d_};
+    return {gaussians_ ? gaussians_->n : 0,
+            gaussians_ ? gaussians_->sh_degree : 0,
+            &v_means_,
+            &v_scales_,
+            &v_quats_,
+            &v_opacities_,
+            &v_sh_,
+            &v_features_,
+            &v_means2d_};
   }
   // [N] int radii of the last forward() (> 0 = visible), left on the device;
   // valid until the next forward().
   const DeviceBuffer& device_radii() const { return radii_; }
+  // Images of the last forward() on the device, planar: rgb and feature
+  // [3,H,W], alpha and distortion [H,W]; valid until the next forward().
+  const DeviceBuffer& device_rgb() const { return out_rgb_; }
+  const DeviceBuffer& device_feature() const { return out_feat_; }
+  const DeviceBuffer& device_alpha() const { return out_alpha_; }
+  const DeviceBuffer& device_distortion() const { return out_dist_; }
+
+  // Upstream gradients already on the device, planar like the images above;
+  // null = zero. Lets a trainer compute its losses on the device and feed
+  // their gradients back without a host round trip.
+  struct DeviceOutputGrads {
+    const DeviceBuffer* rgb = nullptr;         // [3,H,W]
+    const DeviceBuffer* feature = nullptr;     // [3,H,W]
+    const DeviceBuffer* depth = nullptr;       // [H,W]
+    const DeviceBuffer* alpha = nullptr;       // [H,W]
+    const DeviceBuffer* distortion = nullptr;  // [H,W]
+  };
+  void backward(const DeviceOutputGrads& grads);
 
   const FrameStats& stats() const { return stats_; }
   Runtime& runtime() { return rt_; }
@@ -67,6 +92,9 @@ class Renderer {
   void sort_pairs(DeviceBuffer*& keys, DeviceBuffer*& vals, DeviceBuffer*& keys_tmp, DeviceBuffer*& vals_tmp, size_t n,
                   int bits);
   void upload_plane(DeviceBuffer& buf, const std::vector<float>& host_hwc, int channels, const char* what);
+  // The backward pass proper, from planar device gradients.
+  void backward_from(const DeviceBuffer& g_rgb, const DeviceBuffer& g_feat, const DeviceBuffer& g_depth,
+                     const DeviceBuffer& g_alpha, const DeviceBuffer& g_dist);
 
   Runtime& rt_;
   std::unique_ptr<DeviceGaussians> owned_;  // for render()

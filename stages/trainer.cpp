@@ -184,6 +184,7 @@ Trainer::Trainer(Runtime& rt, Scene& scene, const TrainConfig& config)
   g_dc_ = std::make_unique<AdamGroup>(rt_, "sh_dc", n, 3);
   g_rest_ = std::make_unique<AdamGroup>(rt_, "sh_rest", n, 3 * kShRestCoeffs);
   reg_value_.bind(&rt_);
+  for (DeviceBuffer* b : {&target_dev_, &grad_rgb_dev_, &grad_dist_dev_}) b->bind(&rt_);
   growth_.set_config(config_.growth_config(train_views_.size()));
   growth_.reset(n);
 }
@@ -238,26 +239,41 @@ StepStats Trainer::step(bool compute_offset_loss) {
   expander_.forward(anchors_, gaussians_, st.sh_degree);
   renderer_.forward(gaussians_, view.camera, settings);
   st.intersections = renderer_.stats().n_intersections;
-  RenderOutput out = renderer_.download_output();
-  const int w = out.width, h = out.height;
+  const int w = view.camera.width, h = view.camera.height;
   const size_t npix = static_cast<size_t>(w) * h;
 
-  OutputGrads og;
-  ImageLossResult lr = image_loss_.forward_backward(out.rgb, target->rgb, w, h, config_.lambda_ssim, &og.rgb, nullptr);
+  // The losses read the rendered planes where they are, on the device; only
+  // the target goes up and the distortion plane comes back (for the report).
+  target_planar_.resize(npix * 3);
+  for (size_t p = 0; p < npix; ++p)
+    for (int c = 0; c < 3; ++c) target_planar_[c * npix + p] = target->rgb[p * 3 + c];
+  target_dev_.upload(target_planar_);
+  image_loss_.enqueue(renderer_.device_rgb(), target_dev_, w, h, config_.lambda_ssim, &grad_rgb_dev_, nullptr,
+                      ImageLayout::kPlanar);
+  Renderer::DeviceOutputGrads og;
+  og.rgb = &grad_rgb_dev_;
+  const bool with_dist = config_.w_distortion > 0 && it >= config_.distortion_from;
+  if (with_dist) {
+    const float value = config_.w_distortion / static_cast<float>(npix);
+    if (grad_dist_pixels_ != npix || grad_dist_value_ != value) {
+      grad_dist_dev_.upload(std::vector<float>(npix, value));
+      grad_dist_pixels_ = npix;
+      grad_dist_value_ = value;
+    }
+    og.distortion = &grad_dist_dev_;
+  }
+  renderer_.backward(og);
+  const ImageLossResult lr = image_loss_.result();
   st.l1 = lr.l1;
   st.ssim = lr.ssim;
   st.psnr = lr.psnr();
+  renderer_.device_distortion().download(distortion_host_, npix);
   double dist_sum = 0;
-  for (float d : out.distortion) dist_sum += d;
+  for (float d : distortion_host_) dist_sum += d;
   st.distortion = dist_sum / static_cast<double>(npix);
   st.loss = lr.loss;
-  const bool with_dist = config_.w_distortion > 0 && it >= config_.distortion_from;
-  if (with_dist) {
-    og.distortion.assign(npix, config_.w_distortion / static_cast<float>(npix));
-    st.loss += config_.w_distortion * st.distortion;
-  }
+  if (with_dist) st.loss += config_.w_distortion * st.distortion;
 
-  renderer_.backward(og);
   expander_.backward(anchors_, renderer_.device_grads(), grads_);
 
   const size_t n = anchors_.gaussians();

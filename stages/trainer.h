@@ -191,6 +191,13 @@ class Trainer {
   Adam adam_;
   std::unique_ptr<AdamGroup> g_offset_, g_scale_, g_quat_, g_opacity_, g_dc_, g_rest_;
   DeviceBuffer reg_value_;
+  // The view's target image [3,H,W], the loss gradients fed back to the
+  // renderer ([3,H,W] rgb; [H,W] constant distortion weight) and the
+  // distortion plane read back for the reported loss.
+  DeviceBuffer target_dev_, grad_rgb_dev_, grad_dist_dev_;
+  size_t grad_dist_pixels_ = 0;
+  float grad_dist_value_ = 0.f;
+  std::vector<float> target_planar_, distortion_host_;
   AnchorGrowth growth_;  // statistics on the device, decisions in growing rounds
 };
 

@@ -97,4 +97,66 @@ TEST(RenderBackward, ThousandGaussians) {
 }
 
 }  // namespace
+// The device-gradient entry point (used by the trainer, whose losses run on
+// the device) computes exactly what the host entry point computes.
+TEST(RenderBackward, DeviceGradientsMatchHostGradientsBitForBit) {
+  const int w = 45, h = 29;
+  test::SceneSpec spec;
+  spec.n = 300;
+  spec.sh_degree = 2;
+  spec.opacity_hi = 0.9;
+  const GaussianSet g = test::random_scene(spec, 11);
+  const Camera cam = test::look_at_origin(w, h);
+  for (bool all : {true, false}) {
+    const OutputGrads og = random_output_grads(w, h, 12, true, all, all, all, true);
+    Renderer host(test::runtime());
+    host.render(g, cam);
+    const GaussianGrads a = host.render_backward(og);
+
+    Renderer dev(test::runtime());
+    DeviceGaussians dg(test::runtime());
+    dg.upload(g);
+    dev.forward(dg, cam, {});
+    const size_t npix = static_cast<size_t>(w) * h;
+    auto planar = [&](const std::vector<float>& hwc, int c) {
+      std::vector<float> out(hwc.size());
+      for (size_t p = 0; p < npix; ++p)
+        for (int k = 0; k < c; ++k) out[k * npix + p] = hwc[p * c + k];
+      return out;
+    };
+    DeviceBuffer rgb(&test::runtime()), feat(&test::runtime()), depth(&test::runtime()), alpha(&test::runtime()),
+        dist(&test::runtime());
+    Renderer::DeviceOutputGrads dog;
+    rgb.upload(planar(og.rgb, 3));
+    dog.rgb = &rgb;
+    dist.upload(og.distortion);
+    dog.distortion = &dist;
+    if (all) {
+      feat.upload(planar(og.feature, 3));
+      depth.upload(og.depth);
+      alpha.upload(og.alpha);
+      dog.feature = &feat;
+      dog.depth = &depth;
+      dog.alpha = &alpha;
+    }
+    dev.backward(dog);
+    const GaussianGrads b = dev.download_grads();
+    EXPECT_EQ(a.means, b.means);
+    EXPECT_EQ(a.scales, b.scales);
+    EXPECT_EQ(a.quats, b.quats);
+    EXPECT_EQ(a.opacities, b.opacities);
+    EXPECT_EQ(a.sh, b.sh);
+    EXPECT_EQ(a.features, b.features);
+    EXPECT_EQ(a.means2d, b.means2d);
+  }
+  // A device gradient smaller than the frame is refused.
+  Renderer dev(test::runtime());
+  dev.render(g, cam);
+  DeviceBuffer small(&test::runtime());
+  small.upload(std::vector<float>(10, 0.f));
+  Renderer::DeviceOutputGrads dog;
+  dog.rgb = &small;
+  EXPECT_THROW(dev.backward(dog), std::invalid_argument);
+}
+
 }  // namespace ag2gs
