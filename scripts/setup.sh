@@ -2,7 +2,7 @@
 # One command for a fresh Debian machine: install what is missing, build, and
 # run the main job on a sample scene: train stage 1 on the synthetic scene
 # data_samples/synth_small (holding out every 8th view) and render the
-# held-out views. About two minutes on 2 CPU cores.
+# held-out views. Training and rendering take under a minute on 2 CPU cores.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/install_deps.sh
