@@ -32,16 +32,12 @@ using namespace ag2gs;
 namespace {
 
 using TempDir = ag2gs::test::ScratchDir;
+using ag2gs::test::expect_error_with;
 using ag2gs::test::read_bytes;
 using ag2gs::test::write_bytes;
 
 std::string sample_path(const std::string& rel) {
   return ag2gs::test::source_path("data_samples/" + rel);
-}
-
-template <class E>
-void expect_error(const std::function<void()>& fn, const std::vector<std::string>& needles) {
-  ag2gs::test::expect_error_with<E>(fn, needles);
 }
 
 GaussianSet random_set(int degree, size_t n, unsigned seed) {
@@ -112,14 +108,14 @@ TEST(GaussianSet, ValidateNamesTheWrongArray) {
   gs.sh_degree = 1;
   gs.resize(4);
   gs.sh.pop_back();
-  expect_error<std::invalid_argument>([&] { gs.validate(); }, {"'sh'", "47", "48"});
+  expect_error_with<std::invalid_argument>([&] { gs.validate(); }, {"'sh'", "47", "48"});
   gs.resize(4);
   gs.sh.resize(48);
   gs.quats.resize(12);
-  expect_error<std::invalid_argument>([&] { gs.validate(); }, {"'quats'", "12", "16"});
+  expect_error_with<std::invalid_argument>([&] { gs.validate(); }, {"'quats'", "12", "16"});
   gs.quats.resize(16);
   gs.sh_degree = 4;
-  expect_error<std::invalid_argument>([&] { gs.validate(); }, {"sh_degree", "4"});
+  expect_error_with<std::invalid_argument>([&] { gs.validate(); }, {"sh_degree", "4"});
 }
 
 TEST(Camera, ValidateRejectsUnusableCameras) {
@@ -133,16 +129,16 @@ TEST(Camera, ValidateRejectsUnusableCameras) {
   EXPECT_NO_THROW(cam.validate());
   Camera bad = cam;
   bad.width = 0;
-  expect_error<std::invalid_argument>([&] { bad.validate(); }, {"a.png", "0x8"});
+  expect_error_with<std::invalid_argument>([&] { bad.validate(); }, {"a.png", "0x8"});
   bad = cam;
   bad.fy = std::nan("");
-  expect_error<std::invalid_argument>([&] { bad.validate(); }, {"fy"});
+  expect_error_with<std::invalid_argument>([&] { bad.validate(); }, {"fy"});
   bad = cam;
   bad.R(0, 0) = 1.01;
-  expect_error<std::invalid_argument>([&] { bad.validate(); }, {"not a rotation"});
+  expect_error_with<std::invalid_argument>([&] { bad.validate(); }, {"not a rotation"});
   bad = cam;
   bad.R(2, 2) = -1;  // a reflection: orthonormal, det -1
-  expect_error<std::invalid_argument>([&] { bad.validate(); }, {"det"});
+  expect_error_with<std::invalid_argument>([&] { bad.validate(); }, {"det"});
 }
 
 // ---------------------------------------------------------------- PLY
@@ -290,7 +286,7 @@ TEST(Ply, MalformedFilesGiveErrorsNamingTheFile) {
     write_bytes(path, bytes);
     std::vector<std::string> all = needles;
     all.push_back(path);
-    expect_error<std::runtime_error>([&] { read_ply(path); }, all);
+    expect_error_with<std::runtime_error>([&] { read_ply(path); }, all);
   };
   const std::string one_vertex(kStdProps * 4, '\0');
 
@@ -318,8 +314,8 @@ TEST(Ply, MalformedFilesGiveErrorsNamingTheFile) {
              {"header says 2 vertices but data holds 1"});
   expect_bad("ascii_nan.ply", ply_header("ascii", "1", 0) + "1 2 x3 4 5 6 7 8 9 10 11 12 13 14 15 16 17\n",
              {"bad number 'x3'"});
-  expect_error<std::runtime_error>([&] { read_ply(dir.file("does_not_exist.ply")); },
-                                   {"does_not_exist.ply", "cannot open"});
+  expect_error_with<std::runtime_error>([&] { read_ply(dir.file("does_not_exist.ply")); },
+                                        {"does_not_exist.ply", "cannot open"});
 }
 
 TEST(Ply, ZeroGaussiansRoundTrip) {
@@ -350,18 +346,19 @@ TEST(Ply, FailedWriteKeepsTheOldFile) {
   // Inconsistent arrays: rejected before anything is written.
   GaussianSet bad = random_set(1, 5, 4);
   bad.means.pop_back();
-  expect_error<std::invalid_argument>([&] { write_ply(path, bad); }, {"'means'"});
+  expect_error_with<std::invalid_argument>([&] { write_ply(path, bad); }, {"'means'"});
   EXPECT_EQ(read_bytes(path), old_bytes);
 
   // The target is a non-empty directory: the final rename fails.
   fs::create_directories(dir.path() / "a_dir" / "inside");
-  expect_error<std::runtime_error>([&] { write_ply(dir.file("a_dir"), random_set(0, 3, 5)); }, {"a_dir", "unchanged"});
+  expect_error_with<std::runtime_error>([&] { write_ply(dir.file("a_dir"), random_set(0, 3, 5)); },
+                                        {"a_dir", "unchanged"});
   EXPECT_TRUE(fs::is_directory(dir.path() / "a_dir" / "inside"));
 
   // A folder that does not exist.
   const std::string nowhere = dir.file("no_such_dir/model.ply");
-  expect_error<std::runtime_error>([&] { write_ply(nowhere, random_set(0, 3, 6)); },
-                                   {nowhere, "directory exists and is writable"});
+  expect_error_with<std::runtime_error>([&] { write_ply(nowhere, random_set(0, 3, 6)); },
+                                        {nowhere, "directory exists and is writable"});
   EXPECT_EQ(dir.entries(), (std::vector<std::string>{"a_dir", "model.ply"}));
 
 #ifndef _WIN32
@@ -393,8 +390,8 @@ TEST(Ply, FailedWriteKeepsTheOldFile) {
     write_ply(dir.file("ro/model.ply"), random_set(0, 3, 8));
     const std::string ro_bytes = read_bytes(dir.file("ro/model.ply"));
     fs::permissions(dir.path() / "ro", fs::perms::owner_read | fs::perms::owner_exec);
-    expect_error<std::runtime_error>([&] { write_ply(dir.file("ro/model.ply"), random_set(1, 3, 9)); },
-                                     {"ro/model.ply", "writable"});
+    expect_error_with<std::runtime_error>([&] { write_ply(dir.file("ro/model.ply"), random_set(1, 3, 9)); },
+                                          {"ro/model.ply", "writable"});
     fs::permissions(dir.path() / "ro", fs::perms::owner_all);
     EXPECT_EQ(read_bytes(dir.file("ro/model.ply")), ro_bytes);
   }
@@ -501,10 +498,10 @@ TEST(Colmap, SimplePinholeAndRotation) {
 TEST(Colmap, DistortedModelsSayHowToUndistort) {
   TempDir dir;
   write_text_model(dir, "1 SIMPLE_RADIAL 640 480 500 320 240 0.01");
-  expect_error<std::runtime_error>([&] { read_colmap_model(dir.path().string()); },
-                                   {dir.file("cameras.txt"), "camera 1", "SIMPLE_RADIAL",
-                                    "colmap image_undistorter --image_path IMAGES --input_path SPARSE "
-                                    "--output_path OUT --output_type COLMAP"});
+  expect_error_with<std::runtime_error>([&] { read_colmap_model(dir.path().string()); },
+                                        {dir.file("cameras.txt"), "camera 1", "SIMPLE_RADIAL",
+                                         "colmap image_undistorter --image_path IMAGES --input_path SPARSE "
+                                         "--output_path OUT --output_type COLMAP"});
 
   // Binary: camera 1 OPENCV (model id 4, 8 parameters), camera 2 PINHOLE.
   TempDir bin;
@@ -521,8 +518,8 @@ TEST(Colmap, DistortedModelsSayHowToUndistort) {
   put(head1, 8), put(size, 16), put(opencv, 64);
   put(head2, 8), put(size, 16), put(pinhole, 32);
   write_bytes(bin.file("cameras.bin"), cams);
-  expect_error<std::runtime_error>([&] { read_colmap_model(bin.path().string()); },
-                                   {bin.file("cameras.bin"), "camera 1", "OPENCV", "image_undistorter"});
+  expect_error_with<std::runtime_error>([&] { read_colmap_model(bin.path().string()); },
+                                        {bin.file("cameras.bin"), "camera 1", "OPENCV", "image_undistorter"});
 }
 
 TEST(Colmap, TruncatedAndInconsistentModelsAreRejected) {
@@ -535,26 +532,29 @@ TEST(Colmap, TruncatedAndInconsistentModelsAreRejected) {
     }
     std::string bytes = read_bytes(dir.file(name));
     write_bytes(dir.file(name), bytes.substr(0, bytes.size() * 2 / 3));
-    expect_error<std::runtime_error>([&] { read_colmap_model(dir.path().string()); }, {dir.file(name), "truncated"});
+    expect_error_with<std::runtime_error>([&] { read_colmap_model(dir.path().string()); },
+                                          {dir.file(name), "truncated"});
     // An absurd count is caught before anything is allocated.
     const uint64_t huge = uint64_t(1) << 50;
     std::memcpy(&bytes[0], &huge, 8);
     write_bytes(dir.file(name), bytes);
-    expect_error<std::runtime_error>([&] { read_colmap_model(dir.path().string()); }, {dir.file(name), "truncated"});
+    expect_error_with<std::runtime_error>([&] { read_colmap_model(dir.path().string()); },
+                                          {dir.file(name), "truncated"});
   }
 
   TempDir dir;
-  expect_error<std::runtime_error>([&] { read_colmap_model(dir.path().string()); }, {"no cameras.bin or cameras.txt"});
-  expect_error<std::runtime_error>([&] { read_colmap_model(dir.file("nope")); }, {"nope", "not a directory"});
+  expect_error_with<std::runtime_error>([&] { read_colmap_model(dir.path().string()); },
+                                        {"no cameras.bin or cameras.txt"});
+  expect_error_with<std::runtime_error>([&] { read_colmap_model(dir.file("nope")); }, {"nope", "not a directory"});
   write_text_model(dir, "7 PINHOLE 640 480 500 500 320 240");
-  expect_error<std::runtime_error>([&] { read_colmap_model(dir.path().string()); },
-                                   {dir.file("images.txt"), "frame_001.jpg", "camera 1"});
+  expect_error_with<std::runtime_error>([&] { read_colmap_model(dir.path().string()); },
+                                        {dir.file("images.txt"), "frame_001.jpg", "camera 1"});
   write_text_model(dir, "1 PINHOLE 640 480 500 500 320");
-  expect_error<std::runtime_error>([&] { read_colmap_model(dir.path().string()); },
-                                   {dir.file("cameras.txt"), "expected 4"});
+  expect_error_with<std::runtime_error>([&] { read_colmap_model(dir.path().string()); },
+                                        {dir.file("cameras.txt"), "expected 4"});
   write_text_model(dir, "1 PINHOLE 640 480 500 abc 320 240");
-  expect_error<std::runtime_error>([&] { read_colmap_model(dir.path().string()); },
-                                   {dir.file("cameras.txt") + ":2", "'abc'"});
+  expect_error_with<std::runtime_error>([&] { read_colmap_model(dir.path().string()); },
+                                        {dir.file("cameras.txt") + ":2", "'abc'"});
 }
 
 // ---------------------------------------------------------------- camera helpers
@@ -595,8 +595,8 @@ TEST(CameraHelpers, ScaleCameraRoundsLike3dgs) {
   EXPECT_DOUBLE_EQ(odd.fx, 160.0 * 648 / 1297);
   EXPECT_DOUBLE_EQ(odd.cy, 60.0 * 366 / 731);
 
-  expect_error<std::invalid_argument>([&] { scale_camera(cam, 0); }, {"factor"});
-  expect_error<std::invalid_argument>([&] { scale_camera(cam, 5000); }, {"a.png", "vanishes"});
+  expect_error_with<std::invalid_argument>([&] { scale_camera(cam, 0); }, {"factor"});
+  expect_error_with<std::invalid_argument>([&] { scale_camera(cam, 5000); }, {"a.png", "vanishes"});
 }
 
 TEST(CameraHelpers, SelectViewsByNameAndStem) {
@@ -611,8 +611,8 @@ TEST(CameraHelpers, SelectViewsByNameAndStem) {
             (std::vector<std::string>{"view_003.png", "view_000.png"}));
   EXPECT_EQ(select_views(cams, "").size(), 4u);
   EXPECT_EQ(select_views(cams, "view_002")[0].fx, 170.0);
-  expect_error<std::invalid_argument>([&] { select_views(cams, "view_000,view_9"); },
-                                      {"unknown view 'view_9'", "view_000.png", "4 views"});
+  expect_error_with<std::invalid_argument>([&] { select_views(cams, "view_000,view_9"); },
+                                           {"unknown view 'view_9'", "view_000.png", "4 views"});
 
   std::vector<Camera> nested(3);
   nested[0].name = "left/frame_1.jpg";
@@ -620,8 +620,8 @@ TEST(CameraHelpers, SelectViewsByNameAndStem) {
   nested[2].name = "left/frame_2.jpg";
   EXPECT_EQ(names(select_views(nested, "frame_2")), std::vector<std::string>{"left/frame_2.jpg"});
   EXPECT_EQ(names(select_views(nested, "right/frame_1")), std::vector<std::string>{"right/frame_1.jpg"});
-  expect_error<std::invalid_argument>([&] { select_views(nested, "frame_1"); },
-                                      {"ambiguous", "left/frame_1.jpg", "right/frame_1.jpg"});
+  expect_error_with<std::invalid_argument>([&] { select_views(nested, "frame_1"); },
+                                           {"ambiguous", "left/frame_1.jpg", "right/frame_1.jpg"});
 }
 
 TEST(Colmap, TextIntegersMustBePlainDigits) {
@@ -630,8 +630,8 @@ TEST(Colmap, TextIntegersMustBePlainDigits) {
     write_bytes(dir.file("cameras.txt"), std::string(bad_id) + " PINHOLE 4 3 2 2 2 1.5\n");
     write_bytes(dir.file("images.txt"), "");
     write_bytes(dir.file("points3D.txt"), "");
-    expect_error<std::runtime_error>([&] { read_colmap_model(dir.path().string()); },
-                                     {dir.file("cameras.txt") + ":1", std::string("'") + bad_id + "'",
-                                      "non-negative integer"});
+    expect_error_with<std::runtime_error>(
+        [&] { read_colmap_model(dir.path().string()); },
+        {dir.file("cameras.txt") + ":1", std::string("'") + bad_id + "'", "non-negative integer"});
   }
 }

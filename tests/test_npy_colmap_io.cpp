@@ -39,16 +39,12 @@ using namespace ag2gs;
 namespace {
 
 using TempDir = ag2gs::test::ScratchDir;
+using ag2gs::test::expect_error_with;
 using ag2gs::test::read_bytes;
 using ag2gs::test::write_bytes;
 
 std::string source_dir() {
   return ag2gs::test::source_path("");
-}
-
-template <class E>
-void expect_error(const std::function<void()>& fn, const std::vector<std::string>& needles) {
-  ag2gs::test::expect_error_with<E>(fn, needles);
 }
 
 bool same_bits(const std::vector<float>& a, const std::vector<float>& b) {
@@ -396,25 +392,25 @@ TEST(Npy, CorruptFilesGiveErrorsNamingTheFile) {
     write_bytes(path, c.bytes);
     std::vector<std::string> needles = c.needles;
     needles.insert(needles.begin(), path);
-    expect_error<std::runtime_error>([&] { read_npy(path); }, needles);
+    expect_error_with<std::runtime_error>([&] { read_npy(path); }, needles);
   }
 
-  expect_error<std::runtime_error>([&] { read_npy(dir.file("missing.npy")); },
-                                   {dir.file("missing.npy"), "cannot open"});
-  expect_error<std::runtime_error>([&] { read_npy(dir.path().string()); }, {dir.path().string(), "directory"});
+  expect_error_with<std::runtime_error>([&] { read_npy(dir.file("missing.npy")); },
+                                        {dir.file("missing.npy"), "cannot open"});
+  expect_error_with<std::runtime_error>([&] { read_npy(dir.path().string()); }, {dir.path().string(), "directory"});
 }
 
 TEST(Npy, WriteRejectsShapesThatDoNotMatch) {
   TempDir dir;
   const std::string path = dir.file("a.npy");
-  expect_error<std::invalid_argument>([&] { write_npy(path, {1, 2, 3}, {2, 2}); }, {path, "3 values", "(2, 2)"});
-  expect_error<std::invalid_argument>([&] { write_npy(path, {1, 2}, {-1, -2}); }, {path, "negative"});
-  expect_error<std::invalid_argument>(
+  expect_error_with<std::invalid_argument>([&] { write_npy(path, {1, 2, 3}, {2, 2}); }, {path, "3 values", "(2, 2)"});
+  expect_error_with<std::invalid_argument>([&] { write_npy(path, {1, 2}, {-1, -2}); }, {path, "negative"});
+  expect_error_with<std::invalid_argument>(
       [&] {
         write_npy(path, {1}, {int64_t(1) << 40, int64_t(1) << 40, int64_t(1) << 40});
       },
       {path, "overflowing"});
-  expect_error<std::invalid_argument>([&] { write_npy(path, {}, {}); }, {path, "0 values", "()"});
+  expect_error_with<std::invalid_argument>([&] { write_npy(path, {}, {}); }, {path, "0 values", "()"});
   EXPECT_TRUE(dir.entries().empty());
   write_npy(path, {}, {0, 7});
   EXPECT_EQ(read_npy(path).shape, (std::vector<int64_t>{0, 7}));
@@ -434,18 +430,18 @@ TEST(Npy, FailedWriteKeepsTheOldFile) {
   // also fails for root, which ignores directory permissions.
   const std::string tmp_name = path + ".tmp." + std::to_string(static_cast<long>(::getpid()));
   fs::create_directories(tmp_name);
-  expect_error<std::runtime_error>([&] { write_npy(path, {4, 5}, {2}); }, {path, "temporary file", "writable"});
+  expect_error_with<std::runtime_error>([&] { write_npy(path, {4, 5}, {2}); }, {path, "temporary file", "writable"});
   EXPECT_EQ(read_bytes(path), old_bytes);
   EXPECT_TRUE(fs::is_directory(tmp_name)) << "the writer removed what it did not create";
   fs::remove(tmp_name);
 
   // The target is a non-empty directory: the final rename fails, nothing is left behind.
   fs::create_directories(dir.path() / "a_dir" / "inside");
-  expect_error<std::runtime_error>([&] { write_npy(dir.file("a_dir"), {1}, {1}); }, {"a_dir", "unchanged"});
+  expect_error_with<std::runtime_error>([&] { write_npy(dir.file("a_dir"), {1}, {1}); }, {"a_dir", "unchanged"});
   EXPECT_TRUE(fs::is_directory(dir.path() / "a_dir" / "inside"));
 
   const std::string nowhere = dir.file("no_such_dir/x.npy");
-  expect_error<std::runtime_error>([&] { write_npy(nowhere, {1}, {1}); }, {nowhere, "directory exists"});
+  expect_error_with<std::runtime_error>([&] { write_npy(nowhere, {1}, {1}); }, {nowhere, "directory exists"});
   EXPECT_EQ(dir.entries(), (std::vector<std::string>{"a_dir", "feat.npy"}));
 
 #ifndef _WIN32
@@ -477,7 +473,11 @@ TEST(Npy, FailedWriteKeepsTheOldFile) {
     write_npy(dir.file("ro/f.npy"), {7}, {1});
     const std::string ro_bytes = read_bytes(dir.file("ro/f.npy"));
     fs::permissions(dir.path() / "ro", fs::perms::owner_read | fs::perms::owner_exec);
-    expect_error<std::runtime_error>([&] { write_npy(dir.file("ro/f.npy"), {8, 9}, {2}); }, {"ro/f.npy", "writable"});
+    expect_error_with<std::runtime_error>(
+        [&] {
+          write_npy(dir.file("ro/f.npy"), {8, 9}, {2});
+        },
+        {"ro/f.npy", "writable"});
     fs::permissions(dir.path() / "ro", fs::perms::owner_all);
     EXPECT_EQ(read_bytes(dir.file("ro/f.npy")), ro_bytes);
     EXPECT_EQ(dir.entries("ro"), std::vector<std::string>{"f.npy"});
@@ -693,25 +693,25 @@ TEST(ColmapWriter, RejectsBadInputBeforeWriting) {
   };
   Scene bad = s;
   bad.colors.pop_back();
-  expect_error<std::invalid_argument>([&] { write(bad); }, {"3 colours for 4 points"});
+  expect_error_with<std::invalid_argument>([&] { write(bad); }, {"3 colours for 4 points"});
   bad = s;
   bad.cameras[1].fx = 0;
-  expect_error<std::invalid_argument>([&] { write(bad); }, {bad.cameras[1].name, "fx"});
+  expect_error_with<std::invalid_argument>([&] { write(bad); }, {bad.cameras[1].name, "fx"});
   bad = s;
   bad.cameras[2].R(0, 0) += 0.1;
-  expect_error<std::invalid_argument>([&] { write(bad); }, {"not a rotation"});
+  expect_error_with<std::invalid_argument>([&] { write(bad); }, {"not a rotation"});
   bad = s;
   bad.cameras[2].name = bad.cameras[0].name;
-  expect_error<std::invalid_argument>([&] { write(bad); }, {bad.cameras[0].name, "twice"});
+  expect_error_with<std::invalid_argument>([&] { write(bad); }, {bad.cameras[0].name, "twice"});
   bad = s;
   bad.cameras[1].name = "";
-  expect_error<std::invalid_argument>([&] { write(bad); }, {"camera 1", "no name"});
+  expect_error_with<std::invalid_argument>([&] { write(bad); }, {"camera 1", "no name"});
   bad = s;
   bad.cameras[1].name = "a\nb.png";
-  expect_error<std::invalid_argument>([&] { write(bad); }, {"control character"});
+  expect_error_with<std::invalid_argument>([&] { write(bad); }, {"control character"});
   bad = s;
   bad.cameras[1].name = "with space.png";
-  expect_error<std::invalid_argument>([&] { write(bad, false); }, {"with space.png", "binary format instead"});
+  expect_error_with<std::invalid_argument>([&] { write(bad, false); }, {"with space.png", "binary format instead"});
   EXPECT_FALSE(fs::exists(sparse));
 
   // Spaces are fine in the binary format.
@@ -723,8 +723,8 @@ TEST(ColmapWriter, WriteFailuresNameTheFile) {
   TempDir dir;
   const Scene s = random_scene(6, 2, 3);
   write_bytes(dir.file("a_file"), "x");
-  expect_error<std::runtime_error>([&] { write_colmap_model(dir.file("a_file"), s.cameras, s.points, s.colors); },
-                                   {dir.file("a_file"), "cannot create the model folder"});
+  expect_error_with<std::runtime_error>([&] { write_colmap_model(dir.file("a_file"), s.cameras, s.points, s.colors); },
+                                        {dir.file("a_file"), "cannot create the model folder"});
 
   // One file cannot be replaced: the error names it, the old file stays.
   write_colmap_model(dir.file("m"), s.cameras, s.points, s.colors);
@@ -732,7 +732,7 @@ TEST(ColmapWriter, WriteFailuresNameTheFile) {
   const std::string blocker = dir.file("m/images.bin.tmp." + std::to_string(static_cast<long>(::getpid())));
   fs::create_directories(blocker);
   const Scene other = random_scene(7, 2, 3);
-  expect_error<std::runtime_error>(
+  expect_error_with<std::runtime_error>(
       [&] { write_colmap_model(dir.file("m"), other.cameras, other.points, other.colors); },
       {dir.file("m/images.bin"), "temporary file"});
   EXPECT_EQ(read_bytes(dir.file("m/images.bin")), old_images);
@@ -908,6 +908,6 @@ TEST(FuzzRegression, PlyHeaderWithFiftyThousandProperties) {
   EXPECT_EQ(gs.size(), 0u);
   h.insert(h.find("end_header"), "property char p77\n");
   write_bytes(path, h);
-  expect_error<std::runtime_error>([&] { read_ply(path); }, {path, "'p77' appears twice"});
+  expect_error_with<std::runtime_error>([&] { read_ply(path); }, {path, "'p77' appears twice"});
 }
 #endif  // _WIN32
