@@ -85,6 +85,25 @@ class Renderer {
   };
   void backward(const DeviceOutputGrads& grads);
 
+  // The blending inputs of the last forward(), read-only, for kernels that
+  // walk the same depth-ordered per-tile lists as blend_fwd.cl (instance
+  // maps, stages/instance_map.h). Layouts as in kernels/blend_fwd.cl; valid
+  // until the next forward(). Throws std::logic_error before the first.
+  struct DeviceFrame {
+    int width = 0, height = 0, tiles_x = 0, tiles_y = 0;
+    size_t n_gaussians = 0;
+    const DeviceBuffer* cam = nullptr;         // [CAM_SIZE] camera block
+    const DeviceBuffer* ranges = nullptr;      // [tiles] int2 [start, end) into isect_vals
+    const DeviceBuffer* isect_vals = nullptr;  // [M] uint intersection slots, sorted by (tile, depth)
+    const DeviceBuffer* isect_gid = nullptr;   // [M] uint Gaussian id of each slot
+    const DeviceBuffer* records = nullptr;     // [N, REC_SIZE] projected Gaussians
+  };
+  DeviceFrame device_frame() const {
+    if (!have_frame_) throw std::logic_error("Renderer::device_frame() before forward()");
+    return {cam_.width, cam_.height, tiles_x_,  tiles_y_, gaussians_->n,
+            &cam_buf_,  &ranges_,    sorted_isect_vals_, &isect_gid_, &records_};
+  }
+
   const FrameStats& stats() const { return stats_; }
   Runtime& runtime() { return rt_; }
 
