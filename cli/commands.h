@@ -20,6 +20,7 @@ void set_action(CLI::App* sub, std::function<void()> action);
 void register_scene_commands(CLI::App& app, GlobalOptions& global);  // info, sfm, undistort (cmd_scene.cpp)
 void register_synth(CLI::App& app, GlobalOptions& global);          // synth (cmd_synth.cpp)
 void register_train(CLI::App& app, GlobalOptions& global);          // train (cmd_train.cpp)
+void register_baseline(CLI::App& app, GlobalOptions& global);       // baseline (cmd_baseline.cpp)
 // Runs the parsed subcommand; returns the process exit code.
 int run_selected(CLI::App& app, const GlobalOptions& global);
 
