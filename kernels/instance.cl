@@ -1,0 +1,84 @@
+// Instance map of every anchor cluster in one pass (stages/instance_map.h).
+// Reads the renderer's frame (Renderer::device_frame(): the same tile ranges,
+// depth-sorted intersections and projected records blend_fwd.cl walks) and
+// repeats blend_fwd's per-Gaussian decisions operation for operation, so the
+// blending weights w_i = alpha_i T_i here are bit-identical to the rendered
+// ones (same VW, same helpers, FP_CONTRACT OFF in common.cl).
+//
+// Pixel p belongs to cluster c when W_c(p) = sum of w_i over c's Gaussians
+// exceeds MIN_FRACTION (>= 0.5). The w_i of a ray sum to 1 - T <= 1, so at
+// most one cluster can pass 0.5 and it then holds more than half of the ray's
+// total weight: a weighted Boyer-Moore majority vote over the ray (state: one
+// candidate and its surplus) ends on that cluster whenever it exists. Walk 1
+// votes, walk 2 sums the candidate's weight exactly, front to back in the
+// blending order. Unclustered Gaussians (id -1) occlude but do not vote.
+// Float rounding of the surplus only matters when W_c is within a few ulps
+// times the ray length of 0.5, where the float sum itself is ambiguous.
+//
+// Defines: MIN_FRACTION (float literal).
+
+// Gaussian id of list entry j of this tile and its cluster (children inherit
+// their anchor's cluster: anchor = gid / children).
+#define INSTANCE_STEP                                                                  \
+  uint gid = isect_gid[isect_vals[range.x + j]];                                       \
+  __global const float* q = records + (size_t)gid * REC_SIZE;                          \
+  const int k = anchor_cluster[gid / (uint)children];                                  \
+  vfloat dx = q[REC_U] - pr.px;                                                        \
+  float dy = q[REC_V] - pr.py;                                                         \
+  vfloat sigma = blend_sigma(q[REC_CA], q[REC_CB], q[REC_CC], dx, dy);                 \
+  vfloat alpha = fmin(ALPHA_MAX, q[REC_OPACITY] * blend_falloff(sigma));               \
+  vint ok = !done && sigma >= 0.f && alpha >= ALPHA_MIN;                               \
+  vfloat Tn = T * (1.f - alpha);                                                       \
+  vint stop = ok && Tn < T_MIN;                                                        \
+  done = done || stop;                                                                 \
+  ok = ok && !stop;                                                                    \
+  vfloat w = select((vfloat)0.f, alpha * T, ok);                                       \
+  T = select(T, Tn, ok);
+
+__kernel __attribute__((reqd_work_group_size(WG_SIZE, 1, 1)))
+void instance_map(int width, int height, int tiles_x, int children,
+                  __global const int2* ranges,          // [tiles] [start, end) into isect_vals
+                  __global const uint* isect_vals,      // [M] sorted: intersection slot
+                  __global const uint* isect_gid,       // [M] by slot: Gaussian id
+                  __global const float* records,        // [N,REC_SIZE]
+                  __global const int* anchor_cluster,   // [N / children] cluster id, -1 = none
+                  __global int* out_id,                 // [H,W] cluster id, -1 = none
+                  __global float* out_weight) {         // [H,W] weight of the vote's candidate
+  PixelRow pr = pixel_row(tiles_x, width, height);
+  const int2 range = ranges[pr.tile];
+  const int n = range.y - range.x;
+
+  // Walk 1: weighted majority vote. Against a different cluster the heavier
+  // side keeps the surplus; a tie leaves surplus 0, and the next vote wins.
+  vint cand = -1;
+  vfloat surplus = 0.f;
+  {
+    vfloat T = 1.f;
+    vint done = !pr.inside;
+    for (int j = 0; j < n; ++j) {
+      INSTANCE_STEP
+      if (k >= 0) {
+        vint same = cand == k;
+        vint wins = !same && w > surplus;
+        vfloat next = select(select(surplus - w, w - surplus, wins), surplus + w, same);
+        surplus = select(surplus, next, ok);
+        cand = select(cand, (vint)k, ok && wins);
+      }
+      if (!ANY(!done)) break;
+    }
+  }
+  // Walk 2: the candidate's total weight, summed in blending order.
+  vfloat weight = 0.f;
+  {
+    vfloat T = 1.f;
+    vint done = !pr.inside || cand < 0;
+    for (int j = 0; j < n; ++j) {
+      INSTANCE_STEP
+      weight += select((vfloat)0.f, w, ok && cand == k);
+      if (!ANY(!done)) break;
+    }
+  }
+  vint id = select((vint)-1, cand, cand >= 0 && weight > MIN_FRACTION);
+  store_row_int(id, out_id, pr, width);
+  store_row(weight, out_weight, pr, width);
+}
