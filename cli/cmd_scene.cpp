@@ -13,6 +13,7 @@
 #include "host/ply_io.h"
 #include "host/scene.h"
 #include "host/sfm.h"
+#include "stages/anchor_graph.h"
 
 namespace fs = std::filesystem;
 
@@ -36,6 +37,25 @@ void print_ply(const std::string& ply) {
   }
 }
 
+// Stage 2's anchor graph: edge count, degrees in power-of-two bins, and
+// whether it still describes the stored anchors.
+void print_graph(const ModelArchive& a) {
+  const AnchorGraph g = AnchorGraph::from_archive(a);
+  std::printf("  anchor graph: %zu anchors, %zu edges (cell scale %d), mean degree %.2f\n", g.anchors(), g.edges(),
+              g.cell_scale(), g.anchors() ? 2.0 * g.edges() / g.anchors() : 0.0);
+  const std::vector<int64_t> hist = g.degree_histogram();
+  std::printf("  degree histogram:");
+  for (size_t b = 0; b < hist.size(); ++b) {
+    if (b == 0)
+      std::printf(" 0: %lld", static_cast<long long>(hist[b]));
+    else
+      std::printf(", %lld-%lld: %lld", 1LL << (b - 1), (1LL << b) - 1, static_cast<long long>(hist[b]));
+  }
+  std::printf("\n");
+  if (a.meta.contains("anchors") && !g.matches(AnchorModel::from_archive(a)))
+    std::printf("  note: the graph does not match the stored anchors (stale: built before they changed)\n");
+}
+
 void print_model(const std::string& path) {
   const ModelArchive a = read_model_archive(path);
   std::printf("%s\n  format version: %u\n", path.c_str(), kModelFormatVersion);
@@ -50,6 +70,7 @@ void print_model(const std::string& path) {
     for (size_t i = 0; i < t.shape.size(); ++i) shape += (i ? "x" : "") + std::to_string(t.shape[i]);
     std::printf("    %-24s %-4s %s\n", name.c_str(), dtype_name(t.dtype), shape.c_str());
   }
+  if (AnchorGraph::in_archive(a)) print_graph(a);
   const fs::path ply = fs::path(path).parent_path() / "point_cloud.ply";
   if (fs::exists(ply)) print_ply(ply.string());
 }

@@ -21,6 +21,7 @@
 #include "stages/anchor_graph.h"
 #include "stages/anchor_model.h"
 #include "stages/propagation_loss.h"
+#include "tests/cli_test_util.h"
 #include "tests/io_test_util.h"
 #include "tests/reference/propagation_loss_reference.h"
 #include "tests/test_util.h"
@@ -255,6 +256,38 @@ TEST(AnchorGraph, ArchiveRoundTripAndValidation) {
   ModelArchive bad_scale = back;
   bad_scale.meta["graph"]["cell_scale"] = 0;
   test::expect_error_with<std::runtime_error>([&] { AnchorGraph::from_archive(bad_scale); }, {path, "cell_scale"});
+}
+
+// `ag2gs info MODEL_DIR` reports the stored graph: edges, degree histogram,
+// and a stale graph (anchors changed after it was built).
+TEST(AnchorGraph, InfoReportsTheGraph) {
+  AnchorConfig c = small_config(4, 3);
+  AnchorModel m;
+  m.reset(grid_for(c, Eigen::Vector3d::Zero(), 1.0), c);
+  m.add_anchor(0, Eigen::Vector3i(0, 0, 0), -1, 1);
+  m.add_anchor(2, Eigen::Vector3i(15, 15, 15), -1, 1);
+  m.add_anchor(1, Eigen::Vector3i(4, 0, 0), -1, 1);
+  m.add_anchor(0, Eigen::Vector3i(2, 0, 0), -1, 1);
+  m.add_anchor(1, Eigen::Vector3i(-1, -1, -1), -1, 1);
+  m.add_anchor(0, Eigen::Vector3i(0, 2, 0), -1, 1);
+  const AnchorGraph g = AnchorGraph::build(m);  // degrees 3,3,3,1,2,0 (HandMade above)
+  test::ScratchDir dir("graph_info");
+  ModelArchive ar;
+  m.to_archive(ar);
+  g.to_archive(ar);
+  write_model_archive(dir.file("model.ag2gs"), ar);
+  test::CliResult r = test::run_cli("info " + dir.str());
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_NE(r.output.find("anchor graph: 6 anchors, 6 edges (cell scale 1), mean degree 2.00"), std::string::npos)
+      << r.output;
+  EXPECT_NE(r.output.find("degree histogram: 0: 1, 1-1: 1, 2-3: 4"), std::string::npos) << r.output;
+  EXPECT_EQ(r.output.find("stale"), std::string::npos) << r.output;
+  m.add_anchor(0, Eigen::Vector3i(9, 9, 9), -1, 1);
+  m.to_archive(ar);
+  write_model_archive(dir.file("model.ag2gs"), ar);
+  r = test::run_cli("info " + dir.str());
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_NE(r.output.find("stale"), std::string::npos) << r.output;
 }
 
 // ------------------------------------------------------------ prop loss
