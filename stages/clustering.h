@@ -27,10 +27,12 @@
 
 namespace ag2gs {
 
-// A CSR graph over anchor ids, borrowed (nothing is copied).
+// A CSR graph over anchor ids, borrowed (nothing is copied). The stage-2
+// AnchorGraph's arrays plug in as they are: {graph.anchors(),
+// graph.row_offsets().data(), graph.neighbours().data(), values.data()}.
 struct AnchorGraphView {
   size_t anchors = 0;                   // A
-  const int64_t* row_offsets = nullptr;  // [A+1] edges of anchor a: [row_offsets[a], row_offsets[a+1])
+  const int32_t* row_offsets = nullptr;  // [A+1] edges of anchor a: [row_offsets[a], row_offsets[a+1])
   const int32_t* neighbours = nullptr;   // [E] anchor ids in [0, A)
   const float* edge_values = nullptr;    // [E] distance or weight of each edge (ClusterConfig::edge_value)
 

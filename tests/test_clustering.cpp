@@ -15,7 +15,7 @@ namespace ag2gs {
 namespace {
 
 struct Csr {
-  std::vector<int64_t> offsets;
+  std::vector<int32_t> offsets;
   std::vector<int32_t> nb;
   std::vector<float> val;
   AnchorGraphView view() const { return {offsets.size() - 1, offsets.data(), nb.data(), val.data()}; }
@@ -50,7 +50,7 @@ Csr random_graph(int A, int edges, uint32_t seed, bool one_sided = false) {
       g.nb.push_back(b);
       g.val.push_back(v);
     }
-    g.offsets.push_back(static_cast<int64_t>(g.nb.size()));
+    g.offsets.push_back(static_cast<int32_t>(g.nb.size()));
   }
   return g;
 }
@@ -185,7 +185,7 @@ TEST(Clustering, SizeFilterAndThresholdEdgeCases) {
       g.nb.push_back(b);
       g.val.push_back(v);
     }
-    g.offsets.push_back(static_cast<int64_t>(g.nb.size()));
+    g.offsets.push_back(static_cast<int32_t>(g.nb.size()));
   }
   ClusterConfig cfg;  // min size 5: only the chain survives
   Clustering c = cluster_anchors(g.view(), cfg);

@@ -37,7 +37,7 @@ double median(std::vector<double> v) {
 }
 
 struct Graph {
-  std::vector<int64_t> offsets;
+  std::vector<int32_t> offsets;
   std::vector<int32_t> nb;
 };
 
@@ -64,7 +64,7 @@ Graph neighbourhood_graph(const AnchorModel& m) {
         }
     std::sort(row.begin(), row.end());
     g.nb.insert(g.nb.end(), row.begin(), row.end());
-    g.offsets.push_back(static_cast<int64_t>(g.nb.size()));
+    g.offsets.push_back(static_cast<int32_t>(g.nb.size()));
   }
   return g;
 }
