@@ -85,6 +85,9 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   } else {
     spdlog::info("anchor growing off");
   }
+  if (scene->semantics() != SemanticsKind::none && (c.w_is > 0 || c.w_ic > 0))
+    spdlog::info("mask losses from iteration {}: {} L_is + {} L_ic on the rendered features{}",
+                 c.effective_mask_from(), c.w_is, c.w_ic, c.mask_alpha_normalise ? " / alpha" : "");
 
   nlohmann::json metrics = {{"scene", scene->dir()},
                             {"resolution", a.resolution},
@@ -110,8 +113,8 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   int it_last = 0, skipped = 0;
   double psnr0 = NAN;
   // Running means over the iterations since the last progress line.
-  double sum_loss = 0, sum_psnr = 0, sum_l1 = 0, sum_ssim = 0, sum_dist = 0;
-  int count = 0;
+  double sum_loss = 0, sum_psnr = 0, sum_l1 = 0, sum_ssim = 0, sum_dist = 0, sum_is = 0, sum_ic = 0;
+  int count = 0, count_masks = 0;
   for (int it = 0; it < c.iterations; ++it) {
     const bool log_now = a.log_every > 0 && ((it + 1) % a.log_every == 0 || it + 1 == c.iterations || it == 0);
     StepStats st = trainer.step(log_now);
@@ -125,6 +128,11 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
     sum_l1 += st.l1;
     sum_ssim += st.ssim;
     sum_dist += st.distortion;
+    if (st.with_masks) {
+      sum_is += st.l_is;
+      sum_ic += st.l_ic;
+      ++count_masks;
+    }
     ++count;
     if (log_now) {
       auto now = std::chrono::steady_clock::now();
@@ -132,16 +140,19 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
       const double its = (st.iteration - it_last) / std::max(dt, 1e-9);
       const double elapsed = std::chrono::duration<double>(now - t0).count();
       const double eta = (c.iterations - st.iteration) * elapsed / st.iteration;
+      const std::string mask_terms =
+          count_masks > 0 ? fmt::format(", L_is {:.4f}, L_ic {:.4f}", sum_is / count_masks, sum_ic / count_masks)
+                          : std::string();
       spdlog::info(
-          "it {:>6}/{}  loss {:.5f} (L1 {:.5f}, SSIM {:.4f}, dist {:.3e}, L_in {:.4f})  PSNR {:.2f} dB  SH {}  "
+          "it {:>6}/{}  loss {:.5f} (L1 {:.5f}, SSIM {:.4f}, dist {:.3e}, L_in {:.4f}{})  PSNR {:.2f} dB  SH {}  "
           "anchors {}  Gaussians {}  {:.1f} it/s  ETA {}",
           st.iteration, c.iterations, sum_loss / count + c.w_offset * st.offset_reg, sum_l1 / count, sum_ssim / count,
-          sum_dist / count, st.offset_reg, sum_psnr / count, st.sh_degree, trainer.anchors(), trainer.gaussians(), its,
-          fmt_duration(eta));
+          sum_dist / count, st.offset_reg, mask_terms, sum_psnr / count, st.sh_degree, trainer.anchors(),
+          trainer.gaussians(), its, fmt_duration(eta));
       t_last = now;
       it_last = st.iteration;
-      sum_loss = sum_psnr = sum_l1 = sum_ssim = sum_dist = 0;
-      count = 0;
+      sum_loss = sum_psnr = sum_l1 = sum_ssim = sum_dist = sum_is = sum_ic = 0;
+      count = count_masks = 0;
     }
     if (a.eval && a.test_every > 0 && st.iteration % a.test_every == 0 && st.iteration != c.iterations)
       run_eval(st.iteration);
@@ -203,6 +214,18 @@ void register_train(CLI::App& app, GlobalOptions& global) {
   sub->add_option("--w-offset", c.w_offset, "Weight of the offset regulariser L_in (default 0.5)");
   sub->add_option("--w-dist", c.w_distortion, "Weight of the depth distortion L_d (default 50)");
   sub->add_option("--dist-from", c.distortion_from, "First iteration with the distortion term (default 0)");
+  sub->add_option("--w-is", c.w_is,
+                  "Weight of the mask-internal loss L_is on the rendered features (default 0.1; scenes with masks)")
+      ->check(CLI::NonNegativeNumber);
+  sub->add_option("--w-ic", c.w_ic, "Weight of the mask-contrast loss L_ic (default 0.1)")
+      ->check(CLI::NonNegativeNumber);
+  sub->add_option("--mask-from", c.mask_from,
+                  "First iteration with the mask losses (default -1 = iters / 6, the official 5k of 30k)")
+      ->check(CLI::Range(-1, std::numeric_limits<int>::max()));
+  sub->add_flag("!--no-mask-alpha-norm", c.mask_alpha_normalise,
+                "Mask losses on the raw rendered feature instead of the feature divided by alpha (default: divided, "
+                "pixels with alpha < 0.1 left out)");
+  sub->add_option("--lr-feature", c.feature_lr, "Semantic feature learning rate (default 0.05)");
   sub->add_option("--lr-offset", c.offset_lr_init, "Offset learning rate at the start (default 1e-3, voxel units)");
   sub->add_option("--lr-offset-final", c.offset_lr_final, "Offset learning rate at the end (default 1e-4)");
   sub->add_flag("--lr-offset-extent", c.offset_lr_extent, "Multiply the offset rates by the camera radius");

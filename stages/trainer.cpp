@@ -46,6 +46,9 @@ void TrainConfig::validate() const {
   if (!(w_offset >= 0) || !std::isfinite(w_offset)) bad("w_offset must be finite and >= 0");
   if (!(w_distortion >= 0) || !std::isfinite(w_distortion)) bad("w_distortion must be finite and >= 0");
   if (distortion_from < 0) bad("distortion_from must be >= 0");
+  if (!(w_is >= 0) || !std::isfinite(w_is)) bad("w_is must be finite and >= 0");
+  if (!(w_ic >= 0) || !std::isfinite(w_ic)) bad("w_ic must be finite and >= 0");
+  if (mask_from < -1) bad("mask_from must be -1 (iterations / 6) or >= 0");
   const std::pair<const char*, double> rates[] = {
       {"offset_lr_init", offset_lr_init}, {"offset_lr_final", offset_lr_final},
       {"feature_lr", feature_lr},         {"sh_dc_lr", sh_dc_lr},
@@ -68,6 +71,8 @@ int TrainConfig::effective_sh_interval() const {
   if (sh_interval > 0) return sh_interval;
   return std::max(1, std::min(1000, iterations / (anchors.sh_degree + 1)));
 }
+
+int TrainConfig::effective_mask_from() const { return mask_from >= 0 ? mask_from : iterations / 6; }
 
 int TrainConfig::effective_grow_until() const {
   return grow_until > 0 ? grow_until : static_cast<int>(static_cast<int64_t>(iterations) * 2 / 3);
@@ -104,6 +109,10 @@ nlohmann::json TrainConfig::to_json() const {
           {"w_offset", w_offset},
           {"w_distortion", w_distortion},
           {"distortion_from", distortion_from},
+          {"w_is", w_is},
+          {"w_ic", w_ic},
+          {"mask_from", effective_mask_from()},
+          {"mask_alpha_normalise", mask_alpha_normalise},
           {"offset_lr_init", offset_lr_init},
           {"offset_lr_final", offset_lr_final},
           {"offset_lr_extent", offset_lr_extent},
@@ -163,6 +172,7 @@ Trainer::Trainer(Runtime& rt, Scene& scene, const TrainConfig& config)
       expander_(rt),
       renderer_(rt),
       image_loss_(rt),
+      mask_loss_(rt),
       adam_(rt, config.adam),
       growth_(rt, GrowthConfig{}) {
   config_.validate();
@@ -183,8 +193,17 @@ Trainer::Trainer(Runtime& rt, Scene& scene, const TrainConfig& config)
   g_opacity_ = std::make_unique<AdamGroup>(rt_, "opacity", n, 1);
   g_dc_ = std::make_unique<AdamGroup>(rt_, "sh_dc", n, 3);
   g_rest_ = std::make_unique<AdamGroup>(rt_, "sh_rest", n, 3 * kShRestCoeffs);
+  g_feature_ = std::make_unique<AdamGroup>(rt_, "feature", model_.size(), 3);
   reg_value_.bind(&rt_);
-  for (DeviceBuffer* b : {&target_dev_, &grad_rgb_dev_, &grad_dist_dev_}) b->bind(&rt_);
+  for (DeviceBuffer* b : {&target_dev_, &grad_rgb_dev_, &grad_dist_dev_, &grad_feat_dev_, &grad_alpha_dev_})
+    b->bind(&rt_);
+  if (scene_.semantics() == SemanticsKind::none) {
+    spdlog::info("scene {} has no SAM masks (language_features/ or masks/): training appearance only", scene_.dir());
+  } else if (config_.w_is <= 0 && config_.w_ic <= 0) {
+    spdlog::info("mask loss weights are 0: training appearance only");
+  } else {
+    has_masks_ = true;
+  }
   growth_.set_config(config_.growth_config(train_views_.size()));
   growth_.reset(n);
 }
@@ -262,6 +281,16 @@ StepStats Trainer::step(bool compute_offset_loss) {
     }
     og.distortion = &grad_dist_dev_;
   }
+  std::shared_ptr<const ViewMasks> masks;
+  if (has_masks_ && it >= config_.effective_mask_from()) masks = scene_.masks(st.view);
+  if (masks) {
+    mask_loss_.set_masks(*masks, st.view);
+    const DeviceBuffer* alpha = config_.mask_alpha_normalise ? &renderer_.device_alpha() : nullptr;
+    mask_loss_.enqueue(renderer_.device_feature(), alpha, w, h, ImageLayout::kPlanar, config_.w_is, config_.w_ic,
+                       &grad_feat_dev_, alpha ? &grad_alpha_dev_ : nullptr);
+    og.feature = &grad_feat_dev_;
+    if (alpha) og.alpha = &grad_alpha_dev_;
+  }
   renderer_.backward(og);
   const ImageLossResult lr = image_loss_.result();
   st.l1 = lr.l1;
@@ -273,6 +302,14 @@ StepStats Trainer::step(bool compute_offset_loss) {
   st.distortion = dist_sum / static_cast<double>(npix);
   st.loss = lr.loss;
   if (with_dist) st.loss += config_.w_distortion * st.distortion;
+  if (masks) {
+    const MaskLossResult mr = mask_loss_.result();
+    st.with_masks = true;
+    st.l_is = mr.l_is;
+    st.l_ic = mr.l_ic;
+    st.masks = mr.masks;
+    st.loss += mr.loss(config_.w_is, config_.w_ic);
+  }
 
   expander_.backward(anchors_, renderer_.device_grads(), grads_);
 
@@ -301,6 +338,7 @@ StepStats Trainer::step(bool compute_offset_loss) {
   adam_.accumulate_nonfinite(grads_.opacity_logit, n);
   adam_.accumulate_nonfinite(grads_.sh_dc, n * 3);
   adam_.accumulate_nonfinite(grads_.sh_rest, n * 3 * kShRestCoeffs);
+  if (st.with_masks) adam_.accumulate_nonfinite(grads_.feature, anchors_.anchors * 3);
   st.nonfinite = adam_.read_nonfinite();
   if (st.nonfinite > 0 || !std::isfinite(st.loss)) {
     st.skipped = true;
@@ -313,6 +351,7 @@ StepStats Trainer::step(bool compute_offset_loss) {
     adam_.step(*g_opacity_, anchors_.opacity_logit, grads_.opacity_logit, config_.opacity_lr);
     adam_.step(*g_dc_, anchors_.sh_dc, grads_.sh_dc, config_.sh_dc_lr);
     adam_.step(*g_rest_, anchors_.sh_rest, grads_.sh_rest, config_.sh_rest_lr);
+    if (st.with_masks) adam_.step(*g_feature_, anchors_.feature, grads_.feature, config_.feature_lr);
     host_stale_ = true;
     // The renderer's gradients and radii of this view are still on the device.
     if (growth_.collecting(st.iteration))
@@ -335,6 +374,7 @@ StepStats Trainer::step(bool compute_offset_loss) {
       for (AdamGroup* grp :
            {g_offset_.get(), g_scale_.get(), g_quat_.get(), g_opacity_.get(), g_dc_.get(), g_rest_.get()})
         grp->gather(r.child_rows);
+      g_feature_->gather(r.anchor_rows);
     }
   }
   iteration_ = it + 1;

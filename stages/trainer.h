@@ -20,9 +20,15 @@
 // was seen in the last prune_unseen_window views, are removed. The optimiser
 // state follows the rows (GrowthResult's gather maps).
 //
-// Not done yet: opacity reset, the mask losses and the semantic
-// features (stage-1 appearance only: the feature group gets no gradient and
-// is not stepped).
+// Mask losses (DESIGN.md section 3, host/mask_loss.h): when the scene has
+// SAM masks and the iteration is at least mask_from, the view's rendered
+// feature map F (optionally divided by the accumulated alpha) gets
+// w_is L_is + w_ic L_ic; the gradient goes back through the renderer (to
+// every Gaussian parameter, as the RGB loss does) and through the expander to
+// the anchors' semantic features, which Adam steps with feature_lr on those
+// iterations only. Scenes without masks train appearance only.
+//
+// Not done yet: opacity reset.
 //
 // Deterministic: the view order comes from a counter-based hash of (seed,
 // epoch); every kernel on the path is free of floating-point atomics, so the
@@ -40,6 +46,7 @@
 #include "host/adam.h"
 #include "host/cl_runtime.h"
 #include "host/image_loss.h"
+#include "host/mask_loss.h"
 #include "host/renderer.h"
 #include "host/scene.h"
 #include "stages/anchor_growth.h"
@@ -62,6 +69,15 @@ struct TrainConfig {
   float w_offset = 0.5f;            // w_in, offset regulariser (paper 0.5)
   float w_distortion = 50.f;        // w_d, depth distortion (paper 50, official scripts 20)
   int distortion_from = 0;          // first iteration with the distortion term (official: 10000 at 30k)
+  // SAM mask losses on the rendered feature map (paper 2.5 / 0.25, official
+  // scripts 0.1 for both from 5k of 30k); only for scenes with masks.
+  // Defaults measured on data_samples/synth_small (README, train section).
+  float w_is = 0.1f;  // L_is, pulls each mask's features together
+  float w_ic = 0.1f;  // L_ic, pushes the mask means apart
+  // First iteration (0-based) with the mask losses; -1 = iterations / 6
+  // (the official 5k of 30k).
+  int mask_from = -1;
+  bool mask_alpha_normalise = true;  // G = F / alpha (official), pixels with alpha < 0.1 left out
 
   // Learning rates (DESIGN.md section 9). The offset rate decays
   // exponentially from init to final over the run; offsets are in voxel
@@ -70,7 +86,7 @@ struct TrainConfig {
   double offset_lr_init = 1e-3;
   double offset_lr_final = 1e-4;
   bool offset_lr_extent = false;
-  double feature_lr = 0.05;  // semantic features (not stepped in stage 1: no feature loss yet)
+  double feature_lr = 0.05;  // semantic features (stepped on iterations with the mask losses)
   double sh_dc_lr = 0.0025;
   double sh_rest_lr = 0.0025 / 20;
   double opacity_lr = 0.05;
@@ -105,6 +121,7 @@ struct TrainConfig {
   // The SH interval actually used.
   int effective_sh_interval() const;
   int effective_grow_until() const;
+  int effective_mask_from() const;
   // AnchorGrowth's schedule and rules for a scene with `train_views`
   // training views (grow_from/until/every -> start/stop/every as given, not
   // rescaled; grow_threshold -> grad_threshold, layer factor 2; grow_min_seen
@@ -122,6 +139,9 @@ struct StepStats {
   double l1 = 0, ssim = 1, psnr = 0;
   double distortion = 0;  // mean over pixels (unweighted)
   double offset_reg = 0;  // L_in (unweighted), 0 unless computed this step
+  bool with_masks = false;  // the mask losses were applied (and included in loss)
+  double l_is = 0, l_ic = 0;  // unweighted mask losses of this view
+  int masks = 0;              // masks of this view with rendered pixels
   bool with_offset_loss = false;
   int sh_degree = 0;
   size_t intersections = 0;
@@ -188,13 +208,17 @@ class Trainer {
   Expander expander_;
   Renderer renderer_;
   ImageLoss image_loss_;
+  MaskLoss mask_loss_;
+  bool has_masks_ = false;  // the scene has SAM masks (and a mask weight is > 0)
   Adam adam_;
   std::unique_ptr<AdamGroup> g_offset_, g_scale_, g_quat_, g_opacity_, g_dc_, g_rest_;
+  std::unique_ptr<AdamGroup> g_feature_;  // per anchor [A,3]
   DeviceBuffer reg_value_;
   // The view's target image [3,H,W], the loss gradients fed back to the
   // renderer ([3,H,W] rgb; [H,W] constant distortion weight) and the
   // distortion plane read back for the reported loss.
   DeviceBuffer target_dev_, grad_rgb_dev_, grad_dist_dev_;
+  DeviceBuffer grad_feat_dev_, grad_alpha_dev_;  // mask-loss gradients [3,H,W], [H,W]
   size_t grad_dist_pixels_ = 0;
   float grad_dist_value_ = 0.f;
   std::vector<float> target_planar_, distortion_host_;
