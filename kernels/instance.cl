@@ -52,6 +52,7 @@ void instance_map(int width, int height, int tiles_x, int children,
   // side keeps the surplus; a tie leaves surplus 0, and the next vote wins.
   vint cand = -1;
   vfloat surplus = 0.f;
+  vint last_cand = -1;  // last list entry that added to the final candidate
   {
     vfloat T = 1.f;
     vint done = !pr.inside;
@@ -63,16 +64,29 @@ void instance_map(int width, int height, int tiles_x, int children,
         vfloat next = select(select(surplus - w, w - surplus, wins), surplus + w, same);
         surplus = select(surplus, next, ok);
         cand = select(cand, (vint)k, ok && wins);
+        last_cand = select(last_cand, (vint)j, ok && (same || wins));
       }
       if (!ANY(!done)) break;
     }
   }
-  // Walk 2: the candidate's total weight, summed in blending order.
+  // Walk 2: the candidate's total weight, summed in blending order. After
+  // the final candidate took over, each of its contributions moved
+  // last_cand, so nothing of it lies beyond: the walk ends there.
+  int end = 0;
+#if VW == 1
+  end = last_cand + 1;
+#else
+  {
+    int lc[VW];
+    VSTORE(last_cand, lc);
+    for (int l = 0; l < VW; ++l) end = max(end, lc[l] + 1);
+  }
+#endif
   vfloat weight = 0.f;
   {
     vfloat T = 1.f;
     vint done = !pr.inside || cand < 0;
-    for (int j = 0; j < n; ++j) {
+    for (int j = 0; j < end; ++j) {
       INSTANCE_STEP
       weight += select((vfloat)0.f, w, ok && cand == k);
       if (!ANY(!done)) break;
