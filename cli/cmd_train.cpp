@@ -119,6 +119,7 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
     const bool log_now = a.log_every > 0 && ((it + 1) % a.log_every == 0 || it + 1 == c.iterations || it == 0);
     StepStats st = trainer.step(log_now);
     if (st.skipped) ++skipped;
+    if (st.opacity_reset) spdlog::info("iteration {}: opacities reset to at most 0.01", st.iteration);
     if (st.grown > 0 || st.pruned > 0)
       spdlog::info("iteration {}: grew {} anchors, pruned {} -> {} anchors, {} Gaussians", st.iteration, st.grown,
                    st.pruned, trainer.anchors(), trainer.gaussians());
@@ -257,6 +258,12 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                   "In growing rounds, remove anchors none of whose children was visible in the last N training views "
                   "(default 0 = 2 x training views; -1 = off)")
       ->check(CLI::Range(-1, std::numeric_limits<int>::max()));
+  sub->add_option("--opacity-reset-every", c.opacity_reset_every,
+                  "Reset every opacity to at most 0.01 every N iterations while growing runs (default 3000; 0 = off)")
+      ->check(CLI::NonNegativeNumber);
+  sub->add_option("--opacity-reset-pause", c.opacity_reset_pause,
+                  "Growing rounds this many iterations after a reset do not prune by opacity (default 500)")
+      ->check(CLI::NonNegativeNumber);
   sub->add_option("--log-every", a->log_every, "Progress line every N iterations (default 100; 0 = none)")
       ->check(CLI::NonNegativeNumber);
   sub->add_option("--test-every", a->test_every, "With --eval: test metrics every N iterations (default 0 = end only)")

@@ -63,6 +63,8 @@ void TrainConfig::validate() const {
   if (prune_unseen_window < -1)
     bad("prune_unseen_window is " + std::to_string(prune_unseen_window) +
         "; use -1 (off), 0 (2 x training views) or a number of views");
+  if (opacity_reset_every < 0 || opacity_reset_pause < 0)
+    bad("opacity_reset_every and opacity_reset_pause must be >= 0 (opacity_reset_every 0 = no reset)");
   if (offset_lr_init > 0 && !(offset_lr_final > 0))
     bad("offset_lr_final must be > 0 when offset_lr_init is (exponential decay)");
 }
@@ -131,7 +133,9 @@ nlohmann::json TrainConfig::to_json() const {
             {"threshold", grow_threshold},
             {"min_seen", grow_min_seen}}},
           {"prune_opacity", prune_opacity},
-          {"prune_unseen_window", prune_unseen_window}};
+          {"prune_unseen_window", prune_unseen_window},
+          {"opacity_reset_every", opacity_reset_every},
+          {"opacity_reset_pause", opacity_reset_pause}};
 }
 
 // ------------------------------------------------------------------ helpers
@@ -232,6 +236,19 @@ int Trainer::view_for_iteration(int it) const {
     std::swap(perm[i - 1], perm[j]);
   }
   return perm[pos];
+}
+
+bool Trainer::opacity_reset_due(int iteration) const {
+  const int every = config_.opacity_reset_every;
+  return every > 0 && iteration % every == 0 && iteration < config_.effective_grow_until();
+}
+
+AdamGroup& Trainer::adam_group(const std::string& name) {
+  for (AdamGroup* g : {g_offset_.get(), g_scale_.get(), g_quat_.get(), g_opacity_.get(), g_dc_.get(), g_rest_.get(),
+                       g_feature_.get()})
+    if (g->name() == name) return *g;
+  throw std::invalid_argument("no optimiser group '" + name +
+                              "' (offset, scaling, rotation, opacity, sh_dc, sh_rest, feature)");
 }
 
 const AnchorModel& Trainer::model() {
@@ -359,6 +376,16 @@ StepStats Trainer::step(bool compute_offset_loss) {
   }
   if (growth_.due(st.iteration)) {
     model();  // host values current
+    // No opacity pruning shortly after a reset (a pure function of the
+    // iteration, so a resumed run decides the same).
+    GrowthConfig gc = config_.growth_config(train_views_.size());
+    const int every = config_.opacity_reset_every;
+    if (every > 0 && st.iteration > every) {
+      const int last_reset = (st.iteration - 1) / every * every;  // strictly before this iteration
+      if (opacity_reset_due(last_reset) && st.iteration - last_reset <= config_.opacity_reset_pause)
+        gc.prune_opacity = 0;
+    }
+    growth_.set_config(gc);
     const GrowthResult r = growth_.step(model_, config_.seed);
     spdlog::debug("growing round at iteration {}: {} requests, {} anchors added, {} pruned ({} opacity, {} unseen)",
                   st.iteration, r.requests, r.added, r.pruned, r.pruned_opacity, r.pruned_unseen);
@@ -376,6 +403,16 @@ StepStats Trainer::step(bool compute_offset_loss) {
         grp->gather(r.child_rows);
       g_feature_->gather(r.anchor_rows);
     }
+  }
+  if (opacity_reset_due(st.iteration)) {
+    // 3DGS: opacity = min(opacity, 0.01), through the logit; fresh moments.
+    model();  // host values current
+    const float cap = std::log(0.01f / 0.99f);
+    for (float& x : model_.opacity_logit()) x = std::min(x, cap);
+    anchors_.opacity_logit.upload(model_.opacity_logit());
+    g_opacity_->zero_moments();
+    st.opacity_reset = true;
+    spdlog::debug("iteration {}: opacities reset to at most 0.01", st.iteration);
   }
   iteration_ = it + 1;
   return st;

@@ -28,7 +28,12 @@
 // the anchors' semantic features, which Adam steps with feature_lr on those
 // iterations only. Scenes without masks train appearance only.
 //
-// Not done yet: opacity reset.
+// Opacity reset (3DGS): at every opacity_reset_every-th iteration before
+// growing stops (iteration < grow_until, whether or not growing is on), every
+// child's opacity logit becomes min(current, logit(0.01)) and the opacity
+// group's Adam moments are zeroed (its step count is kept). Growing rounds in
+// the opacity_reset_pause iterations after a reset do not prune by opacity:
+// the mean opacity says nothing until training has restored it.
 //
 // Deterministic: the view order comes from a counter-based hash of (seed,
 // epoch); every kernel on the path is free of floating-point atomics, so the
@@ -113,6 +118,10 @@ struct TrainConfig {
   // of training views (two epochs: anchors that only a few views see stay),
   // -1 = no unseen pruning.
   int prune_unseen_window = 0;
+  // Opacity reset every this many iterations while growing runs; 0 = off.
+  int opacity_reset_every = 3000;
+  // Growing rounds within this many iterations after a reset skip the opacity pruning.
+  int opacity_reset_pause = 500;
 
   // Throws std::invalid_argument naming the first field out of range.
   void validate() const;
@@ -146,6 +155,7 @@ struct StepStats {
   int sh_degree = 0;
   size_t intersections = 0;
   int grown = 0;   // anchors added after this step
+  bool opacity_reset = false;  // opacities reset after this step
   int pruned = 0;  // anchors removed after this step
 };
 
@@ -190,6 +200,12 @@ class Trainer {
   // training views per epoch from a counter-based hash of (seed, epoch).
   int view_for_iteration(int it) const;
   double offset_lr(int it) const;
+  // Whether the step numbered `iteration` (1-based) ends with an opacity reset.
+  bool opacity_reset_due(int iteration) const;
+  // The optimiser state of a parameter group: "offset", "scaling",
+  // "rotation", "opacity", "sh_dc", "sh_rest", "feature". Throws
+  // std::invalid_argument for another name.
+  AdamGroup& adam_group(const std::string& name);
 
  private:
   Runtime& rt_;
