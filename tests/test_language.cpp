@@ -4,7 +4,11 @@
 // must receive its own object's CLIP vector.
 #include <algorithm>
 #include <cmath>
+#include <filesystem>
+#include <map>
+#include <tuple>
 #include <random>
+#include <unistd.h>
 
 #include "stages/instance_map.h"
 #include "stages/language.h"
@@ -338,6 +342,105 @@ TEST(Language, SeparatedObjectsGetTheirOwnClipVectors) {
   EXPECT_EQ(back.dim, D);
   EXPECT_THROW(language_from_archive(ar, objects + 1), std::runtime_error);
   EXPECT_THROW(language_from_archive(ModelArchive{}, objects), std::runtime_error);
+}
+
+}  // namespace
+}  // namespace ag2gs
+
+namespace ag2gs {
+namespace {
+
+// attach_language on a scene from disk (data_samples/synth_small at -r 2, the
+// masks' own 80x60): the driver's views, resolution and device expansion
+// against a loop written here on the host path (expand_reference, the
+// host render()), and its errors.
+TEST(Language, AttachLanguageOnSceneMatchesHostLoop) {
+  SceneOptions so;
+  so.resolution = 2;
+  auto scene = Scene::open(test::source_dir() + "/data_samples/synth_small", so);
+  AnchorConfig ac;
+  ac.top_cells = 24;
+  ac.init_layer = 0;
+  AnchorModel model;
+  model.initialise_from_points(scene->points(), scene->colors(), VoxelGrid::from_bounds(scene->bounds(), ac), ac, 7);
+  for (float& o : model.opacity_logit()) o = 2.5f;  // dense enough that clusters own pixels
+  // Clusters: blocks of 3x3x3 top cells.
+  Clustering cl;
+  std::map<std::tuple<int, int, int>, int32_t> block;
+  for (size_t a = 0; a < model.size(); ++a) {
+    auto key = std::make_tuple(model.cell()[3 * a] / 3, model.cell()[3 * a + 1] / 3, model.cell()[3 * a + 2] / 3);
+    auto it = block.emplace(key, static_cast<int32_t>(block.size())).first;
+    cl.anchor_cluster.push_back(it->second);
+  }
+  cl.cluster_size.assign(block.size(), 0);
+  for (int32_t c : cl.anchor_cluster) ++cl.cluster_size[c];
+  const std::vector<int> views = {0, 5, 11};
+  LanguageConfig cfg;
+  cfg.min_score = 0.1f;
+  LanguageStats st;
+  const LanguageFeatures lf = attach_language(test::runtime(), model, cl, *scene, views, cfg, &st);
+  EXPECT_EQ(st.views, 3);
+  EXPECT_GT(st.pairs, 0u);
+  std::printf("scene: %zu anchors, %d clusters, %zu pairs, %zu matches, %d clusters with language\n", model.size(),
+              cl.clusters(), st.pairs, st.matches, lf.with_language());
+  ASSERT_GT(lf.with_language(), 0);
+
+  const GaussianSet g = expand_reference(model, 0);
+  LanguageAccumulator acc(cl.clusters(), scene->feature_dim(), cfg);
+  Renderer renderer(test::runtime());
+  InstanceMapper mapper(test::runtime());
+  mapper.set_clusters(cl.anchor_cluster, model.children());
+  for (int v : views) {
+    RenderSettings rs;
+    rs.sh_degree = 0;
+    const RenderOutput out = renderer.render(g, scene->views()[v].camera, rs);
+    mapper.compute(renderer);
+    const InstanceMap im = mapper.download();
+    const size_t npix = out.alpha.size();
+    std::vector<float> feat(3 * npix);
+    for (size_t p = 0; p < npix; ++p)
+      for (int k = 0; k < 3; ++k) feat[k * npix + p] = out.feature[3 * p + k];
+    const auto masks = scene->masks(v);
+    acc.add_view(score_view(im.ids, cl.clusters(), feat, out.alpha, *masks, cfg), *masks);
+  }
+  const LanguageFeatures ref = acc.finish();
+  // Device and host expansion round differently: a match near min_score may
+  // flip; every cluster matched on both sides must agree closely.
+  int both = 0, differ = 0;
+  double max_err = 0;
+  for (int c = 0; c < cl.clusters(); ++c) {
+    if (lf.matches[c] != ref.matches[c]) ++differ;
+    if (lf.matches[c] == 0 || lf.matches[c] != ref.matches[c]) continue;
+    ++both;
+    for (int k = 0; k < lf.dim; ++k)
+      max_err = std::max(max_err, double(std::abs(lf.features[c * lf.dim + k] - ref.features[c * lf.dim + k])));
+  }
+  std::printf("driver vs host loop: %d clusters agree (max error %.3g), %d differ in match count\n", both, max_err,
+              differ);
+  EXPECT_GT(both, 0);
+  EXPECT_LE(differ, std::max(1, cl.clusters() / 20));
+  EXPECT_LT(max_err, 1e-3);
+
+  // Errors: a clustering of another model, a scene without CLIP features.
+  Clustering wrong = cl;
+  wrong.anchor_cluster.pop_back();
+  EXPECT_THROW(attach_language(test::runtime(), model, wrong, *scene, views, cfg), std::invalid_argument);
+  namespace fs = std::filesystem;
+  const fs::path plain_dir = fs::temp_directory_path() / ("ag2gs_test_language_" + std::to_string(::getpid()));
+  fs::remove_all(plain_dir);
+  fs::create_directories(plain_dir);
+  for (const char* sub : {"images", "sparse"})
+    fs::copy(fs::path(test::source_dir()) / "data_samples/synth_small" / sub, plain_dir / sub,
+             fs::copy_options::recursive);
+  auto plain = Scene::open(plain_dir.string(), so);
+  ASSERT_EQ(plain->semantics(), SemanticsKind::none);
+  try {
+    attach_language(test::runtime(), model, cl, *plain, plain->train_views(), cfg);
+    ADD_FAILURE() << "expected an error";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("language_features"), std::string::npos) << e.what();
+  }
+  fs::remove_all(plain_dir);
 }
 
 }  // namespace
