@@ -57,6 +57,7 @@ std::vector<MaskMatch> score_view(const std::vector<int32_t>& ids, int clusters,
     throw std::invalid_argument("score_view: feature map must be [3,H,W] at the masks' size");
   if (config.normalise_by_alpha && alpha.size() != npix)
     throw std::invalid_argument("score_view: alpha must be [H,W] at the masks' size (or set normalise_by_alpha off)");
+  if (L < 0 || L > 16) throw std::invalid_argument("score_view: at most 16 mask layers (SAM has 4 levels)");
   if (masks.labels.size() != npix * static_cast<size_t>(L))
     throw std::invalid_argument("score_view: mask labels must be [layers,H,W]");
   const int M = masks.count;
@@ -90,7 +91,7 @@ std::vector<MaskMatch> score_view(const std::vector<int32_t>& ids, int clusters,
       if (m < 0) continue;
       if (m >= M) throw std::invalid_argument("score_view: mask label " + std::to_string(m) + " >= mask count");
       if (std::find(seen, seen + nseen, m) != seen + nseen) continue;
-      if (nseen < 16) seen[nseen++] = m;
+      seen[nseen++] = m;
       add(ms[m]);
       if (c >= 0) pairs.push_back((static_cast<uint64_t>(c) << 32) | static_cast<uint32_t>(m));
     }
