@@ -7,7 +7,7 @@
 // section 4 neighbourhood built by brute force: anchors whose top-layer cells
 // are equal or 26-neighbours are connected.
 //
-//   ag2gs_bench_stage3 MODEL_DIR SCENE_DIR [--repeats N] [--max-distance D]
+//   ag2gs_bench_stage3 MODEL_DIR SCENE_DIR [--repeats N] [--max-distance D] [--out FILE]
 #include <CLI/CLI.hpp>
 #include <Eigen/Core>
 #include <algorithm>
@@ -76,10 +76,12 @@ int main(int argc, char** argv) {
   std::string model_dir, scene_dir;
   int repeats = 5;
   float max_distance = 0.01f;
+  std::string out_path;
   app.add_option("model", model_dir, "trained model folder (model.ag2gs)")->required();
   app.add_option("scene", scene_dir, "its scene folder")->required();
   app.add_option("--repeats", repeats, "repeats of the per-view timing");
   app.add_option("--max-distance", max_distance, "clustering feature-distance threshold");
+  app.add_option("--out", out_path, "write the clusters and language features to this archive (determinism checks)");
   CLI11_PARSE(app, argc, argv);
 
   Runtime rt(-1);
@@ -111,6 +113,14 @@ int main(int argc, char** argv) {
               "download+score %.1f) over %d views = %.1f ms total; %zu pairs, %zu matches\n",
               r.cluster_ms, s.total_ms, s.expand_ms, s.render_ms, s.instance_ms, s.score_ms, s.views,
               r.cluster_ms + s.total_ms, s.pairs, s.matches);
+
+  if (!out_path.empty()) {
+    ModelArchive ar;
+    clustering_to_archive(ar, r.clustering, cfg.cluster);
+    language_to_archive(ar, r.language, cfg.language);
+    write_model_archive(out_path, ar);
+    std::printf("wrote %s\n", out_path.c_str());
+  }
 
   // Kernel times per view: forward render vs instance map.
   DeviceAnchors anchors(rt);
