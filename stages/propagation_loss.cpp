@@ -1,5 +1,6 @@
 #include "stages/propagation_loss.h"
 
+#include <algorithm>
 #include <cmath>
 #include <limits>
 #include <map>
@@ -27,20 +28,53 @@ PropagationLoss::PropagationLoss(Runtime& rt, PropagationLossConfig config) : rt
   if (!(config_.tau > 0.f) || !std::isfinite(config_.tau))
     throw std::invalid_argument("propagation loss: tau must be positive and finite, got " +
                                 std::to_string(config_.tau));
-  for (DeviceBuffer* b : {&row_offsets_, &neighbours_, &partials_, &host_features_, &host_grads_}) b->bind(&rt_);
+  for (DeviceBuffer* b : {&row_offsets_, &neighbours_, &entry_edge_, &edge_i_, &edge_j_, &coef_, &partials_,
+                          &host_features_, &host_grads_})
+    b->bind(&rt_);
   wg_ = choose_launch_shape(rt_, "propagation loss", config_.work_group, 1, [&](int wg, int) {
-          cl::Kernel k = rt_.kernel("prop.cl", "prop_loss", prop_defines(wg));
-          return k.getWorkGroupInfo<CL_KERNEL_WORK_GROUP_SIZE>(rt_.info().device);
+          size_t limit = ~size_t(0);
+          for (const char* name : {"prop_edges", "prop_grad"}) {
+            cl::Kernel k = rt_.kernel("prop.cl", name, prop_defines(wg));
+            limit = std::min(limit, k.getWorkGroupInfo<CL_KERNEL_WORK_GROUP_SIZE>(rt_.info().device));
+          }
+          return limit;
         }).work_group;
   set_graph(AnchorGraph());
 }
 
 void PropagationLoss::set_graph(const AnchorGraph& graph) {
-  graph.validate("propagation loss: set_graph");
+  // No validate(): an AnchorGraph only comes from build() or a validated
+  // from_archive(), so it is symmetric and sorted (the cursor walk relies on it).
   anchors_ = graph.anchors();
   edges_ = graph.edges();
-  row_offsets_.upload(graph.row_offsets());
-  neighbours_.upload(graph.neighbours());  // upload() reserves at least 4 bytes, so an empty graph binds too
+  // Undirected edges (i < j) in row order, padded to whole work-groups with
+  // (0, 0), and the edge id of every CSR entry. Linear time: the entries of
+  // row j naming i > j are met in ascending i, so cursor[j] walks row j.
+  const std::vector<int32_t>& off = graph.row_offsets();
+  const std::vector<int32_t>& nb = graph.neighbours();
+  edge_groups_ = static_cast<int>((edges_ + wg_ - 1) / wg_);
+  std::vector<int32_t> ei(static_cast<size_t>(edge_groups_) * wg_, 0), ej(ei.size(), 0), entry_edge(nb.size());
+  std::vector<int32_t> cursor(off.begin(), off.end() - 1);
+  int32_t next = 0;
+  for (size_t i = 0; i < anchors_; ++i)
+    for (int32_t k = off[i]; k < off[i + 1]; ++k) {
+      const int32_t j = nb[k];
+      if (j > static_cast<int32_t>(i)) {
+        ei[next] = static_cast<int32_t>(i);
+        ej[next] = j;
+        entry_edge[k] = next++;
+      } else {
+        while (nb[cursor[j]] < static_cast<int32_t>(i)) ++cursor[j];  // skips row j's entries below j
+        entry_edge[k] = entry_edge[cursor[j]++];
+      }
+    }
+  row_offsets_.upload(off);
+  neighbours_.upload(nb);  // upload() reserves at least 4 bytes, so an empty graph binds too
+  entry_edge_.upload(entry_edge);
+  edge_i_.upload(ei);
+  edge_j_.upload(ej);
+  coef_.reserve(std::max<size_t>(ei.size(), 1) * sizeof(float));
+  partials_.reserve(std::max(edge_groups_, 1) * sizeof(float));
   groups_ = -1;
 }
 
@@ -56,24 +90,27 @@ void PropagationLoss::enqueue(const DeviceBuffer& features, DeviceBuffer* featur
   const size_t bytes = anchors_ * 3 * sizeof(float);
   check_capacity(features, bytes, "features");
   if (feature_grads) check_capacity(*feature_grads, bytes, "feature_grads");
-  groups_ = static_cast<int>((anchors_ + wg_ - 1) / wg_);
-  if (groups_ == 0) return;  // no anchors: loss 0, nothing to write
+  groups_ = edge_groups_;
+  if (edges_ == 0) return;  // loss 0, gradients unchanged
 
-  partials_.reserve(static_cast<size_t>(groups_) * sizeof(float));
   const double tau = config_.tau;
   const float inv_two_tau2 = static_cast<float>(1.0 / (2.0 * tau * tau));
-  const float grad_scale = edges_ ? static_cast<float>(2.0 * weight / static_cast<double>(edges_)) : 0.f;
-  const int want_grad = feature_grads && edges_ ? 1 : 0;  // no edges: gradients stay as they are
-  cl::Kernel k = rt_.kernel("prop.cl", "prop_loss", prop_defines(wg_));
-  DeviceBuffer& grads = feature_grads ? *feature_grads : partials_;  // never written without want_grad
-  set_kernel_args(k, static_cast<cl_int>(anchors_), row_offsets_, neighbours_, features, grads, inv_two_tau2,
-                  grad_scale, config_.differentiate_weights ? 1 : 0, want_grad, partials_);
-  rt_.launch("prop_loss", k, cl::NDRange(static_cast<size_t>(groups_) * wg_), cl::NDRange(wg_));
+  const auto defs = prop_defines(wg_);
+  cl::Kernel edges = rt_.kernel("prop.cl", "prop_edges", defs);
+  set_kernel_args(edges, edge_i_, edge_j_, features, coef_, inv_two_tau2, config_.differentiate_weights ? 1 : 0,
+                  partials_);
+  rt_.launch("prop_edges", edges, cl::NDRange(static_cast<size_t>(groups_) * wg_), cl::NDRange(wg_));
+  if (!feature_grads) return;
+  const float grad_scale = static_cast<float>(2.0 * weight / static_cast<double>(edges_));
+  cl::Kernel grad = rt_.kernel("prop.cl", "prop_grad", defs);
+  set_kernel_args(grad, static_cast<cl_int>(anchors_), row_offsets_, neighbours_, entry_edge_, features, coef_,
+                  grad_scale, *feature_grads);
+  rt_.launch("prop_grad", grad, cl::NDRange(anchors_), cl::NDRange(wg_));
 }
 
 double PropagationLoss::result() {
   if (groups_ < 0) throw std::logic_error("PropagationLoss::result() before enqueue()");
-  if (groups_ == 0 || edges_ == 0) {
+  if (edges_ == 0) {
     AG2GS_CL_CHECK(rt_.queue().finish());
     return 0.0;
   }

@@ -45,10 +45,12 @@
 // Buffers: features [A,3] float (DeviceAnchors::feature), gradients [A,3]
 // float (DeviceAnchorGrads::feature), row i = anchor i.
 //
-// Deterministic: one work-item per anchor gathers over its own CSR row in a
-// fixed order and writes only its own gradient row; the loss is summed per
-// work-group in a fixed tree and over groups on the host in order. No atomics:
-// the same bits whatever the number of device threads.
+// Deterministic: one work-item per undirected edge computes its weight once
+// (the loss summed per work-group in a fixed tree, over groups on the host in
+// order); one work-item per anchor then gathers over its own CSR row in a
+// fixed order and writes only its own gradient row. No atomics: the same bits
+// whatever the number of device threads. Device memory per graph: 4 bytes per
+// CSR entry twice (neighbours, entry -> edge id) and 12 per undirected edge.
 #pragma once
 
 #include <cstdint>
@@ -72,7 +74,8 @@ class PropagationLoss {
  public:
   explicit PropagationLoss(Runtime& rt, PropagationLossConfig config = {});
 
-  // Uploads the graph's CSR arrays (validated). Call again after every rebuild.
+  // Uploads the graph's CSR arrays, its undirected edge list and the edge id
+  // of every CSR entry (linear time). Call again after every rebuild.
   void set_graph(const AnchorGraph& graph);
   size_t anchors() const { return anchors_; }
   size_t edges() const { return edges_; }
@@ -103,8 +106,9 @@ class PropagationLoss {
   PropagationLossConfig config_;
   int wg_ = 1;
   size_t anchors_ = 0, edges_ = 0;
-  int groups_ = -1;  // of the last enqueue, -1 before the first
-  DeviceBuffer row_offsets_, neighbours_, partials_;
+  int edge_groups_ = 0;  // work-groups over the padded edge list
+  int groups_ = -1;      // of the last enqueue, -1 before the first
+  DeviceBuffer row_offsets_, neighbours_, entry_edge_, edge_i_, edge_j_, coef_, partials_;
   DeviceBuffer host_features_, host_grads_;  // for the host overload
 };
 
