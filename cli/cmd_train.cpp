@@ -5,6 +5,9 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <csignal>
+#include <cstdio>
+#include <cstdlib>
 #include <filesystem>
 #include <limits>
 #include <memory>
@@ -12,7 +15,10 @@
 #include <string>
 
 #include "cli/commands.h"
+#include <unistd.h>
+
 #include "host/cl_runtime.h"
+#include "host/model_io.h"
 #include "host/scene.h"
 #include "stages/trainer.h"
 
@@ -29,6 +35,7 @@ struct TrainArgs {
   int test_every = 0;
   int save_every = 0;
   bool profile = false;
+  bool resume = false;
   TrainConfig config;
 };
 
@@ -44,7 +51,52 @@ std::string fmt_duration(double s) {
   return buf;
 }
 
+// --resume: the run's config comes from the checkpoint; a setting given on
+// the command line (one that differs from the default) must agree with it.
+void adopt_checkpoint_config(TrainArgs& a) {
+  const std::string path = Trainer::checkpoint_path(a.out);
+  if (!fs::exists(path))
+    throw std::runtime_error("--resume: no checkpoint " + path + "; train without --resume to start afresh");
+  const ModelArchive archive = read_model_archive(path);
+  if (!archive.meta.contains("checkpoint") || !archive.meta["checkpoint"].contains("config"))
+    throw std::runtime_error("--resume: " + path + " holds no training state (not written by ag2gs train)");
+  const nlohmann::json& ck = archive.meta["checkpoint"];
+  const TrainConfig saved = TrainConfig::from_json(ck["config"]);
+  const std::vector<std::string> given = config_differences(a.config.to_json(), TrainConfig{}.to_json());
+  std::string clash;
+  for (const std::string& d : config_differences(a.config.to_json(), saved.to_json()))
+    for (const std::string& g : given)
+      if (d.substr(0, d.find(' ')) == g.substr(0, g.find(' '))) clash += "\n  " + d;
+  const nlohmann::json& sc = ck.value("scene", nlohmann::json::object());
+  if (a.resolution != 1 && sc.value("resolution", 1) != a.resolution)
+    clash += "\n  -r (" + std::to_string(a.resolution) + " vs " + std::to_string(sc.value("resolution", 1)) + ")";
+  if (clash.size())
+    throw std::runtime_error("--resume: these settings differ from the checkpoint " + path +
+                             " (command line vs checkpoint); drop them or start a new model folder:" + clash);
+  a.config = saved;
+  a.resolution = sc.value("resolution", a.resolution);
+  a.eval = a.eval || sc.value("eval_split", false);
+}
+
+// Ctrl-C: the first sets a flag the training loop reads after each
+// iteration (checkpoint, then exit 130); a second one ends the process at once.
+volatile std::sig_atomic_t g_interrupted = 0;
+
+extern "C" void on_sigint(int) {
+  if (g_interrupted) {
+    static const char msg[] = "\nsecond interrupt: aborting without saving\n";
+    ssize_t ignored = ::write(2, msg, sizeof msg - 1);
+    (void)ignored;
+    ::_exit(130);
+  }
+  g_interrupted = 1;
+  static const char msg[] = "\ninterrupt: finishing this iteration and saving a checkpoint (Ctrl-C again to abort)\n";
+  ssize_t ignored = ::write(2, msg, sizeof msg - 1);
+  (void)ignored;
+}
+
 void cmd_train(const GlobalOptions& global, TrainArgs& a) {
+  if (a.resume) adopt_checkpoint_config(a);
   a.config.validate();
   if (a.resolution < 1) throw std::invalid_argument("-r must be >= 1 (it divides the camera resolution)");
   // Before anything slow: a run must not fail at its end for want of a place to write.
@@ -59,6 +111,11 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   rt.set_profiling(a.profile);
   Trainer trainer(rt, *scene, a.config);
   const TrainConfig& c = trainer.config();
+  if (a.resume) {
+    trainer.resume(a.out);
+    spdlog::info("resuming {} at iteration {} of {}", Trainer::checkpoint_path(a.out), trainer.iteration(),
+                 c.iterations);
+  }
   const std::vector<int> test_views = scene->test_views();
   spdlog::info("device [{}] {}", rt.info().index, rt.info().name);
   spdlog::info("scene {}: {} training views, {} test views, {}x{} (-r {}), {} SfM points", scene->dir(),
@@ -108,15 +165,23 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
     return ev;
   };
 
+  if (a.resume) metrics["resumed_at"] = trainer.iteration();
+  const int it_start = trainer.iteration();
+  struct sigaction sa {}, old_sa{};
+  sa.sa_handler = on_sigint;
+  sigemptyset(&sa.sa_mask);
+  g_interrupted = 0;
+  ::sigaction(SIGINT, &sa, &old_sa);
   const auto t0 = std::chrono::steady_clock::now();
   auto t_last = t0;
-  int it_last = 0, skipped = 0;
+  int it_last = it_start, skipped = 0;
   double psnr0 = NAN;
   // Running means over the iterations since the last progress line.
   double sum_loss = 0, sum_psnr = 0, sum_l1 = 0, sum_ssim = 0, sum_dist = 0, sum_is = 0, sum_ic = 0;
   int count = 0, count_masks = 0;
-  for (int it = 0; it < c.iterations; ++it) {
-    const bool log_now = a.log_every > 0 && ((it + 1) % a.log_every == 0 || it + 1 == c.iterations || it == 0);
+  for (int it = it_start; it < c.iterations; ++it) {
+    const bool log_now =
+        a.log_every > 0 && ((it + 1) % a.log_every == 0 || it + 1 == c.iterations || it == it_start);
     StepStats st = trainer.step(log_now);
     if (st.skipped) ++skipped;
     if (st.opacity_reset) spdlog::info("iteration {}: opacities reset to at most 0.01", st.iteration);
@@ -140,7 +205,7 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
       const double dt = std::chrono::duration<double>(now - t_last).count();
       const double its = (st.iteration - it_last) / std::max(dt, 1e-9);
       const double elapsed = std::chrono::duration<double>(now - t0).count();
-      const double eta = (c.iterations - st.iteration) * elapsed / st.iteration;
+      const double eta = (c.iterations - st.iteration) * elapsed / (st.iteration - it_start);
       const std::string mask_terms =
           count_masks > 0 ? fmt::format(", L_is {:.4f}, L_ic {:.4f}", sum_is / count_masks, sum_ic / count_masks)
                           : std::string();
@@ -157,28 +222,39 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
     }
     if (a.eval && a.test_every > 0 && st.iteration % a.test_every == 0 && st.iteration != c.iterations)
       run_eval(st.iteration);
+    if (g_interrupted && st.iteration != c.iterations) {
+      trainer.save(a.out);
+      spdlog::warn("interrupted: checkpoint at iteration {} of {} in {}; continue with\n  ag2gs train {} -o {} --resume",
+                   st.iteration, c.iterations, a.out, a.scene, a.out);
+      spdlog::default_logger()->flush();
+      std::fflush(stdout);
+      std::fflush(stderr);
+      std::exit(130);
+    }
     if (a.save_every > 0 && st.iteration % a.save_every == 0 && st.iteration != c.iterations) {
       trainer.save(a.out);
       spdlog::info("checkpoint at iteration {} in {}", st.iteration, a.out);
     }
   }
+  ::sigaction(SIGINT, &old_sa, nullptr);
   const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-  spdlog::info("trained {} iterations in {:.1f} s ({:.2f} ms/iteration){}", c.iterations, seconds,
-               1000 * seconds / c.iterations, skipped ? fmt::format(", {} steps skipped", skipped) : "");
+  const int trained = std::max(1, c.iterations - it_start);
+  spdlog::info("trained {} iterations in {:.1f} s ({:.2f} ms/iteration){}", c.iterations - it_start, seconds,
+               1000 * seconds / trained, skipped ? fmt::format(", {} steps skipped", skipped) : "");
   if (a.profile) {
     auto timings = rt.take_timings();
     double total = 0;
     for (auto& [k, ms] : timings) total += ms;
-    spdlog::info("kernel time per iteration: {:.3f} ms in total", total / c.iterations);
+    spdlog::info("kernel time per iteration: {:.3f} ms in total", total / trained);
     for (auto& [k, ms] : timings)
-      spdlog::info("  {:<14} {:8.3f} ms ({:4.1f}%)", k, ms / c.iterations, total > 0 ? 100 * ms / total : 0.0);
+      spdlog::info("  {:<14} {:8.3f} ms ({:4.1f}%)", k, ms / trained, total > 0 ? 100 * ms / total : 0.0);
   }
   trainer.save(a.out);
   spdlog::info("wrote {} and {} ({} anchors, {} Gaussians, SH degree {})", (fs::path(a.out) / "model.ag2gs").string(),
                (fs::path(a.out) / "point_cloud.ply").string(), trainer.anchors(), trainer.gaussians(),
                trainer.active_sh_degree());
   metrics["train_seconds"] = seconds;
-  metrics["ms_per_iteration"] = 1000 * seconds / c.iterations;
+  metrics["ms_per_iteration"] = 1000 * seconds / trained;
   metrics["skipped_steps"] = skipped;
   metrics["anchors"] = trainer.anchors();
   metrics["gaussians"] = trainer.gaussians();
@@ -270,6 +346,8 @@ void register_train(CLI::App& app, GlobalOptions& global) {
       ->check(CLI::NonNegativeNumber);
   sub->add_option("--save-every", a->save_every, "Checkpoint every N iterations (default 0 = end only)")
       ->check(CLI::NonNegativeNumber);
+  sub->add_flag("--resume", a->resume,
+                "Continue from MODEL_DIR/checkpoint.ag2gs (its settings; flags given must agree with them)");
   sub->add_flag("--profile", a->profile, "Time every kernel and print the per-iteration breakdown");
   set_action(sub, [&global, a] { cmd_train(global, *a); });
 }

@@ -124,6 +124,22 @@ GrowthStatsHost AnchorGrowth::download() {
   return s;
 }
 
+void AnchorGrowth::restore(const GrowthStatsHost& stats) {
+  const size_t n = stats.grad_sum.size();
+  if (stats.count.size() != n || stats.last_seen.size() != n)
+    throw std::invalid_argument("growth restore: grad_sum, count and last_seen differ in length (" + std::to_string(n) +
+                                ", " + std::to_string(stats.count.size()) + ", " +
+                                std::to_string(stats.last_seen.size()) + ")");
+  if (stats.steps < 0 || stats.step < 0) throw std::invalid_argument("growth restore: negative step counter");
+  reset(n);
+  step_ = stats.step;
+  steps_ = stats.steps;
+  if (n == 0) return;
+  grad_sum_.upload(stats.grad_sum);
+  count_.upload(stats.count);
+  last_seen_.upload(stats.last_seen);
+}
+
 GrowthResult AnchorGrowth::step(AnchorModel& model, uint64_t seed) {
   if (model.gaussians() != n_)
     throw std::invalid_argument("growth step: the model has " + std::to_string(model.gaussians()) +

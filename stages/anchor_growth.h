@@ -173,6 +173,11 @@ class AnchorGrowth {
   GrowthResult step(AnchorModel& model, uint64_t seed);
 
   GrowthStatsHost download();
+  // The inverse of download() (resuming from a checkpoint): sizes the
+  // statistics for stats.grad_sum.size() children and sets every array and
+  // both step counters. Throws std::invalid_argument when the arrays differ
+  // in length or a counter is negative.
+  void restore(const GrowthStatsHost& stats);
 
  private:
   Runtime& rt_;

@@ -9,6 +9,7 @@
 #include <filesystem>
 #include <fstream>
 #include <limits>
+#include <map>
 #include <stdexcept>
 #include <system_error>
 
@@ -136,6 +137,89 @@ nlohmann::json TrainConfig::to_json() const {
           {"prune_unseen_window", prune_unseen_window},
           {"opacity_reset_every", opacity_reset_every},
           {"opacity_reset_pause", opacity_reset_pause}};
+}
+
+namespace {
+
+// Every leaf of a JSON object as "a.b.c" -> value.
+void flatten(const nlohmann::json& j, const std::string& prefix, std::map<std::string, nlohmann::json>* out) {
+  if (j.is_object()) {
+    for (auto it = j.begin(); it != j.end(); ++it) flatten(it.value(), prefix.empty() ? it.key() : prefix + "." + it.key(), out);
+  } else {
+    (*out)[prefix] = j;
+  }
+}
+
+}  // namespace
+
+std::vector<std::string> config_differences(const nlohmann::json& a, const nlohmann::json& b) {
+  std::map<std::string, nlohmann::json> fa, fb;
+  flatten(a, "", &fa);
+  flatten(b, "", &fb);
+  std::vector<std::string> out;
+  for (const auto& [k, v] : fa) {
+    auto it = fb.find(k);
+    if (it == fb.end())
+      out.push_back(k + " (" + v.dump() + " vs missing)");
+    else if (it->second != v)
+      out.push_back(k + " (" + v.dump() + " vs " + it->second.dump() + ")");
+  }
+  for (const auto& [k, v] : fb)
+    if (!fa.count(k)) out.push_back(k + " (missing vs " + v.dump() + ")");
+  return out;
+}
+
+TrainConfig TrainConfig::from_json(const nlohmann::json& j) {
+  TrainConfig c;
+  try {
+    const nlohmann::json& a = j.at("anchors");
+    c.anchors.children = a.at("children").get<int>();
+    c.anchors.layers = a.at("layers").get<int>();
+    c.anchors.top_cells = a.at("top_cells").get<int>();
+    c.anchors.layer_ratio = a.at("layer_ratio").get<int>();
+    c.anchors.init_layer = a.at("init_layer").get<int>();
+    c.anchors.init_opacity = a.at("init_opacity").get<float>();
+    c.anchors.init_scale = a.at("init_scale").get<float>();
+    c.anchors.init_feature = a.at("init_feature").get<float>();
+    c.anchors.sh_degree = a.at("sh_degree").get<int>();
+    c.iterations = j.at("iterations").get<int>();
+    c.seed = j.at("seed").get<uint64_t>();
+    c.sh_interval = j.at("sh_interval").get<int>();
+    c.lambda_ssim = j.at("lambda_ssim").get<float>();
+    c.w_offset = j.at("w_offset").get<float>();
+    c.w_distortion = j.at("w_distortion").get<float>();
+    c.distortion_from = j.at("distortion_from").get<int>();
+    c.w_is = j.at("w_is").get<float>();
+    c.w_ic = j.at("w_ic").get<float>();
+    c.mask_from = j.at("mask_from").get<int>();
+    c.mask_alpha_normalise = j.at("mask_alpha_normalise").get<bool>();
+    c.offset_lr_init = j.at("offset_lr_init").get<double>();
+    c.offset_lr_final = j.at("offset_lr_final").get<double>();
+    c.offset_lr_extent = j.at("offset_lr_extent").get<bool>();
+    c.feature_lr = j.at("feature_lr").get<double>();
+    c.sh_dc_lr = j.at("sh_dc_lr").get<double>();
+    c.sh_rest_lr = j.at("sh_rest_lr").get<double>();
+    c.opacity_lr = j.at("opacity_lr").get<double>();
+    c.scaling_lr = j.at("scaling_lr").get<double>();
+    c.rotation_lr = j.at("rotation_lr").get<double>();
+    c.adam.beta1 = j.at("adam").at("beta1").get<double>();
+    c.adam.beta2 = j.at("adam").at("beta2").get<double>();
+    c.adam.eps = j.at("adam").at("eps").get<double>();
+    c.white_background = j.at("white_background").get<bool>();
+    const nlohmann::json& g = j.at("grow");
+    c.grow_from = g.at("from").get<int>();
+    c.grow_until = g.at("until").get<int>();
+    c.grow_every = g.at("every").get<int>();
+    c.grow_threshold = g.at("threshold").get<double>();
+    c.grow_min_seen = g.at("min_seen").get<double>();
+    c.prune_opacity = j.at("prune_opacity").get<double>();
+    c.prune_unseen_window = j.at("prune_unseen_window").get<int>();
+    c.opacity_reset_every = j.at("opacity_reset_every").get<int>();
+    c.opacity_reset_pause = j.at("opacity_reset_pause").get<int>();
+  } catch (const nlohmann::json::exception& e) {
+    throw std::runtime_error(std::string("training config: ") + e.what());
+  }
+  return c;
 }
 
 // ------------------------------------------------------------------ helpers
@@ -443,7 +527,136 @@ EvalStats Trainer::evaluate(const std::vector<int>& views) {
   return ev;
 }
 
+std::string Trainer::checkpoint_path(const std::string& model_dir) {
+  return (fs::path(model_dir) / "checkpoint.ag2gs").string();
+}
+
+nlohmann::json Trainer::scene_fingerprint() const {
+  // Cameras hashed through their printed values (exact: %a is lossless).
+  std::string cams;
+  char buf[512];
+  for (const SceneView& v : scene_.views()) {
+    const Camera& c = v.camera;
+    std::snprintf(buf, sizeof buf, "%s %d %d %a %a %a %a %d|", v.name.c_str(), c.width, c.height, c.fx, c.fy, c.cx,
+                  c.cy, v.test ? 1 : 0);
+    cams += buf;
+    for (int i = 0; i < 3; ++i) {
+      std::snprintf(buf, sizeof buf, "%a %a %a %a|", c.R(i, 0), c.R(i, 1), c.R(i, 2), c.t(i));
+      cams += buf;
+    }
+  }
+  std::vector<double> pts;
+  pts.reserve(scene_.points().size() * 3);
+  for (const Eigen::Vector3d& p : scene_.points()) pts.insert(pts.end(), {p.x(), p.y(), p.z()});
+  char hex[2][20];
+  std::snprintf(hex[0], sizeof hex[0], "%016llx", static_cast<unsigned long long>(fnv1a64(cams.data(), cams.size())));
+  std::snprintf(hex[1], sizeof hex[1], "%016llx",
+                static_cast<unsigned long long>(fnv1a64(pts.data(), pts.size() * sizeof(double))));
+  return {{"views", scene_.views().size()},         {"train_views", train_views_.size()},
+          {"resolution", scene_.options().resolution}, {"eval_split", scene_.options().eval},
+          {"cameras_fnv1a64", hex[0]},                {"points", scene_.points().size()},
+          {"points_fnv1a64", hex[1]}};
+}
+
+void Trainer::save_checkpoint(const std::string& model_dir) {
+  const AnchorModel& m = model();
+  ModelArchive archive;
+  m.to_archive(archive);
+  nlohmann::json groups = nlohmann::json::object();
+  for (AdamGroup* g : {g_offset_.get(), g_scale_.get(), g_quat_.get(), g_opacity_.get(), g_dc_.get(), g_rest_.get(),
+                       g_feature_.get()}) {
+    std::vector<float> v;
+    const std::vector<int64_t> shape = {static_cast<int64_t>(g->rows()), g->row_size()};
+    g->exp_avg().download(v, g->size());
+    archive.put("adam/" + g->name() + "/exp_avg", v, shape);
+    g->exp_avg_sq().download(v, g->size());
+    archive.put("adam/" + g->name() + "/exp_avg_sq", v, shape);
+    groups[g->name()] = {{"steps", g->steps()}, {"rows", g->rows()}, {"row_size", g->row_size()}};
+  }
+  const GrowthStatsHost gs = growth_.download();
+  archive.put("growth/grad_sum", gs.grad_sum);
+  archive.put("growth/count", gs.count);
+  archive.put("growth/last_seen", gs.last_seen);
+  archive.meta["checkpoint"] = {{"iteration", iteration_},
+                                {"config", config_.to_json()},
+                                {"scene", scene_fingerprint()},
+                                {"scene_dir", scene_.dir()},
+                                {"adam", groups},
+                                {"growth", {{"steps", gs.steps}, {"step", gs.step}}}};
+  fs::create_directories(model_dir);
+  write_model_archive(checkpoint_path(model_dir), archive);
+}
+
+void Trainer::resume(const std::string& model_dir) {
+  const std::string path = checkpoint_path(model_dir);
+  if (!fs::exists(path))
+    throw std::runtime_error("no checkpoint " + path + " to resume from; train without --resume to start afresh");
+  const ModelArchive archive = read_model_archive(path);
+  auto fail = [&](const std::string& what) { throw std::runtime_error("checkpoint " + path + ": " + what); };
+  if (!archive.meta.contains("checkpoint")) fail("no training state (not written by ag2gs train)");
+  const nlohmann::json& ck = archive.meta["checkpoint"];
+  try {
+    const std::vector<std::string> scene_diff = config_differences(ck.at("scene"), scene_fingerprint());
+    if (!scene_diff.empty()) {
+      std::string list;
+      for (const std::string& d : scene_diff) list += "\n  " + d;
+      fail("written for another scene (" + ck.value("scene_dir", std::string("?")) +
+           ") or resolution/split; checkpoint vs now:" + list);
+    }
+    const std::vector<std::string> config_diff = config_differences(ck.at("config"), config_.to_json());
+    if (!config_diff.empty()) {
+      std::string list;
+      for (const std::string& d : config_diff) list += "\n  " + d;
+      fail("written with another training config; checkpoint vs now:" + list);
+    }
+    const int iteration = ck.at("iteration").get<int>();
+    if (iteration < 0 || iteration > config_.iterations)
+      fail("iteration " + std::to_string(iteration) + " is outside the run's 0.." +
+           std::to_string(config_.iterations));
+    AnchorModel m = AnchorModel::from_archive(archive);
+    const int64_t a = static_cast<int64_t>(m.size()), n = static_cast<int64_t>(m.gaussians());
+    std::vector<std::pair<AdamGroup*, int64_t>> groups;
+    const std::pair<const char*, int> specs[] = {{"offset", 3}, {"scaling", 3}, {"rotation", 4}, {"opacity", 1},
+                                                 {"sh_dc", 3},  {"sh_rest", 3 * kShRestCoeffs}};
+    std::vector<std::unique_ptr<AdamGroup>> fresh;
+    for (const auto& [name, row] : specs) fresh.push_back(std::make_unique<AdamGroup>(rt_, name, n, row));
+    fresh.push_back(std::make_unique<AdamGroup>(rt_, "feature", a, 3));
+    for (auto& g : fresh) {
+      const std::string pre = "adam/" + g->name();
+      const std::vector<int64_t> shape = {g->name() == "feature" ? a : n, g->row_size()};
+      g->exp_avg().upload(archive.get<float>(pre + "/exp_avg", shape));
+      g->exp_avg_sq().upload(archive.get<float>(pre + "/exp_avg_sq", shape));
+      g->set_steps(ck.at("adam").at(g->name()).at("steps").get<int64_t>());
+    }
+    GrowthStatsHost gs;
+    gs.grad_sum = archive.get<float>("growth/grad_sum", {n});
+    gs.count = archive.get<int32_t>("growth/count", {n});
+    gs.last_seen = archive.get<int32_t>("growth/last_seen", {n});
+    gs.steps = ck.at("growth").at("steps").get<int>();
+    gs.step = ck.at("growth").at("step").get<int>();
+    // Everything read: now replace the state.
+    model_ = std::move(m);
+    anchors_.upload(model_);
+    host_stale_ = false;
+    g_offset_ = std::move(fresh[0]);
+    g_scale_ = std::move(fresh[1]);
+    g_quat_ = std::move(fresh[2]);
+    g_opacity_ = std::move(fresh[3]);
+    g_dc_ = std::move(fresh[4]);
+    g_rest_ = std::move(fresh[5]);
+    g_feature_ = std::move(fresh[6]);
+    growth_.set_config(config_.growth_config(train_views_.size()));
+    growth_.restore(gs);
+    iteration_ = iteration;
+  } catch (const nlohmann::json::exception& e) {
+    fail(std::string("bad training state: ") + e.what());
+  } catch (const std::invalid_argument& e) {
+    fail(e.what());
+  }
+}
+
 void Trainer::save(const std::string& model_dir) {
+  save_checkpoint(model_dir);
   const AnchorModel& m = model();
   ModelArchive archive;
   m.to_archive(archive);

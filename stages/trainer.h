@@ -35,6 +35,12 @@
 // the opacity_reset_pause iterations after a reset do not prune by opacity:
 // the mean opacity says nothing until training has restored it.
 //
+// Checkpoints (save_checkpoint, resume): MODEL_DIR/checkpoint.ag2gs holds the
+// anchor model, every Adam group's moments and step count, AnchorGrowth's
+// statistics and counters, the iteration, the config and a fingerprint of the
+// scene; everything else a step uses is a function of (config, iteration), so
+// a resumed run continues bit for bit.
+//
 // Deterministic: the view order comes from a counter-based hash of (seed,
 // epoch); every kernel on the path is free of floating-point atomics, so the
 // same seed on the same device gives the same bits in the model files.
@@ -127,6 +133,10 @@ struct TrainConfig {
   void validate() const;
   // Every field (for the model archive and metrics).
   nlohmann::json to_json() const;
+  // The inverse of to_json (sh_interval and grow_until come back as the
+  // effective values, which to_json maps to themselves). Throws
+  // std::runtime_error naming a missing or mistyped field.
+  static TrainConfig from_json(const nlohmann::json& j);
   // The SH interval actually used.
   int effective_sh_interval() const;
   int effective_grow_until() const;
@@ -185,9 +195,22 @@ class Trainer {
   // clamping of the rendered colours).
   EvalStats evaluate(const std::vector<int>& views);
 
-  // MODEL_DIR/model.ag2gs (anchors, config, iteration, seed) and
-  // MODEL_DIR/point_cloud.ply (the expanded Gaussians), both atomic.
+  // MODEL_DIR/checkpoint.ag2gs (save_checkpoint), MODEL_DIR/model.ag2gs
+  // (anchors, config, iteration, seed) and MODEL_DIR/point_cloud.ply (the
+  // expanded Gaussians, standard 3DGS), each written atomically.
   void save(const std::string& model_dir);
+  // MODEL_DIR/checkpoint.ag2gs alone, atomically.
+  void save_checkpoint(const std::string& model_dir);
+  // Continues from MODEL_DIR/checkpoint.ag2gs: replaces the model, the
+  // optimiser state, the growth statistics and the iteration. Throws
+  // std::runtime_error naming the file when it is missing or broken, was
+  // written for another scene (views, cameras, points, resolution, split) or
+  // with another config (naming the fields that differ).
+  void resume(const std::string& model_dir);
+  static std::string checkpoint_path(const std::string& model_dir);
+  // A fingerprint of what the trainer reads from the scene: view names,
+  // cameras at the loaded resolution, split, SfM points.
+  nlohmann::json scene_fingerprint() const;
 
   int iteration() const { return iteration_; }
   int active_sh_degree() const;
@@ -245,6 +268,9 @@ class Trainer {
 // throws std::runtime_error naming the directory otherwise. The trainer's
 // caller runs this before training so a long run cannot fail at the end.
 void check_model_dir_writable(const std::string& dir);
+
+// The leaves ("a.b.c") where two JSON objects differ, as "key (a vs b)".
+std::vector<std::string> config_differences(const nlohmann::json& a, const nlohmann::json& b);
 
 // A JSON document written atomically (host/atomic_file.h).
 void write_json_atomic(const std::string& path, const nlohmann::json& doc);

@@ -1,5 +1,6 @@
 // Training state over time (stages/trainer.h, `ag2gs train`) on the synthetic
-// sample scene at -r 2 (80x60): the 3DGS opacity reset.
+// sample scene at -r 2 (80x60): the 3DGS opacity reset, checkpoints and
+// resume (a run split in two gives the bytes of the straight run).
 #include <gtest/gtest.h>
 
 #include <algorithm>
@@ -7,6 +8,8 @@
 #include <cstdio>
 #include <filesystem>
 
+#include "host/model_io.h"
+#include "host/ply_io.h"
 #include "host/scene.h"
 #include "io_test_util.h"
 #include "stages/anchor_model.h"
@@ -74,6 +77,111 @@ TEST(TrainState, OpacityResetCapsOpacityAndZeroesItsMoments) {
       EXPECT_FALSE(all_zero(download(a.adam_group("sh_dc").exp_avg(), a.adam_group("sh_dc").size())));
     }
   }
+}
+
+// Growing rounds at 25 and 50, opacity resets at 30 and 60: the split at 40
+// lies between a round and the next (whose statistics then span both
+// halves) and between two resets.
+TrainConfig split_config() {
+  TrainConfig cfg;
+  cfg.iterations = 80;
+  cfg.seed = 4;
+  cfg.anchors.top_cells = 50;
+  cfg.grow_from = 25;
+  cfg.grow_every = 25;
+  cfg.grow_until = 70;
+  cfg.grow_threshold = 1e-3;
+  cfg.opacity_reset_every = 30;
+  cfg.opacity_reset_pause = 10;
+  cfg.mask_from = 10;
+  return cfg;
+}
+
+TEST(TrainState, ResumedRunGivesTheBytesOfTheStraightRun) {
+  SceneOptions so;
+  so.resolution = 2;
+  auto scene = Scene::open(sample_scene(), so);
+  const TrainConfig cfg = split_config();
+  test::ScratchDir dir("train_resume");
+  int grown = 0, resets = 0;
+  {
+    Trainer straight(test::runtime(), *scene, cfg);
+    for (int it = 0; it < cfg.iterations; ++it) {
+      const StepStats st = straight.step();
+      grown += st.grown;
+      resets += st.opacity_reset;
+    }
+    straight.save(dir.file("straight"));
+  }
+  EXPECT_GT(grown, 0);
+  EXPECT_EQ(resets, 2);
+  {
+    Trainer first(test::runtime(), *scene, cfg);
+    for (int it = 0; it < cfg.iterations / 2; ++it) first.step();
+    first.save(dir.file("split"));
+  }
+  // What the split left is a complete model: the PLY reads back as the
+  // checkpoint's Gaussians.
+  {
+    ModelArchive ck = read_model_archive(dir.file("split/checkpoint.ag2gs"));
+    EXPECT_EQ(ck.meta["checkpoint"]["iteration"].get<int>(), 40);
+    const AnchorModel m = AnchorModel::from_archive(ck);
+    EXPECT_EQ(read_ply(dir.file("split/point_cloud.ply")).size(), m.gaussians());
+  }
+  {
+    Trainer second(test::runtime(), *scene, cfg);
+    second.resume(dir.file("split"));
+    EXPECT_EQ(second.iteration(), 40);
+    for (int it = second.iteration(); it < cfg.iterations; ++it) second.step();
+    second.save(dir.file("split"));
+  }
+  for (const char* f : {"model.ag2gs", "point_cloud.ply", "checkpoint.ag2gs"}) {
+    const std::string a = test::read_bytes(dir.file(std::string("straight/") + f));
+    const std::string b = test::read_bytes(dir.file(std::string("split/") + f));
+    ASSERT_FALSE(a.empty()) << f;
+    EXPECT_TRUE(a == b) << f << " differs between the straight and the resumed run";
+  }
+}
+
+TEST(TrainState, ResumeRefusesAnotherConfigOrScene) {
+  SceneOptions so;
+  so.resolution = 2;
+  auto scene = Scene::open(sample_scene(), so);
+  TrainConfig cfg = split_config();
+  cfg.iterations = 4;
+  cfg.grow_every = 0;
+  test::ScratchDir dir("train_resume_bad");
+  {
+    Trainer t(test::runtime(), *scene, cfg);
+    t.step();
+    t.save(dir.file("m"));
+  }
+  auto expect_error = [&](Scene& s, const TrainConfig& c, const std::string& dir_name, const std::string& want) {
+    Trainer t(test::runtime(), s, c);
+    try {
+      t.resume(dir.file(dir_name));
+      ADD_FAILURE() << "resume accepted: expected an error with '" << want << "'";
+    } catch (const std::runtime_error& e) {
+      EXPECT_NE(std::string(e.what()).find(want), std::string::npos) << e.what();
+      EXPECT_NE(std::string(e.what()).find("checkpoint"), std::string::npos) << e.what();
+    }
+    EXPECT_EQ(t.iteration(), 0);
+  };
+  TrainConfig other_seed = cfg;
+  other_seed.seed = 5;
+  expect_error(*scene, other_seed, "m", "seed");
+  TrainConfig other_lr = cfg;
+  other_lr.opacity_lr = 0.02;
+  expect_error(*scene, other_lr, "m", "opacity_lr");
+  SceneOptions so4 = so;
+  so4.resolution = 4;
+  auto scene4 = Scene::open(sample_scene(), so4);
+  expect_error(*scene4, cfg, "m", "another scene");
+  expect_error(*scene, cfg, "missing", "no checkpoint");
+  // The library accepts the right one.
+  Trainer ok(test::runtime(), *scene, cfg);
+  ok.resume(dir.file("m"));
+  EXPECT_EQ(ok.iteration(), 1);
 }
 
 }  // namespace
