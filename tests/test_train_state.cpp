@@ -1,7 +1,12 @@
 // Training state over time (stages/trainer.h, `ag2gs train`) on the synthetic
 // sample scene at -r 2 (80x60): the 3DGS opacity reset, checkpoints and
-// resume (a run split in two gives the bytes of the straight run).
+// resume (a run split in two gives the bytes of the straight run), and
+// Ctrl-C on `ag2gs train` (checkpoint, exit status 130, --resume finishes
+// with the bytes of an uninterrupted run).
 #include <gtest/gtest.h>
+#include <signal.h>
+#include <sys/wait.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <cmath>
@@ -11,6 +16,7 @@
 #include "host/model_io.h"
 #include "host/ply_io.h"
 #include "host/scene.h"
+#include "cli_test_util.h"
 #include "io_test_util.h"
 #include "stages/anchor_model.h"
 #include "stages/trainer.h"
@@ -182,6 +188,79 @@ TEST(TrainState, ResumeRefusesAnotherConfigOrScene) {
   Trainer ok(test::runtime(), *scene, cfg);
   ok.resume(dir.file("m"));
   EXPECT_EQ(ok.iteration(), 1);
+}
+
+// Starts `$AG2GS_BINARY args` with stdout and stderr on a pipe, sends SIGINT
+// once a progress line of iteration >= `after` has appeared, and returns the
+// exit status (-1 unless it exited) with everything it printed.
+test::CliResult run_cli_interrupted(const std::string& args, int after) {
+  const char* bin = std::getenv("AG2GS_BINARY");
+  const std::string cmd = "exec " + std::string(bin ? bin : "./ag2gs") + " " + args + " 2>&1";
+  int fd[2];
+  if (::pipe(fd) != 0) return {-1, "pipe failed"};
+  const pid_t pid = ::fork();
+  if (pid == 0) {
+    ::dup2(fd[1], 1);
+    ::close(fd[0]);
+    ::close(fd[1]);
+    ::execl("/bin/sh", "sh", "-c", cmd.c_str(), static_cast<char*>(nullptr));
+    ::_exit(127);
+  }
+  ::close(fd[1]);
+  test::CliResult r{-1, ""};
+  bool sent = false;
+  std::string line;
+  char c;
+  while (::read(fd[0], &c, 1) == 1) {
+    r.output += c;
+    if (c != '\n') {
+      line += c;
+      continue;
+    }
+    // Progress lines: "info: it      7/120  loss ..."
+    const size_t at = line.find(" it ");
+    if (!sent && at != std::string::npos && std::atoi(line.c_str() + at + 4) >= after) {
+      ::kill(pid, SIGINT);
+      sent = true;
+    }
+    line.clear();
+  }
+  ::close(fd[0]);
+  int status = 0;
+  ::waitpid(pid, &status, 0);
+  r.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  if (!sent) r.output += "\n[test: no progress line reached iteration " + std::to_string(after) + "]";
+  return r;
+}
+
+TEST(TrainState, CtrlCSavesACheckpointThatResumesToTheSameBytes) {
+  test::ScratchDir dir("train_sigint");
+  const std::string scene = sample_scene();
+  const std::string args = "train " + scene +
+                           " -r 2 --top-cells 50 --iters 120 --seed 9 --log-every 1 --grow-from 20 --grow-every 20 "
+                           "--grow-threshold 1e-3 --opacity-reset-every 30 -o ";
+  const test::CliResult straight = test::run_cli(args + dir.file("straight"));
+  ASSERT_EQ(straight.code, 0) << straight.output;
+
+  const test::CliResult cut = run_cli_interrupted(args + dir.file("cut"), 5);
+  ASSERT_EQ(cut.code, 130) << cut.output;
+  EXPECT_NE(cut.output.find("--resume"), std::string::npos) << cut.output;
+  const ModelArchive ck = read_model_archive(dir.file("cut/checkpoint.ag2gs"));
+  const int at = ck.meta["checkpoint"]["iteration"].get<int>();
+  std::printf("interrupted at iteration %d of 120\n", at);
+  EXPECT_GE(at, 5);
+  EXPECT_LT(at, 120) << "the run finished before the interrupt: make it longer";
+  EXPECT_EQ(read_ply(dir.file("cut/point_cloud.ply")).size(), AnchorModel::from_archive(ck).gaussians());
+
+  const test::CliResult resumed = test::run_cli("train " + scene + " -o " + dir.file("cut") + " --resume --log-every 0");
+  ASSERT_EQ(resumed.code, 0) << resumed.output;
+  EXPECT_NE(resumed.output.find("resuming"), std::string::npos) << resumed.output;
+  for (const char* f : {"model.ag2gs", "point_cloud.ply", "checkpoint.ag2gs"}) {
+    const std::string a = test::read_bytes(dir.file(std::string("straight/") + f));
+    const std::string b = test::read_bytes(dir.file(std::string("cut/") + f));
+    ASSERT_FALSE(a.empty()) << f;
+    EXPECT_TRUE(a == b) << f << " differs between the uninterrupted and the interrupted + resumed run";
+  }
 }
 
 }  // namespace
