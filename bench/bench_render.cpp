@@ -94,6 +94,8 @@ int main(int argc, char** argv) {
   app.add_option("--sample-pixels", sample_pixels, "pixels compared with the double reference");
   std::vector<size_t> only;
   app.add_option("--counts", only, "Gaussian counts to run (default 10000 100000 1000000)");
+  std::vector<std::string> size_args;
+  app.add_option("--sizes", size_args, "image sizes WxH to run (default 400x300 800x600)");
   CLI11_PARSE(app, argc, argv);
   spdlog::set_level(spdlog::level::warn);
 
@@ -104,6 +106,18 @@ int main(int argc, char** argv) {
   std::vector<size_t> counts = quick ? std::vector<size_t>{10000} : std::vector<size_t>{10000, 100000, 1000000};
   if (!only.empty()) counts = only;
   std::vector<std::pair<int, int>> sizes = {{400, 300}, {800, 600}};
+  if (!size_args.empty()) {
+    sizes.clear();
+    for (const std::string& a : size_args) {
+      int w = 0, h = 0;
+      char x = 0;
+      if (std::sscanf(a.c_str(), "%d%c%d", &w, &x, &h) != 3 || x != 'x' || w < 1 || h < 1) {
+        std::fprintf(stderr, "--sizes: '%s' is not WxH (e.g. 400x300)\n", a.c_str());
+        return 2;
+      }
+      sizes.emplace_back(w, h);
+    }
+  }
   std::printf(
       "\n| Gaussians | image | isect | fwd ms (project/sort/bin/blend) | bwd ms (blend/project) | fwd+bwd ms "
       "| blend G evals/s | peak MiB | fwd max abs / rel err | bwd max err / scale |\n");

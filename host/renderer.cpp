@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdlib>
 #include <stdexcept>
 
 namespace ag2gs {
@@ -16,6 +17,18 @@ constexpr int kG2Size = 13;
 constexpr int kCamSize = 32;
 constexpr int kScanBlock = 1024;
 constexpr int kRadixBlock = 4096;
+
+// GPUs stage Gaussians through local memory in work-groups of a tile's
+// pixels; CPUs walk the lists without barriers. AG2GS_BLEND_STAGING=1 or 0
+// overrides (tests run the GPU layout on the CPU with it).
+bool blend_staging_for(const Runtime& rt) {
+  if (const char* e = std::getenv("AG2GS_BLEND_STAGING")) {
+    if (std::string(e) == "1") return true;
+    if (std::string(e) == "0") return false;
+    throw std::invalid_argument(std::string("AG2GS_BLEND_STAGING must be 0 or 1, got '") + e + "'");
+  }
+  return rt.info().is_gpu;
+}
 
 size_t ceil_div(size_t a, size_t b) {
   return (a + b - 1) / b;
@@ -216,7 +229,7 @@ void Renderer::forward(const DeviceGaussians& g, const Camera& cam, const Render
   // CPUs: no local-memory staging (records come from cache), see blend_fwd.cl.
   cl::Kernel blend =
       rt_.kernel("blend_fwd.cl", "blend_fwd",
-                 {{"BATCH", std::to_string(std::max(64, wg))}, {"NO_STAGING", rt_.info().is_gpu ? "0" : "1"}});
+                 {{"BATCH", std::to_string(std::max(64, wg))}, {"NO_STAGING", blend_staging_for(rt_) ? "0" : "1"}});
   set_kernel_args(blend, cam.width, cam.height, tiles_x_, cam_buf_, ranges_, *sorted_isect_vals_, isect_gid_, records_,
                   out_rgb_, out_feat_, out_depth_, out_alpha_, out_dist_, out_aux_, out_last_, out_count_);
   rt_.launch("blend_fwd", blend, cl::NDRange(static_cast<size_t>(ntiles) * wg), cl::NDRange(wg));
@@ -293,9 +306,11 @@ void Renderer::backward_from(const DeviceBuffer& g_rgb, const DeviceBuffer& g_fe
   const size_t M = stats_.n_intersections;
   isect_grads_.reserve(std::max<size_t>(M, 1) * kG2Size * 4);
   const int ntiles = tiles_x_ * tiles_y_;
-  const int wg = 256 / rt_.vector_width();
-  const int batch = std::max(1, 512 / wg);
-  cl::Kernel blend = rt_.kernel("blend_bwd.cl", "blend_bwd", {{"BATCH", std::to_string(batch)}});
+  const bool staging = blend_staging_for(rt_);
+  const int wg = staging ? 256 / rt_.vector_width() : 1;  // CPUs: one work-item per tile, see blend_bwd.cl
+  const int batch = std::max(1, 512 / (256 / rt_.vector_width()));
+  cl::Kernel blend = rt_.kernel("blend_bwd.cl", "blend_bwd",
+                                {{"BATCH", std::to_string(batch)}, {"NO_STAGING", staging ? "0" : "1"}});
   set_kernel_args(blend, cam_.width, cam_.height, tiles_x_, cam_buf_, ranges_, *sorted_isect_vals_, isect_gid_,
                   records_, out_rgb_, out_feat_, out_depth_, out_aux_, out_last_, g_rgb, g_feat, g_depth, g_alpha,
                   g_dist, isect_grads_);

@@ -13,8 +13,140 @@
 //   distortion D = A M2: e_j = M2_T + A_T (m_j - mu_T)^2,
 //     dD/dalpha_j = T_j e_j - (M2_T (A_T - A_j) + A_T (M2_T - Q_j))/(1 - alpha_j),
 //     dD/dm_j = 2 w_j A_T (m_j - mu_T).
-// Defines: BATCH.
+// Defines: BATCH, NO_STAGING (CPU layout below).
 
+// Forward totals and upstream gradients of one work-item's pixels.
+typedef struct {
+  vfloat gr, gg, gb, gf0, gf1, gf2, gd, ga, gD;
+  vfloat G_O, T_final, A_T, mu_T, M2_T;
+  vint last;
+} RowTotals;
+
+inline RowTotals load_totals(PixelRow pr, int width, size_t npix,
+                             __global const float* out_rgb, __global const float* out_feat,
+                             __global const float* out_depth, __global const float* out_aux,
+                             __global const int* out_last, __global const float* v_rgb,
+                             __global const float* v_feat, __global const float* v_depth,
+                             __global const float* v_alpha, __global const float* v_dist) {
+  RowTotals t;
+  t.gr = load_row(v_rgb, pr, width); t.gg = load_row(v_rgb + npix, pr, width);
+  t.gb = load_row(v_rgb + 2 * npix, pr, width);
+  t.gf0 = load_row(v_feat, pr, width); t.gf1 = load_row(v_feat + npix, pr, width);
+  t.gf2 = load_row(v_feat + 2 * npix, pr, width);
+  t.gd = load_row(v_depth, pr, width); t.ga = load_row(v_alpha, pr, width); t.gD = load_row(v_dist, pr, width);
+  t.G_O = t.gr * load_row(out_rgb, pr, width) + t.gg * load_row(out_rgb + npix, pr, width) +
+          t.gb * load_row(out_rgb + 2 * npix, pr, width) + t.gf0 * load_row(out_feat, pr, width) +
+          t.gf1 * load_row(out_feat + npix, pr, width) + t.gf2 * load_row(out_feat + 2 * npix, pr, width) +
+          t.gd * load_row(out_depth, pr, width);
+  t.T_final = load_row(out_aux, pr, width); t.A_T = load_row(out_aux + npix, pr, width);
+  t.mu_T = load_row(out_aux + 2 * npix, pr, width); t.M2_T = load_row(out_aux + 3 * npix, pr, width);
+  t.last = load_row_int(out_last, pr, width);
+  return t;
+}
+
+#if NO_STAGING
+// CPU layout: one work-item per tile walks its rows (VW pixels each) in order,
+// so there are no barriers and the running state stays in SIMD registers
+// (PoCL keeps values that live across a barrier in memory). The tile's slots
+// are zeroed first; each row then adds its lane-summed partials in row order,
+// the same order of additions as the work-group sum of the staged layout.
+// A row adds nothing for a Gaussian that none of its pixels blended.
+__kernel __attribute__((reqd_work_group_size(1, 1, 1)))
+void blend_bwd(int width, int height, int tiles_x,
+               __constant const float* cam,          // [CAM_SIZE]
+               __global const int2* ranges,          // [tiles]
+               __global const uint* isect_vals,      // [M] sorted: intersection slot
+               __global const uint* isect_gid,       // [M] by slot: Gaussian id
+               __global const float* records,        // [N,REC_SIZE]
+               __global const float* out_rgb,        // [3,H,W] forward outputs
+               __global const float* out_feat,       // [3,H,W]
+               __global const float* out_depth,      // [H,W]
+               __global const float* out_aux,        // [4,H,W] T, A, mu, M2
+               __global const int* out_last,         // [H,W]
+               __global const float* v_rgb,          // [3,H,W] upstream gradients
+               __global const float* v_feat,         // [3,H,W]
+               __global const float* v_depth,        // [H,W]
+               __global const float* v_alpha,        // [H,W]
+               __global const float* v_dist,         // [H,W]
+               __global float* isect_grads) {        // [M,G2_SIZE] by slot
+  const int tile = get_group_id(0);
+  const size_t npix = (size_t)width * height;
+  const float dnear = cam[CAM_DNEAR], dfar = cam[CAM_DFAR];
+  int2 range = ranges[tile];
+  int n = range.y - range.x;
+  __global const uint* vals = isect_vals + range.x;
+  for (int k = 0; k < n; ++k) {
+    __global float* o = isect_grads + (size_t)vals[k] * G2_SIZE;
+    for (int c = 0; c < G2_SIZE; ++c) o[c] = 0.f;
+  }
+  for (int row = 0; row < WG_SIZE; ++row) {
+    PixelRow pr = pixel_row_of(tile, row, tiles_x, width, height);
+    if (!ANY(pr.inside)) continue;
+    RowTotals t = load_totals(pr, width, npix, out_rgb, out_feat, out_depth, out_aux, out_last, v_rgb, v_feat,
+                              v_depth, v_alpha, v_dist);
+    int bound = 0;
+#if VW == 1
+    bound = t.last;
+#else
+    {
+      int tmp[VW];
+      VSTORE(t.last, tmp);
+      for (int l = 0; l < VW; ++l) bound = max(bound, tmp[l]);
+    }
+#endif
+    bound = min(bound, n);
+    const float dx0 = -(pr.x0 + 0.5f), dx1 = -(pr.x0 + (VW - 0.5f));
+    vfloat T = 1.f, G_P = 0.f, A = 0.f, Q = 0.f;
+    for (int j = 0; j < bound; ++j) {
+      uint slot = vals[j];
+      __global const float* q = records + (size_t)isect_gid[slot] * REC_SIZE;
+      const float u = q[REC_U];
+      float dy = q[REC_V] - pr.py;
+      if (row_culled(q, dy, u + dx0, u + dx1)) continue;
+      const float cA = q[REC_CA], cB = q[REC_CB], cC = q[REC_CC], o = q[REC_OPACITY];
+      vfloat dx = u - pr.px;
+      vfloat sigma = blend_sigma(cA, cB, cC, dx, dy);
+      vfloat G = blend_falloff(sigma);
+      vfloat oG = o * G;
+      vfloat alpha = fmin(ALPHA_MAX, oG);
+      vint ok = (vint)j < t.last && sigma >= 0.f && alpha >= ALPHA_MIN;
+      if (!ANY(ok)) continue;
+      vfloat w = select((vfloat)0.f, alpha * T, ok);
+
+      const float cr = q[REC_RGB], cg = q[REC_RGB + 1], cb = q[REC_RGB + 2];
+      const float c0 = q[REC_FEAT], c1 = q[REC_FEAT + 1], c2 = q[REC_FEAT + 2], z = q[REC_Z], m = q[REC_M];
+      vfloat gc = t.gr * cr + t.gg * cg + t.gb * cb + t.gf0 * c0 + t.gf1 * c1 + t.gf2 * c2 + t.gd * z;
+      G_P += w * gc;
+      vfloat dm = m - t.mu_T;
+      A += w;
+      Q += w * dm * dm;
+      vfloat e = t.M2_T + t.A_T * dm * dm;
+      vfloat S = t.M2_T * (t.A_T - A) + t.A_T * (t.M2_T - Q);
+      vfloat inv = 1.f / (1.f - alpha);
+      vfloat v_a = gc * T - (t.G_O - G_P) * inv + t.ga * t.T_final * inv + t.gD * (T * e - S * inv);
+      vfloat v_oG = select((vfloat)0.f, v_a, ok && oG <= ALPHA_MAX);
+      vfloat v_sigma = -v_oG * oG;
+      vfloat v_z = t.gd * w + t.gD * 2.f * w * t.A_T * dm * dist_depth_vjp(z, dnear, dfar);
+
+      __global float* o2 = isect_grads + (size_t)slot * G2_SIZE;
+      o2[G2_U] += HSUM(v_sigma * (cA * dx + cB * dy));
+      o2[G2_V] += HSUM(v_sigma * (cB * dx + cC * dy));
+      o2[G2_CA] += HSUM(0.5f * v_sigma * dx * dx);
+      o2[G2_CB] += HSUM(v_sigma * dx * dy);
+      o2[G2_CC] += HSUM(0.5f * v_sigma * dy * dy);
+      o2[G2_OPACITY] += HSUM(v_oG * G);
+      o2[G2_RGB] += HSUM(t.gr * w);
+      o2[G2_RGB + 1] += HSUM(t.gg * w);
+      o2[G2_RGB + 2] += HSUM(t.gb * w);
+      o2[G2_FEAT] += HSUM(t.gf0 * w);
+      o2[G2_FEAT + 1] += HSUM(t.gf1 * w);
+      o2[G2_FEAT + 2] += HSUM(t.gf2 * w);
+      o2[G2_Z] += HSUM(v_z);
+      T = select(T, T * (1.f - alpha), ok);
+    }
+  }
+}
+#else
 __kernel __attribute__((reqd_work_group_size(WG_SIZE, 1, 1)))
 void blend_bwd(int width, int height, int tiles_x,
                __constant const float* cam,          // [CAM_SIZE]
@@ -149,3 +281,4 @@ void blend_bwd(int width, int height, int tiles_x,
     for (int c = 0; c < G2_SIZE; ++c) isect_grads[(size_t)slot * G2_SIZE + c] = 0.f;
   }
 }
+#endif

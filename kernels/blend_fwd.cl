@@ -41,6 +41,9 @@ void blend_fwd(int width, int height, int tiles_x,
     const int b0 = 0;
     for (int j = 0; j < n; ++j) {
       __global const float* q = records + (size_t)isect_gid[isect_vals[range.x + j]] * REC_SIZE;
+      // Most Gaussians of a tile touch only some of its rows: a scalar test
+      // skips the rest before any vector work.
+      if (row_culled(q, q[REC_V] - pr.py, q[REC_U] - (pr.x0 + 0.5f), q[REC_U] - (pr.x0 + (VW - 0.5f)))) continue;
 #else
   for (int b0 = 0; b0 < n; b0 += BATCH) {
     int nb = min(BATCH, n - b0);

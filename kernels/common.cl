@@ -69,6 +69,8 @@ inline float hsum4(float4 v) { return (v.s0 + v.s1) + (v.s2 + v.s3); }
 #define REC_M 7
 #define REC_RGB 8
 #define REC_FEAT 11
+#define REC_THR 14   // ln(255 opacity): alpha >= 1/255 needs sigma <= REC_THR
+#define REC_CM 15    // cC - cB^2 / cA: sigma >= 0.5 dy^2 REC_CM on a row at offset dy
 #define REC_SIZE 16
 
 // Per-intersection gradient slot written by blend backward, 13 floats.
@@ -283,10 +285,10 @@ typedef struct {
   vint inside;       // lanes inside the image
 } PixelRow;
 
-inline PixelRow pixel_row(int tiles_x, int width, int height) {
+// Work-item `lid`'s pixels of tile `tile` (CPU kernels walk the rows themselves).
+inline PixelRow pixel_row_of(int tile, int lid, int tiles_x, int width, int height) {
   PixelRow r;
-  r.tile = get_group_id(0);
-  int lid = get_local_id(0);
+  r.tile = tile;
   int p0 = lid * VW;
   r.x0 = (r.tile % tiles_x) * TILE + p0 % TILE;
   r.y = (r.tile / tiles_x) * TILE + p0 / TILE;
@@ -295,6 +297,23 @@ inline PixelRow pixel_row(int tiles_x, int width, int height) {
   r.inside = r.px < (float)width;
   if (r.y >= height) r.inside = (vint)0;
   return r;
+}
+inline PixelRow pixel_row(int tiles_x, int width, int height) {
+  return pixel_row_of(get_group_id(0), get_local_id(0), tiles_x, width, height);
+}
+
+// Conservative test that no pixel of a row can blend record q: 1 only when
+// sigma > ln(255 o) (so alpha < 1/255) at every pixel centre of the row, with a
+// margin far above the rounding of the kernels' own sigma and exp (relative
+// 1e-5 of sigma's terms, absolute 0.01 for the exponential). The true minimum
+// of sigma over a row at offset dy is 0.5 dy^2 (cC - cB^2/cA). Skipping such a
+// row changes nothing: every lane would have been skipped by the alpha test.
+// dx0, dx1: u minus the first and last pixel centre of the row.
+inline int row_culled(__global const float* q, float dy, float dx0, float dx1) {
+  float dxm = fmax(fabs(dx0), fabs(dx1));
+  float dy2 = dy * dy;
+  float terms = 0.5f * (q[REC_CA] * dxm * dxm + q[REC_CC] * dy2) + fabs(q[REC_CB]) * dxm * fabs(dy);
+  return 0.5f * dy2 * q[REC_CM] > q[REC_THR] + 0.01f + 1e-5f * terms;
 }
 
 // Load one plane's VW pixels of this row (0 outside the image).

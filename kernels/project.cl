@@ -78,7 +78,8 @@ __kernel void project_fwd(
   r[REC_M] = dist_depth(z, cam[CAM_DNEAR], cam[CAM_DFAR]);
   vstore3(rgb, 0, r + REC_RGB);
   vstore3(feat, 0, r + REC_FEAT);
-  r[14] = 0.f; r[15] = 0.f;
+  r[REC_THR] = log(255.f * opacity);
+  r[REC_CM] = cC - cB * cB / cA;
   rects[g] = rect;
   tile_counts[g] = (uint)((rect.z - rect.x + 1) * (rect.w - rect.y + 1));
   depth_keys[g] = as_uint(z);  // z > 0: float bits order like the values
