@@ -8,13 +8,16 @@
 // E: the undirected edges of an AnchorGraph (each counted once).
 //
 // Normalisation: a mean over edges, not a sum. The stage-1 terms it is added
-// to are means (over pixels, over offsets), so with a mean the paper's weight
-// 0.01 keeps the same balance on a scene of 10k anchors as on one of 1M; a
-// sum would grow with the edge count (which grows faster than the anchor
-// count in dense regions) and, at 0.01, swamp the photometric loss on large
-// scenes while vanishing on small ones. The loss is then a mean edge energy
-// in [0, 2 tau^2 / e] ~ [0, 1.8e-3] (w d peaks at d = 2 tau^2), easy to read
-// in logs whatever the scene.
+// to are means (over pixels, over offsets). An anchor's share of a pixel-mean
+// gradient shrinks as 1/A with the anchor count A; so does its gradient of
+// the edge mean, ~ 4 |f_i - f_j| / A (|E| ~ A * degree / 2). The ratio of the
+// two, and so the meaning of the paper's weight 0.01, then depends neither on
+// the scene's size nor on the graph's density (cell_scale 2 has ~4x the
+// edges, not ~4x the loss). With a sum, the propagation gradient per anchor
+// would stay constant while the photometric one shrinks: at 0.01 it would
+// swamp large scenes and be weak on small ones. The loss is a mean edge
+// energy in [0, 2 tau^2 / e] ~ [0, 1.8e-3] (w d peaks at d = 2 tau^2), easy to
+// read in logs whatever the scene.
 //
 // Gradient: by default the weights are held constant (stop-gradient), so
 //   dL/df_i = (2 / |E|) sum_{j in N(i)} w_ij (f_i - f_j).

@@ -545,5 +545,28 @@ TEST(AnchorGraphTiming, DISABLED_BuildAndLoss) {
   }
 }
 
+// The graph and loss of a trained model: AG2GS_MODEL=path/to/model.ag2gs.
+TEST(AnchorGraphTiming, DISABLED_TrainedModel) {
+  const char* path = std::getenv("AG2GS_MODEL");
+  if (!path) GTEST_SKIP() << "set AG2GS_MODEL";
+  const AnchorModel m = AnchorModel::from_archive(read_model_archive(path));
+  for (int scale : {1, 2}) {
+    auto t0 = std::chrono::steady_clock::now();
+    const AnchorGraph g = AnchorGraph::build(m, scale);
+    const double ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+    std::printf("  %s: %zu anchors, scale %d: build %.1f ms, %zu edges, mean degree %.1f\n", path, m.size(), scale, ms,
+                g.edges(), 2.0 * g.edges() / std::max<size_t>(1, m.size()));
+    PropagationLoss prop(test::runtime());
+    prop.set_graph(g);
+    std::vector<float> grads(m.feature().size(), 0.f);
+    t0 = std::chrono::steady_clock::now();
+    const double loss = prop.forward_backward(m.feature(), &grads, 1.0f);
+    double gmax = 0;
+    for (float v : grads) gmax = std::max(gmax, std::abs(static_cast<double>(v)));
+    std::printf("  L_prop %.4g, max |dL/df| %.3g, one call %.1f ms (with upload)\n", loss, gmax,
+                std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count());
+  }
+}
+
 }  // namespace
 }  // namespace ag2gs
