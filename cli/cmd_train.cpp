@@ -143,8 +143,9 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
     spdlog::info("anchor growing off");
   }
   if (scene->semantics() != SemanticsKind::none && (c.w_is > 0 || c.w_ic > 0))
-    spdlog::info("mask losses from iteration {}: {} L_is + {} L_ic on the rendered features{}",
-                 c.effective_mask_from(), c.w_is, c.w_ic, c.mask_alpha_normalise ? " / alpha" : "");
+    spdlog::info("mask losses from iteration {}: {} L_is + {} L_ic on the rendered features{}, training {}",
+                 c.effective_mask_from(), c.w_is, c.w_ic, c.mask_alpha_normalise ? " / alpha" : "",
+                 c.mask_geometry ? "every parameter" : "the semantic features only");
 
   nlohmann::json metrics = {{"scene", scene->dir()},
                             {"resolution", a.resolution},
@@ -302,6 +303,9 @@ void register_train(CLI::App& app, GlobalOptions& global) {
   sub->add_flag("!--no-mask-alpha-norm", c.mask_alpha_normalise,
                 "Mask losses on the raw rendered feature instead of the feature divided by alpha (default: divided, "
                 "pixels with alpha < 0.1 left out)");
+  sub->add_flag("--mask-geometry", c.mask_geometry,
+                "Let the mask losses' gradient reach every Gaussian parameter (joint), not only the semantic "
+                "features");
   sub->add_option("--lr-feature", c.feature_lr, "Semantic feature learning rate (default 0.05)");
   sub->add_option("--lr-offset", c.offset_lr_init, "Offset learning rate at the start (default 1e-3, voxel units)");
   sub->add_option("--lr-offset-final", c.offset_lr_final, "Offset learning rate at the end (default 1e-4)");

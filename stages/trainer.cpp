@@ -116,6 +116,7 @@ nlohmann::json TrainConfig::to_json() const {
           {"w_ic", w_ic},
           {"mask_from", effective_mask_from()},
           {"mask_alpha_normalise", mask_alpha_normalise},
+          {"mask_geometry", mask_geometry},
           {"offset_lr_init", offset_lr_init},
           {"offset_lr_final", offset_lr_final},
           {"offset_lr_extent", offset_lr_extent},
@@ -193,6 +194,7 @@ TrainConfig TrainConfig::from_json(const nlohmann::json& j) {
     c.w_ic = j.at("w_ic").get<float>();
     c.mask_from = j.at("mask_from").get<int>();
     c.mask_alpha_normalise = j.at("mask_alpha_normalise").get<bool>();
+    c.mask_geometry = j.at("mask_geometry").get<bool>();
     c.offset_lr_init = j.at("offset_lr_init").get<double>();
     c.offset_lr_final = j.at("offset_lr_final").get<double>();
     c.offset_lr_extent = j.at("offset_lr_extent").get<bool>();
@@ -256,6 +258,7 @@ Trainer::Trainer(Runtime& rt, Scene& scene, const TrainConfig& config)
       config_(config),
       anchors_(rt),
       grads_(rt),
+      feature_grads_(rt),
       gaussians_(rt),
       expander_(rt),
       renderer_(rt),
@@ -389,8 +392,17 @@ StepStats Trainer::step(bool compute_offset_loss) {
     const DeviceBuffer* alpha = config_.mask_alpha_normalise ? &renderer_.device_alpha() : nullptr;
     mask_loss_.enqueue(renderer_.device_feature(), alpha, w, h, ImageLayout::kPlanar, config_.w_is, config_.w_ic,
                        &grad_feat_dev_, alpha ? &grad_alpha_dev_ : nullptr);
-    og.feature = &grad_feat_dev_;
-    if (alpha) og.alpha = &grad_alpha_dev_;
+    if (config_.mask_geometry) {
+      og.feature = &grad_feat_dev_;
+      if (alpha) og.alpha = &grad_alpha_dev_;
+    } else {
+      // A pass of the feature gradient alone (the alpha gradient only moves
+      // geometry): its anchor-feature gradient is the one kept.
+      Renderer::DeviceOutputGrads fg;
+      fg.feature = &grad_feat_dev_;
+      renderer_.backward(fg);
+      expander_.backward(anchors_, renderer_.device_grads(), feature_grads_);
+    }
   }
   renderer_.backward(og);
   const ImageLossResult lr = image_loss_.result();
@@ -439,7 +451,8 @@ StepStats Trainer::step(bool compute_offset_loss) {
   adam_.accumulate_nonfinite(grads_.opacity_logit, n);
   adam_.accumulate_nonfinite(grads_.sh_dc, n * 3);
   adam_.accumulate_nonfinite(grads_.sh_rest, n * 3 * kShRestCoeffs);
-  if (st.with_masks) adam_.accumulate_nonfinite(grads_.feature, anchors_.anchors * 3);
+  DeviceBuffer& feature_grad = config_.mask_geometry ? grads_.feature : feature_grads_.feature;
+  if (st.with_masks) adam_.accumulate_nonfinite(feature_grad, anchors_.anchors * 3);
   st.nonfinite = adam_.read_nonfinite();
   if (st.nonfinite > 0 || !std::isfinite(st.loss)) {
     st.skipped = true;
@@ -452,7 +465,7 @@ StepStats Trainer::step(bool compute_offset_loss) {
     adam_.step(*g_opacity_, anchors_.opacity_logit, grads_.opacity_logit, config_.opacity_lr);
     adam_.step(*g_dc_, anchors_.sh_dc, grads_.sh_dc, config_.sh_dc_lr);
     adam_.step(*g_rest_, anchors_.sh_rest, grads_.sh_rest, config_.sh_rest_lr);
-    if (st.with_masks) adam_.step(*g_feature_, anchors_.feature, grads_.feature, config_.feature_lr);
+    if (st.with_masks) adam_.step(*g_feature_, anchors_.feature, feature_grad, config_.feature_lr);
     host_stale_ = true;
     // The renderer's gradients and radii of this view are still on the device.
     if (growth_.collecting(st.iteration))

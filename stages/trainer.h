@@ -23,10 +23,10 @@
 // Mask losses (DESIGN.md section 3, host/mask_loss.h): when the scene has
 // SAM masks and the iteration is at least mask_from, the view's rendered
 // feature map F (optionally divided by the accumulated alpha) gets
-// w_is L_is + w_ic L_ic; the gradient goes back through the renderer (to
-// every Gaussian parameter, as the RGB loss does) and through the expander to
-// the anchors' semantic features, which Adam steps with feature_lr on those
-// iterations only. Scenes without masks train appearance only.
+// w_is L_is + w_ic L_ic; the gradient goes back through the renderer and the
+// expander to the anchors' semantic features, which Adam steps with
+// feature_lr on those iterations only (with mask_geometry also to every
+// Gaussian parameter, as the RGB loss does). Scenes without masks train appearance only.
 //
 // Opacity reset (3DGS): at every opacity_reset_every-th iteration before
 // growing stops (iteration < grow_until, whether or not growing is on), every
@@ -89,6 +89,11 @@ struct TrainConfig {
   // (the official 5k of 30k).
   int mask_from = -1;
   bool mask_alpha_normalise = true;  // G = F / alpha (official), pixels with alpha < 0.1 left out
+  // false: the mask losses train the semantic features only (their gradient
+  // runs through a separate backward pass whose feature gradient alone is
+  // kept), so appearance and geometry train exactly as without masks; true:
+  // joint, their gradient also reaches every Gaussian parameter.
+  bool mask_geometry = false;
 
   // Learning rates (DESIGN.md section 9). The offset rate decays
   // exponentially from init to final over the run; offsets are in voxel
@@ -243,6 +248,7 @@ class Trainer {
 
   DeviceAnchors anchors_;
   DeviceAnchorGrads grads_;
+  DeviceAnchorGrads feature_grads_;  // the mask losses' own pass (mask_geometry off)
   DeviceGaussians gaussians_;
   Expander expander_;
   Renderer renderer_;

@@ -146,6 +146,41 @@ TEST(TrainMasks, FeaturesSeparateGroundTruthObjectsAndMaskLossFalls) {
   EXPECT_TRUE(again.model().opacity_logit() == trainer.model().opacity_logit());
 }
 
+// By default the mask losses train the features only: every other parameter
+// follows the run without mask losses bit for bit (so RGB cannot get worse);
+// with mask_geometry they move the geometry too.
+TEST(TrainMasks, FeatureOnlyMaskLossesLeaveAppearanceAsWithoutMasks) {
+  SceneOptions so;
+  so.resolution = 2;
+  auto scene = Scene::open(sample_scene(), so);
+  TrainConfig cfg = mask_config();
+  cfg.iterations = 30;
+  TrainConfig none = cfg;
+  none.w_is = none.w_ic = 0;
+  TrainConfig joint = cfg;
+  joint.mask_geometry = true;
+  Trainer a(test::runtime(), *scene, cfg), b(test::runtime(), *scene, none), c(test::runtime(), *scene, joint);
+  for (int it = 0; it < cfg.iterations; ++it) {
+    ASSERT_TRUE(a.step().with_masks);
+    ASSERT_FALSE(b.step().with_masks);
+    ASSERT_TRUE(c.step().with_masks);
+  }
+  const AnchorModel &ma = a.model(), &mb = b.model(), &mc = c.model();
+  EXPECT_TRUE(ma.offset() == mb.offset());
+  EXPECT_TRUE(ma.scale_logit() == mb.scale_logit());
+  EXPECT_TRUE(ma.quat() == mb.quat());
+  EXPECT_TRUE(ma.opacity_logit() == mb.opacity_logit());
+  EXPECT_TRUE(ma.sh() == mb.sh());
+  EXPECT_FALSE(ma.feature() == mb.feature());
+  EXPECT_FALSE(mc.opacity_logit() == mb.opacity_logit());
+  // The feature gradient of the separate pass is the joint pass's (same
+  // state before the first step): the features agree after one step.
+  Trainer a1(test::runtime(), *scene, cfg), c1(test::runtime(), *scene, joint);
+  a1.step();
+  c1.step();
+  EXPECT_TRUE(a1.model().feature() == c1.model().feature());
+}
+
 TEST(TrainMasks, SceneWithoutMasksTrainsAppearanceOnly) {
   // A copy of the sample without language_features/ and masks/.
   test::ScratchDir dir("train_nomasks");
