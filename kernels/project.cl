@@ -63,6 +63,8 @@ __kernel void project_fwd(
   float3 d = view_dir(mean, vload3(0, cam + CAM_POS), &inv_norm);
   float3 rgb = (float3)(0.f);
   const int K_ACTIVE = (SH_ACTIVE + 1) * (SH_ACTIVE + 1);
+  // Fully unrolled: the constant k folds sh_basis's switch away.
+  #pragma unroll
   for (int kk = 0; kk < K_ACTIVE; ++kk) {
     float3 grad;
     float b = sh_basis(kk, d, &grad);

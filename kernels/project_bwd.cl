@@ -125,6 +125,8 @@ __kernel void project_bwd(
   float3 d = view_dir(mean, vload3(0, cam + CAM_POS), &inv_norm);
   const int K_ACTIVE = (SH_ACTIVE + 1) * (SH_ACTIVE + 1);
   float3 raw = (float3)(0.5f);
+  // Fully unrolled: the constant k folds sh_basis's switch away.
+  #pragma unroll
   for (int k = 0; k < K_ACTIVE; ++k) {
     float3 gr;
     raw += sh_basis(k, d, &gr) * vload3(g * SH_K + k, sh);
@@ -132,6 +134,8 @@ __kernel void project_bwd(
   float3 vrgb = (float3)(v2[G2_RGB], v2[G2_RGB + 1], v2[G2_RGB + 2]);
   vrgb = select((float3)(0.f), vrgb, raw > 0.f);
   float3 vd = (float3)(0.f);
+  // Fully unrolled: the constant k folds sh_basis's switch away.
+  #pragma unroll
   for (int k = 0; k < K_ACTIVE; ++k) {
     float3 gr;
     float bk = sh_basis(k, d, &gr);
