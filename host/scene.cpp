@@ -203,7 +203,11 @@ std::unique_ptr<Scene> Scene::open(const std::string& dir, const SceneOptions& o
     v.camera = scale_camera(v.full_camera, options.resolution);
     v.name = v.full_camera.name;
     v.stem = fs::path(v.name).stem().string();
-    v.test = options.eval && i % 8 == 0;
+    if (options.test_images.empty()) {
+      v.test = options.eval && i % 8 == 0;
+    } else {
+      for (const std::string& t : options.test_images) v.test = v.test || t == v.name || t == v.stem;
+    }
     if (!scaled.empty() && fs::exists(scaled / v.name)) {
       v.image_path = (scaled / v.name).string();
     } else {
@@ -212,6 +216,16 @@ std::unique_ptr<Scene> Scene::open(const std::string& dir, const SceneOptions& o
       if (!fs::exists(v.image_path)) missing.push_back(v.name);
     }
     s->views_.push_back(v);
+  }
+  for (const std::string& t : options.test_images) {
+    bool found = false;
+    for (const SceneView& v : s->views_) found = found || t == v.name || t == v.stem;
+    if (!found) {
+      std::vector<std::string> names;
+      for (const SceneView& v : s->views_) names.push_back(v.name);
+      fail(sparse.string(), "the held-out image '" + t + "' is not in the COLMAP model (it has " +
+                                   some_names(names) + "); name an image of the model");
+    }
   }
   if (!missing.empty()) {
     fail(images.string(), std::to_string(missing.size()) + " of " + std::to_string(s->views_.size()) +

@@ -25,6 +25,9 @@ namespace ag2gs {
 struct SceneOptions {
   int resolution = 1;  // divide every camera by this (1, 2, 4, 8, ...); images_N/ is used when present
   bool eval = false;   // hold out every 8th image (name order, index % 8 == 0) as a test view
+  // Hold out these images (names as in the COLMAP model, or their stems)
+  // instead of every 8th; non-empty implies eval. Unknown names are errors.
+  std::vector<std::string> test_images;
   // SAM levels of language_features/ to train on (0 default, 1 small, 2
   // medium, 3 large). With more than one level, masks fully contained in a
   // mask of another level are dropped.

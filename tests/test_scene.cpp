@@ -164,6 +164,21 @@ TEST(Scene, EvalHoldsOutEvery8thImageLike3DGS) {
   EXPECT_EQ(scene->train_views().size(), 14u);
 }
 
+TEST(Scene, NamedTestImagesReplaceTheEvery8thSplit) {
+  ScratchDir dir("scene");
+  FixtureOptions o;
+  o.views = 10;
+  make_scene(dir.path(), o);
+  SceneOptions so;
+  so.test_images = {"img_03.png", "img_07"};  // a name and a stem
+  auto scene = Scene::open(dir.str(), so);
+  EXPECT_EQ(scene->test_views(), (std::vector<int>{3, 7}));
+  EXPECT_EQ(scene->train_views().size(), 8u);
+  so.test_images = {"img_03.png", "img_99.png"};
+  expect_error_with<std::runtime_error>([&] { Scene::open(dir.str(), so); },
+                                        {"sparse", "held-out image 'img_99.png'", "img_00.png"});
+}
+
 TEST(Scene, ResolutionUsesImagesNWhenPresentElseDownscales) {
   for (bool with_images_2 : {false, true}) {
     ScratchDir dir("scene");
