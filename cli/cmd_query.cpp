@@ -1,0 +1,314 @@
+// query: select an object of a trained model by a click or by text
+// (stages/query.h) and write its Gaussians, the rest, a JSON summary and
+// the selection's masks in the requested views.
+#include <spdlog/spdlog.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <filesystem>
+#include <memory>
+#include <nlohmann/json.hpp>
+#include <opencv2/imgcodecs.hpp>
+#include <set>
+#include <sstream>
+#include <string>
+
+#include "cli/commands.h"
+#include "host/atomic_file.h"
+#include "host/cl_runtime.h"
+#include "host/model_io.h"
+#include "host/npy_io.h"
+#include "host/ply_io.h"
+#include "host/scene.h"
+#include "host/semantic_io.h"
+#include "stages/anchor_model.h"
+#include "stages/clustering.h"
+#include "stages/language.h"
+#include "stages/query.h"
+
+namespace fs = std::filesystem;
+
+namespace ag2gs::cli {
+namespace {
+
+struct QueryArgs {
+  std::string model, scene, view, click, text, vocab, text_embedding, out, views;
+  int resolution = 0;  // 0 = the resolution the model was trained at
+  QueryConfig config;
+};
+
+double ms_since(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+}
+
+// "X,Y" -> two numbers.
+void parse_click(const std::string& s, double* x, double* y) {
+  const size_t comma = s.find(',');
+  bool ok = comma != std::string::npos;
+  if (ok) {
+    try {
+      size_t u1 = 0, u2 = 0;
+      const std::string a = s.substr(0, comma), b = s.substr(comma + 1);
+      *x = std::stod(a, &u1);
+      *y = std::stod(b, &u2);
+      ok = u1 == a.size() && u2 == b.size() && std::isfinite(*x) && std::isfinite(*y);
+    } catch (const std::exception&) {
+      ok = false;
+    }
+  }
+  if (!ok)
+    throw std::invalid_argument("--click '" + s + "': expected X,Y pixel coordinates (column,row), e.g. --click 120,80");
+}
+
+// --views: train | test | all | comma-separated names (Scene::find_view).
+std::vector<int> pick_scene_views(const Scene& scene, const std::string& views) {
+  if (views.empty()) return {};
+  if (views == "all") {
+    std::vector<int> v(scene.views().size());
+    for (size_t i = 0; i < v.size(); ++i) v[i] = static_cast<int>(i);
+    return v;
+  }
+  if (views == "train") return scene.train_views();
+  if (views == "test") return scene.test_views();
+  std::vector<int> out;
+  std::stringstream ss(views);
+  std::string item;
+  while (std::getline(ss, item, ',')) {
+    item.erase(0, item.find_first_not_of(" \t"));
+    item.erase(item.find_last_not_of(" \t") + 1);
+    if (!item.empty()) out.push_back(scene.find_view(item));
+  }
+  return out;
+}
+
+std::vector<float> load_embedding(const QueryArgs& a, const std::string& model_file, int expected_dim) {
+  if (!a.text_embedding.empty()) {
+    const NpyArray arr = read_npy(a.text_embedding);
+    const bool vec = arr.shape.size() == 1 || (arr.shape.size() == 2 && arr.shape[0] == 1);
+    if (!vec || static_cast<int64_t>(arr.size()) != expected_dim) {
+      std::string shape = "[";
+      for (size_t i = 0; i < arr.shape.size(); ++i) shape += (i ? "," : "") + std::to_string(arr.shape[i]);
+      shape += "]";
+      throw std::invalid_argument(a.text_embedding + ": the embedding has shape " + shape + ", expected [" +
+                                  std::to_string(expected_dim) + "] or [1," + std::to_string(expected_dim) +
+                                  "] (the dimension of the language features in " + model_file + ")");
+    }
+    return arr.data;
+  }
+  const Vocabulary vocab = read_vocabulary(a.vocab);
+  auto it = vocab.phrases.find(a.text);
+  if (it == vocab.phrases.end()) {
+    std::string some;
+    int n = 0;
+    for (const auto& [phrase, v] : vocab.phrases) {
+      if (n++ == 8) {
+        some += ", ...";
+        break;
+      }
+      some += (n > 1 ? ", \"" : "\"") + phrase + "\"";
+    }
+    throw std::invalid_argument(a.vocab + ": no phrase \"" + a.text + "\" in the vocabulary (" +
+                                std::to_string(vocab.phrases.size()) + " phrases: " + some +
+                                "); add its CLIP embedding to the file or pass --text-embedding FILE.npy");
+  }
+  if (vocab.dim != expected_dim)
+    throw std::invalid_argument(a.vocab + ": embeddings of " + std::to_string(vocab.dim) +
+                                " dimensions, the language features in " + model_file + " have " +
+                                std::to_string(expected_dim) + " (use the CLIP model that made the scene's features)");
+  return it->second;
+}
+
+void write_mask_png(const std::string& path, const std::vector<uint8_t>& mask, int width, int height) {
+  cv::Mat img(height, width, CV_8UC1);
+  for (int y = 0; y < height; ++y)
+    for (int x = 0; x < width; ++x) img.at<uint8_t>(y, x) = mask[static_cast<size_t>(y) * width + x] ? 255 : 0;
+  std::vector<uint8_t> bytes;
+  if (!cv::imencode(".png", img, bytes)) throw std::runtime_error(path + ": could not encode the mask as PNG");
+  AtomicFile f(path);
+  f.write(bytes.data(), bytes.size());
+  f.commit();
+}
+
+nlohmann::json finite_or_null(double v) {
+  return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json(nullptr);
+}
+
+void cmd_query(const GlobalOptions& global, QueryArgs a) {
+  const bool by_click = !a.click.empty();
+  const bool by_text = !a.text.empty() || !a.text_embedding.empty();
+  if (by_click == by_text)
+    throw std::invalid_argument("give exactly one query: --view NAME --click X,Y, or --text PHRASE --vocab FILE.json, "
+                                "or --text-embedding FILE.npy");
+  if (by_click && a.view.empty()) throw std::invalid_argument("--click needs --view NAME (the clicked image)");
+  if (!a.text.empty() && !a.text_embedding.empty())
+    throw std::invalid_argument("give either --text (with --vocab) or --text-embedding, not both");
+  if (!a.text.empty() && a.vocab.empty())
+    throw std::invalid_argument("--text needs --vocab FILE.json (phrase -> CLIP embedding)");
+  a.config.validate();
+
+  const auto t_load = std::chrono::steady_clock::now();
+  const std::string model_file = (fs::path(a.model) / "model.ag2gs").string();
+  if (!fs::exists(model_file))
+    throw std::runtime_error(a.model + ": no model.ag2gs; give a model folder written by `ag2gs train`");
+  const ModelArchive archive = read_model_archive(model_file);
+  const AnchorModel model = AnchorModel::from_archive(archive);
+  const nlohmann::json train = archive.meta.value("train", nlohmann::json::object());
+  const int sh_degree = std::min(train.value("active_sh_degree", model.config().sh_degree), model.config().sh_degree);
+  if (a.resolution == 0) a.resolution = train.value("resolution", 1);
+
+  Clustering clustering;
+  LanguageFeatures language;
+  if (by_text) {
+    if (!archive.meta.contains("clusters") || !archive.meta.contains("language"))
+      throw std::runtime_error(model_file +
+                               " has no clusters/language features, which a text query needs: run stage 3 on the "
+                               "model (`ag2gs train` with stages 2 and 3, or ag2gs_bench_stage3 MODEL_DIR SCENE_DIR "
+                               "--out MODEL_DIR/model.ag2gs)");
+    clustering = clustering_from_archive(archive, model.size());
+    language = language_from_archive(archive, clustering.clusters());
+  }
+
+  SceneOptions so;
+  so.resolution = a.resolution;
+  so.eval = true;  // test = every 8th view in name order, train = the rest
+  std::unique_ptr<Scene> scene = Scene::open(a.scene, so);
+  int click_view = -1;
+  if (by_click) click_view = scene->find_view(a.view);
+  std::vector<int> views = pick_scene_views(*scene, a.views);
+  if (by_click && std::find(views.begin(), views.end(), click_view) == views.end())
+    views.insert(views.begin(), click_view);
+  double cx = 0, cy = 0;
+  if (by_click) parse_click(a.click, &cx, &cy);
+  std::vector<float> embedding;
+  if (by_text) embedding = load_embedding(a, model_file, language.dim);
+
+  Runtime rt(global.device);
+  QueryEngine engine(rt, model, a.config);
+  if (by_text) engine.set_language(clustering, language);
+  const double load_ms = ms_since(t_load);
+  spdlog::info("model {}: {} anchors, {} Gaussians; query graph (cell scale {}) {} edges; loaded and prepared in "
+               "{:.0f} ms (graph, k-d tree and upload {:.0f} ms)",
+               model_file, model.size(), model.gaussians(), a.config.graph_cell_scale, engine.graph().edges(), load_ms,
+               engine.prepare_ms());
+
+  nlohmann::json j;
+  j["model"] = model_file;
+  j["scene"] = a.scene;
+  j["resolution"] = a.resolution;
+  j["thresholds"] = {{"min_weight", a.config.min_weight},
+                     {"tau", a.config.tau},
+                     {"equivalent_feature_distance", a.config.equivalent_distance()},
+                     {"graph_cell_scale", a.config.graph_cell_scale},
+                     {"text_margin", a.config.text_margin},
+                     {"min_click_alpha", a.config.min_click_alpha},
+                     {"mask_threshold", a.config.mask_threshold}};
+  std::vector<int32_t> selected;
+  double query_ms = 0;
+  if (by_click) {
+    const Camera& cam = scene->views()[click_view].camera;
+    const ClickResult r = engine.click(cam, cx, cy);
+    selected = r.selected;
+    query_ms = r.ms;
+    j["query"] = {{"type", "click"},
+                  {"view", scene->views()[click_view].name},
+                  {"x", cx},
+                  {"y", cy},
+                  {"pixel", {r.pixel_x, r.pixel_y}},
+                  {"alpha", r.alpha},
+                  {"depth", r.depth},
+                  {"point", {r.point.x(), r.point.y(), r.point.z()}},
+                  {"seed_distance", r.seed_distance}};
+    j["seeds"] = {r.seed};
+    spdlog::info("click ({}, {}) on {}: alpha {:.3f}, depth {:.4f}, seed anchor {} at {:.4f} from the point", cx, cy,
+                 scene->views()[click_view].name, r.alpha, r.depth, r.seed, r.seed_distance);
+  } else {
+    const TextResult r = engine.text(embedding);
+    selected = r.selected;
+    query_ms = r.ms;
+    j["query"] = {{"type", "text"}};
+    if (!a.text.empty()) {
+      j["query"]["text"] = a.text;
+      j["query"]["vocab"] = a.vocab;
+    } else {
+      j["query"]["text_embedding"] = a.text_embedding;
+    }
+    j["seeds"] = r.seeds;
+    j["seed_clusters"] = r.seed_clusters;
+    j["best_score"] = r.best;
+    nlohmann::json scores = nlohmann::json::array();
+    for (double s : r.scores) scores.push_back(finite_or_null(s));
+    j["scores"] = scores;
+    spdlog::info("text: best cosine {:.4f}; {} seed cluster(s) within {}, {} seed anchors", r.best,
+                 r.seed_clusters.size(), a.config.text_margin, r.seeds.size());
+  }
+  std::printf("query latency: %.1f ms (after the model was loaded); %zu of %zu anchors selected\n", query_ms,
+              selected.size(), model.size());
+
+  // Outputs.
+  const auto t_out = std::chrono::steady_clock::now();
+  fs::create_directories(fs::path(a.out) / "masks");
+  std::vector<uint8_t> in_sel(model.size(), 0);
+  for (int32_t s : selected) in_sel[s] = 1;
+  const GaussianSet sel = gaussians_of_anchors(model, sh_degree, in_sel, true);
+  const GaussianSet rest = gaussians_of_anchors(model, sh_degree, in_sel, false);
+  write_ply((fs::path(a.out) / "selection.ply").string(), sel, true);
+  write_ply((fs::path(a.out) / "remainder.ply").string(), rest, true);
+  const double ply_ms = ms_since(t_out);
+  const auto t_mask = std::chrono::steady_clock::now();
+  nlohmann::json masks = nlohmann::json::array();
+  for (int v : views) {
+    const SceneView& sv = scene->views()[v];
+    const std::vector<uint8_t> m = engine.mask(sv.camera, selected);
+    const std::string path = (fs::path(a.out) / "masks" / (sv.stem + ".png")).string();
+    write_mask_png(path, m, sv.camera.width, sv.camera.height);
+    size_t on = 0;
+    for (uint8_t b : m) on += b;
+    masks.push_back({{"view", sv.name}, {"file", "masks/" + sv.stem + ".png"}, {"pixels", on}});
+  }
+  const double mask_ms = ms_since(t_mask);
+
+  j["anchors"] = selected;
+  j["anchor_count"] = selected.size();
+  j["gaussian_count"] = sel.size();
+  j["remainder_anchor_count"] = model.size() - selected.size();
+  j["remainder_gaussian_count"] = rest.size();
+  j["masks"] = masks;
+  j["timing_ms"] = {{"load_and_prepare", load_ms},
+                    {"prepare", engine.prepare_ms()},
+                    {"query", query_ms},
+                    {"ply", ply_ms},
+                    {"masks", mask_ms},
+                    {"mask_views", views.size()}};
+  AtomicFile f((fs::path(a.out) / "selection.json").string());
+  f.write(j.dump(2) + "\n");
+  f.commit();
+  spdlog::info("wrote {}: selection.ply ({} Gaussians), remainder.ply ({}), selection.json, {} mask(s) in {:.0f} ms",
+               a.out, sel.size(), rest.size(), views.size(), mask_ms);
+}
+
+}  // namespace
+
+void register_query(CLI::App& app, GlobalOptions& global) {
+  auto a = std::make_shared<QueryArgs>();
+  auto* q = app.add_subcommand("query", "Select an object by a click or by text; write its Gaussians and masks");
+  q->add_option("model", a->model, "Model folder written by `ag2gs train` (MODEL_DIR/model.ag2gs)")->required();
+  q->add_option("--scene", a->scene, "Scene directory (images/, sparse/0/) the model was trained on")->required();
+  q->add_option("-o,--out", a->out, "Output folder: selection.ply, remainder.ply, selection.json, masks/")->required();
+  q->add_option("--view", a->view, "Click query: the clicked image (name, name without extension or stem)");
+  q->add_option("--click", a->click, "Click query: X,Y pixel (column,row) at the loaded resolution (-r)");
+  q->add_option("--text", a->text, "Text query: a phrase of the --vocab file");
+  q->add_option("--vocab", a->vocab, "Text vocabulary JSON {\"phrase\": [D floats], ...}");
+  q->add_option("--text-embedding", a->text_embedding, "Text query by a float vector .npy of shape [D] or [1,D]");
+  q->add_option("--views", a->views,
+                "Also write masks for: train, test (every 8th image in name order), all, or comma-separated names");
+  q->add_option("-r,--resolution", a->resolution, "Divide the cameras by R (default: the model's training -r)");
+  q->add_option("--min-weight", a->config.min_weight,
+                "Grow along edges with exp(-|fi-fj|^2/(2 tau^2)) above this (default 0.9)");
+  q->add_option("--tau", a->config.tau, "Bilateral weight scale tau (default 0.05)");
+  q->add_option("--text-margin", a->config.text_margin, "Text seeds: clusters within this of the best score (0.1)");
+  q->add_option("--graph-scale", a->config.graph_cell_scale, "Query graph neighbourhood in top voxels (default 2)");
+  set_action(q, [&global, a] { cmd_query(global, *a); });
+}
+
+}  // namespace ag2gs::cli
