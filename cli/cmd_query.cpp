@@ -206,8 +206,22 @@ void cmd_query(const GlobalOptions& global, QueryArgs a) {
   std::vector<int32_t> selected;
   double query_ms = 0;
   if (by_click) {
-    const Camera& cam = scene->views()[click_view].camera;
-    const ClickResult r = engine.click(cam, cx, cy);
+    // The click is in the pixels of the image file (full resolution); the
+    // loaded camera may be smaller (-r): map the clicked pixel's centre.
+    const SceneView& cv = scene->views()[click_view];
+    const Camera& cam = cv.camera;
+    if (!(cx >= 0 && cy >= 0 && cx < cv.full_camera.width && cy < cv.full_camera.height))
+      throw std::invalid_argument("--click " + a.click + " is outside the " + std::to_string(cv.full_camera.width) +
+                                  "x" + std::to_string(cv.full_camera.height) + " image " + cv.name +
+                                  " (x is the column in [0, width), y the row in [0, height))");
+    const double sx = double(cam.width) / cv.full_camera.width, sy = double(cam.height) / cv.full_camera.height;
+    ClickResult r;
+    try {
+      r = engine.click(cam, (std::floor(cx) + 0.5) * sx, (std::floor(cy) + 0.5) * sy);
+    } catch (const std::runtime_error& e) {
+      throw std::runtime_error("--click " + a.click + " (full-size pixel; rendered at -r " +
+                               std::to_string(a.resolution) + "): " + e.what());
+    }
     selected = r.selected;
     query_ms = r.ms;
     j["query"] = {{"type", "click"},
@@ -296,7 +310,7 @@ void register_query(CLI::App& app, GlobalOptions& global) {
   q->add_option("--scene", a->scene, "Scene directory (images/, sparse/0/) the model was trained on")->required();
   q->add_option("-o,--out", a->out, "Output folder: selection.ply, remainder.ply, selection.json, masks/")->required();
   q->add_option("--view", a->view, "Click query: the clicked image (name, name without extension or stem)");
-  q->add_option("--click", a->click, "Click query: X,Y pixel (column,row) at the loaded resolution (-r)");
+  q->add_option("--click", a->click, "Click query: X,Y pixel (column,row) of the full-size image file");
   q->add_option("--text", a->text, "Text query: a phrase of the --vocab file");
   q->add_option("--vocab", a->vocab, "Text vocabulary JSON {\"phrase\": [D floats], ...}");
   q->add_option("--text-embedding", a->text_embedding, "Text query by a float vector .npy of shape [D] or [1,D]");

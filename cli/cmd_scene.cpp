@@ -14,6 +14,8 @@
 #include "host/scene.h"
 #include "host/sfm.h"
 #include "stages/anchor_graph.h"
+#include "stages/clustering.h"
+#include "stages/language.h"
 
 namespace fs = std::filesystem;
 
@@ -56,6 +58,33 @@ void print_graph(const ModelArchive& a) {
     std::printf("  note: the graph does not match the stored anchors (stale: built before they changed)\n");
 }
 
+// Stage 3's clusters: count, sizes in power-of-two bins, skipped anchors and
+// how many clusters carry a language feature.
+void print_clusters(const ModelArchive& a) {
+  const size_t anchors = AnchorModel::from_archive(a).size();
+  const Clustering c = clustering_from_archive(a, anchors);
+  std::printf("  clusters: %d over %zu anchors (%zu connected components; %zu anchors in skipped small clusters)\n",
+              c.clusters(), anchors, c.components, c.skipped_anchors);
+  std::vector<int64_t> hist;
+  for (int32_t n : c.cluster_size) {
+    size_t b = 0;
+    while ((int64_t{1} << b) <= n) ++b;  // n in [2^(b-1), 2^b)
+    if (hist.size() <= b) hist.resize(b + 1, 0);
+    ++hist[b];
+  }
+  std::printf("  cluster size histogram:");
+  for (size_t b = 1; b < hist.size(); ++b)
+    std::printf("%s %lld-%lld: %lld", b > 1 ? "," : "", 1LL << (b - 1), (1LL << b) - 1,
+                static_cast<long long>(hist[b]));
+  std::printf("\n");
+  if (a.meta.contains("language")) {
+    const LanguageFeatures l = language_from_archive(a, c.clusters());
+    std::printf("  language features: %d of %d clusters (%d-d CLIP)\n", l.with_language(), c.clusters(), l.dim);
+  } else {
+    std::printf("  language features: none (trained on a scene without CLIP features)\n");
+  }
+}
+
 void print_model(const std::string& path) {
   const ModelArchive a = read_model_archive(path);
   std::printf("%s\n  format version: %u\n", path.c_str(), kModelFormatVersion);
@@ -71,6 +100,7 @@ void print_model(const std::string& path) {
     std::printf("    %-24s %-4s %s\n", name.c_str(), dtype_name(t.dtype), shape.c_str());
   }
   if (AnchorGraph::in_archive(a)) print_graph(a);
+  if (a.meta.contains("clusters")) print_clusters(a);
   const fs::path ply = fs::path(path).parent_path() / "point_cloud.ply";
   if (fs::exists(ply)) print_ply(ply.string());
 }

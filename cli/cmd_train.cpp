@@ -1,5 +1,8 @@
-// train: stage 1 (appearance) of the anchor model on a scene directory
-// (stages/trainer.h), writing MODEL_DIR/model.ag2gs and point_cloud.ply.
+// train: stages 1 (appearance + mask losses), 2 (propagation loss over the
+// anchor graph) and 3 (clusters and their language features) of the anchor
+// model on a scene directory (stages/trainer.h), writing MODEL_DIR/model.ag2gs,
+// checkpoint.ag2gs and point_cloud.ply. --stages picks a subset; without
+// stage 1 the run continues from MODEL_DIR's checkpoint / model.
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
@@ -12,6 +15,7 @@
 #include <limits>
 #include <memory>
 #include <nlohmann/json.hpp>
+#include <sys/resource.h>
 #include <string>
 
 #include "cli/commands.h"
@@ -20,6 +24,7 @@
 #include "host/cl_runtime.h"
 #include "host/model_io.h"
 #include "host/scene.h"
+#include "stages/language.h"
 #include "stages/trainer.h"
 
 namespace fs = std::filesystem;
@@ -33,11 +38,38 @@ struct TrainArgs {
   bool eval = false;
   int log_every = 100;
   int test_every = 0;
+  std::vector<int> test_at;              // --test-at: evaluate at these iterations too
+  std::vector<std::string> test_images;  // --test-views: held out instead of every 8th
   int save_every = 0;
   bool profile = false;
   bool resume = false;
+  std::vector<int> stages{1, 2, 3};  // --stages
+  Stage3Config stage3;
   TrainConfig config;
 };
+
+bool has_stage(const TrainArgs& a, int s) { return std::find(a.stages.begin(), a.stages.end(), s) != a.stages.end(); }
+
+// --stages 3 alone: stage 3 on MODEL_DIR/model.ag2gs, at the resolution and
+// split it was trained with.
+void stage3_only(const GlobalOptions& global, TrainArgs& a) {
+  const std::string path = (fs::path(a.out) / "model.ag2gs").string();
+  if (!fs::exists(path))
+    throw std::runtime_error("--stages 3: no model " + path + "; train stages 1 and 2 into " + a.out + " first");
+  const ModelArchive archive = read_model_archive(path);
+  const nlohmann::json tr = archive.meta.value("train", nlohmann::json::object());
+  SceneOptions so;
+  so.resolution = a.resolution != 1 ? a.resolution : tr.value("resolution", 1);
+  so.eval = a.eval || tr.value("eval_split", false);
+  so.test_images = a.test_images;
+  std::unique_ptr<Scene> scene = Scene::open(a.scene, so);
+  Runtime rt(global.device);
+  const Stage3Summary s = run_stage3_on_model(rt, *scene, a.out, scene->train_views(), a.stage3);
+  spdlog::info("stage 3: {} clusters of {} anchors ({} components, {} anchors in clusters under {} skipped), {} with "
+               "a language feature{}, {:.1f} s; wrote {}",
+               s.clusters, s.anchors, s.components, s.skipped_anchors, a.stage3.cluster.min_cluster_size,
+               s.with_language, s.language ? "" : " (scene without CLIP features)", s.total_ms / 1000, path);
+}
 
 std::string fmt_duration(double s) {
   if (!std::isfinite(s) || s < 0) return "?";
@@ -96,6 +128,16 @@ extern "C" void on_sigint(int) {
 }
 
 void cmd_train(const GlobalOptions& global, TrainArgs& a) {
+  std::sort(a.stages.begin(), a.stages.end());
+  a.stages.erase(std::unique(a.stages.begin(), a.stages.end()), a.stages.end());
+  if (a.stages.empty()) throw std::invalid_argument("--stages needs at least one of 1, 2, 3");
+  if (has_stage(a, 1) && has_stage(a, 3) && !has_stage(a, 2) && a.config.prop_iters != 0)
+    throw std::invalid_argument("--stages 1,3 skips stage 2; give --prop-iters 0 for a model without stage 2");
+  a.stage3.cluster.validate();
+  a.stage3.language.validate();
+  if (a.stages == std::vector<int>{3}) return stage3_only(global, a);
+  // Without stage 1 the run continues from the checkpoint.
+  if (!has_stage(a, 1)) a.resume = true;
   if (a.resume) adopt_checkpoint_config(a);
   a.config.validate();
   if (a.resolution < 1) throw std::invalid_argument("-r must be >= 1 (it divides the camera resolution)");
@@ -103,7 +145,9 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   check_model_dir_writable(a.out);
   SceneOptions so;
   so.resolution = a.resolution;
-  so.eval = a.eval;
+  so.eval = a.eval || !a.test_images.empty();
+  so.test_images = a.test_images;
+  a.eval = so.eval;
   std::unique_ptr<Scene> scene = Scene::open(a.scene, so);
   scene->require_points();
 
@@ -114,8 +158,17 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   if (a.resume) {
     trainer.resume(a.out);
     spdlog::info("resuming {} at iteration {} of {}", Trainer::checkpoint_path(a.out), trainer.iteration(),
-                 c.iterations);
+                 c.total_iterations());
+    if (!has_stage(a, 1) && trainer.iteration() < c.iterations)
+      throw std::runtime_error("--stages without 1: the checkpoint " + Trainer::checkpoint_path(a.out) +
+                               " is at iteration " + std::to_string(trainer.iteration()) + ", stage 1 ends at " +
+                               std::to_string(c.iterations) + "; finish it with --resume");
   }
+  // The last iteration this run trains to.
+  const int it_end = has_stage(a, 2) ? c.total_iterations() : std::min(c.iterations, c.total_iterations());
+  if (has_stage(a, 2) && c.effective_prop_iters() > 0)
+    spdlog::info("stage 2: {} iterations after stage 1 with {} L_prop (tau {}) over the anchor graph",
+                 c.effective_prop_iters(), c.w_prop, c.prop_tau);
   const std::vector<int> test_views = scene->test_views();
   spdlog::info("device [{}] {}", rt.info().index, rt.info().name);
   spdlog::info("scene {}: {} training views, {} test views, {}x{} (-r {}), {} SfM points", scene->dir(),
@@ -155,13 +208,25 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
                             {"test_views", test_views.size()},
                             {"test", nlohmann::json::array()}};
   const fs::path metrics_path = fs::path(a.out) / "metrics.json";
+  // Training time excludes the evaluations (they are timed apart).
+  double eval_seconds = 0;
+  std::chrono::steady_clock::time_point t_start = std::chrono::steady_clock::now();
   auto run_eval = [&](int iteration) {
     auto t = std::chrono::steady_clock::now();
+    const double trained_s = std::chrono::duration<double>(t - t_start).count() - eval_seconds;
     EvalStats ev = trainer.evaluate(test_views);
     double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count();
     spdlog::info("[test] iteration {}: PSNR {:.3f} dB, SSIM {:.4f}, L1 {:.5f} over {} views ({:.2f} s)", iteration,
                  ev.psnr, ev.ssim, ev.l1, ev.views, s);
-    metrics["test"].push_back({{"iteration", iteration}, {"psnr", ev.psnr}, {"ssim", ev.ssim}, {"l1", ev.l1}});
+    eval_seconds += s;
+    metrics["test"].push_back({{"iteration", iteration},
+                               {"psnr", ev.psnr},
+                               {"ssim", ev.ssim},
+                               {"l1", ev.l1},
+                               {"train_seconds", trained_s},
+                               {"eval_seconds", s},
+                               {"anchors", trainer.anchors()},
+                               {"gaussians", trainer.gaussians()}});
     write_json_atomic(metrics_path.string(), metrics);
     return ev;
   };
@@ -174,16 +239,29 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   g_interrupted = 0;
   ::sigaction(SIGINT, &sa, &old_sa);
   const auto t0 = std::chrono::steady_clock::now();
+  t_start = t0;
   auto t_last = t0;
   int it_last = it_start, skipped = 0;
   double psnr0 = NAN;
   // Running means over the iterations since the last progress line.
   double sum_loss = 0, sum_psnr = 0, sum_l1 = 0, sum_ssim = 0, sum_dist = 0, sum_is = 0, sum_ic = 0;
   int count = 0, count_masks = 0;
-  for (int it = it_start; it < c.iterations; ++it) {
-    const bool log_now =
-        a.log_every > 0 && ((it + 1) % a.log_every == 0 || it + 1 == c.iterations || it == it_start);
+  double stage1_end_s = -1, sum_prop = 0;
+  int count_prop = 0;
+  for (int it = it_start; it < it_end; ++it) {
+    const bool log_now = a.log_every > 0 && ((it + 1) % a.log_every == 0 || it + 1 == it_end || it == it_start);
+    if (it == c.iterations) {
+      stage1_end_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() - eval_seconds;
+      spdlog::info("stage 2 from iteration {}: {} anchors", it + 1, trainer.anchors());
+    }
     StepStats st = trainer.step(log_now);
+    if (st.stage2 && it == c.iterations)
+      spdlog::info("stage 2: anchor graph with {} edges (mean degree {:.2f})", trainer.graph().edges(),
+                   trainer.anchors() ? 2.0 * trainer.graph().edges() / trainer.anchors() : 0.0);
+    if (st.stage2) {
+      sum_prop += st.l_prop;
+      ++count_prop;
+    }
     if (st.skipped) ++skipped;
     if (st.opacity_reset) spdlog::info("iteration {}: opacities reset to at most 0.01", st.iteration);
     if (st.grown > 0 || st.pruned > 0)
@@ -206,41 +284,45 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
       const double dt = std::chrono::duration<double>(now - t_last).count();
       const double its = (st.iteration - it_last) / std::max(dt, 1e-9);
       const double elapsed = std::chrono::duration<double>(now - t0).count();
-      const double eta = (c.iterations - st.iteration) * elapsed / (st.iteration - it_start);
-      const std::string mask_terms =
+      const double eta = (it_end - st.iteration) * elapsed / (st.iteration - it_start);
+      std::string mask_terms =
           count_masks > 0 ? fmt::format(", L_is {:.4f}, L_ic {:.4f}", sum_is / count_masks, sum_ic / count_masks)
                           : std::string();
+      if (count_prop > 0) mask_terms += fmt::format(", L_prop {:.3e}", sum_prop / count_prop);
       spdlog::info(
           "it {:>6}/{}  loss {:.5f} (L1 {:.5f}, SSIM {:.4f}, dist {:.3e}, L_in {:.4f}{})  PSNR {:.2f} dB  SH {}  "
           "anchors {}  Gaussians {}  {:.1f} it/s  ETA {}",
-          st.iteration, c.iterations, sum_loss / count + c.w_offset * st.offset_reg, sum_l1 / count, sum_ssim / count,
+          st.iteration, it_end, sum_loss / count + c.w_offset * st.offset_reg, sum_l1 / count, sum_ssim / count,
           sum_dist / count, st.offset_reg, mask_terms, sum_psnr / count, st.sh_degree, trainer.anchors(),
           trainer.gaussians(), its, fmt_duration(eta));
       t_last = now;
       it_last = st.iteration;
       sum_loss = sum_psnr = sum_l1 = sum_ssim = sum_dist = sum_is = sum_ic = 0;
-      count = count_masks = 0;
+      count = count_masks = count_prop = 0;
+      sum_prop = 0;
     }
-    if (a.eval && a.test_every > 0 && st.iteration % a.test_every == 0 && st.iteration != c.iterations)
-      run_eval(st.iteration);
-    if (g_interrupted && st.iteration != c.iterations) {
+    const bool test_now = (a.test_every > 0 && st.iteration % a.test_every == 0) ||
+                          std::find(a.test_at.begin(), a.test_at.end(), st.iteration) != a.test_at.end();
+    if (a.eval && test_now && st.iteration != it_end) run_eval(st.iteration);
+    if (g_interrupted && st.iteration != it_end) {
       trainer.save(a.out);
       spdlog::warn("interrupted: checkpoint at iteration {} of {} in {}; continue with\n  ag2gs train {} -o {} --resume",
-                   st.iteration, c.iterations, a.out, a.scene, a.out);
+                   st.iteration, it_end, a.out, a.scene, a.out);
       spdlog::default_logger()->flush();
       std::fflush(stdout);
       std::fflush(stderr);
       std::exit(130);
     }
-    if (a.save_every > 0 && st.iteration % a.save_every == 0 && st.iteration != c.iterations) {
+    if (a.save_every > 0 && st.iteration % a.save_every == 0 && st.iteration != it_end) {
       trainer.save(a.out);
       spdlog::info("checkpoint at iteration {} in {}", st.iteration, a.out);
     }
   }
   ::sigaction(SIGINT, &old_sa, nullptr);
-  const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-  const int trained = std::max(1, c.iterations - it_start);
-  spdlog::info("trained {} iterations in {:.1f} s ({:.2f} ms/iteration){}", c.iterations - it_start, seconds,
+  const double seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() - eval_seconds;
+  const int trained = std::max(1, it_end - it_start);
+  spdlog::info("trained {} iterations in {:.1f} s ({:.2f} ms/iteration){}", std::max(0, it_end - it_start), seconds,
                1000 * seconds / trained, skipped ? fmt::format(", {} steps skipped", skipped) : "");
   if (a.profile) {
     auto timings = rt.take_timings();
@@ -260,11 +342,45 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   metrics["anchors"] = trainer.anchors();
   metrics["gaussians"] = trainer.gaussians();
   metrics["first_train_psnr"] = psnr0;
+  metrics["eval_seconds"] = eval_seconds;
+  metrics["device"] = rt.info().name;
+  {
+    struct rusage ru {};
+    ::getrusage(RUSAGE_SELF, &ru);
+    metrics["peak_rss_mb"] = ru.ru_maxrss / 1024.0;  // Linux: kilobytes
+  }
   if (a.eval) {
-    EvalStats ev = run_eval(c.iterations);
-    metrics["final"] = {{"iteration", c.iterations}, {"psnr", ev.psnr}, {"ssim", ev.ssim}, {"l1", ev.l1}};
+    EvalStats ev = run_eval(it_end);
+    metrics["final"] = {{"iteration", it_end}, {"psnr", ev.psnr}, {"ssim", ev.ssim}, {"l1", ev.l1}};
     write_json_atomic(metrics_path.string(), metrics);
   }
+  // Stage times of this run (training time without evaluations).
+  double s1 = seconds, s2 = 0;
+  if (stage1_end_s >= 0) {
+    s1 = stage1_end_s;
+    s2 = seconds - stage1_end_s;
+  } else if (it_start >= c.iterations) {
+    s1 = 0;
+    s2 = seconds;
+  }
+  nlohmann::json stages = {{"stage1_seconds", s1}, {"stage2_seconds", s2}};
+  if (has_stage(a, 3)) {
+    const Stage3Summary s3 = run_stage3_on_model(rt, *scene, a.out, scene->train_views(), a.stage3);
+    spdlog::info("stage 3: {} clusters of {} anchors ({} components, {} anchors in clusters under {} skipped), {} "
+                 "with a language feature{}",
+                 s3.clusters, s3.anchors, s3.components, s3.skipped_anchors, a.stage3.cluster.min_cluster_size,
+                 s3.with_language, s3.language ? "" : " (scene without CLIP features: none attached)");
+    stages["stage3_seconds"] = s3.total_ms / 1000;
+    stages["clusters"] = s3.clusters;
+    stages["clusters_with_language"] = s3.with_language;
+    stages["skipped_anchors"] = s3.skipped_anchors;
+    spdlog::info("stage times: stage 1 {:.1f} s, stage 2 {:.1f} s, stage 3 {:.1f} s (cluster {:.1f} ms)", s1, s2,
+                 s3.total_ms / 1000, s3.cluster_ms);
+  } else {
+    spdlog::info("stage times: stage 1 {:.1f} s, stage 2 {:.1f} s", s1, s2);
+  }
+  metrics["stages"] = stages;
+  write_json_atomic(metrics_path.string(), metrics);
 }
 
 }  // namespace
@@ -273,7 +389,8 @@ void register_train(CLI::App& app, GlobalOptions& global) {
   auto a = std::make_shared<TrainArgs>();
   TrainConfig& c = a->config;
   auto* sub = app.add_subcommand("train",
-                                 "Train stage 1 (appearance) of the anchor model on a scene directory: writes "
+                                 "Train the anchor model on a scene directory: stage 1 (appearance, masks), stage 2 "
+                                 "(propagation loss), stage 3 (clusters, language features); writes "
                                  "MODEL_DIR/model.ag2gs and MODEL_DIR/point_cloud.ply");
   sub->add_option("scene_dir", a->scene, "Scene directory (images/, sparse/0/)")->required();
   sub->add_option("-o,--out", a->out, "Model directory to write (created)")->required();
@@ -346,6 +463,14 @@ void register_train(CLI::App& app, GlobalOptions& global) {
       ->check(CLI::NonNegativeNumber);
   sub->add_option("--log-every", a->log_every, "Progress line every N iterations (default 100; 0 = none)")
       ->check(CLI::NonNegativeNumber);
+  sub->add_option("--test-at", a->test_at,
+                  "With --eval: also test at these iterations (comma-separated, e.g. 1000,3000,7000)")
+      ->delimiter(',')
+      ->check(CLI::PositiveNumber);
+  sub->add_option("--test-views", a->test_images,
+                  "Hold out these images (comma-separated names or stems, e.g. 6.jpg) instead of every 8th; "
+                  "implies --eval")
+      ->delimiter(',');
   sub->add_option("--test-every", a->test_every, "With --eval: test metrics every N iterations (default 0 = end only)")
       ->check(CLI::NonNegativeNumber);
   sub->add_option("--save-every", a->save_every, "Checkpoint every N iterations (default 0 = end only)")
@@ -353,6 +478,34 @@ void register_train(CLI::App& app, GlobalOptions& global) {
   sub->add_flag("--resume", a->resume,
                 "Continue from MODEL_DIR/checkpoint.ag2gs (its settings; flags given must agree with them)");
   sub->add_flag("--profile", a->profile, "Time every kernel and print the per-iteration breakdown");
+  sub->add_option("--stages", a->stages,
+                  "Stages to run (comma-separated, default 1,2,3); without 1 they run on MODEL_DIR's checkpoint / "
+                  "model (e.g. --stages 3 re-clusters a trained model)")
+      ->delimiter(',')
+      ->check(CLI::Range(1, 3));
+  sub->add_option("--prop-iters", c.prop_iters,
+                  "Stage-2 iterations after stage 1 (default -1 = iters / 6, the official 5000 after 30000; 0 = no "
+                  "stage 2)")
+      ->check(CLI::Range(-1, std::numeric_limits<int>::max()));
+  sub->add_option("--w-prop", c.w_prop, "Weight of the propagation loss L_prop in stage 2 (default 0.01)")
+      ->check(CLI::NonNegativeNumber);
+  sub->add_option("--prop-tau", c.prop_tau, "Bilateral bandwidth tau of L_prop (default 0.05)")
+      ->check(CLI::PositiveNumber);
+  Stage3Config& s3 = a->stage3;
+  sub->add_option("--cluster-distance", s3.cluster.max_distance,
+                  "Stage 3: join graph neighbours whose feature distance is below this (default 0.01)")
+      ->check(CLI::PositiveNumber);
+  sub->add_option("--min-cluster-size", s3.cluster.min_cluster_size,
+                  "Stage 3: clusters with fewer anchors are skipped (default 5)")
+      ->check(CLI::Range(1, std::numeric_limits<int>::max()));
+  sub->add_option("--match-score", s3.language.min_score,
+                  "Stage 3: a cluster takes a mask's CLIP feature when their score S exceeds this (default 0.3)");
+  sub->add_option("--match-softmax", s3.language.softmax_scale,
+                  "Stage 3: the matches' weights are softmax(scale * S) (default 10)")
+      ->check(CLI::Range(0.001, 80.0));
+  sub->add_option("--instance-fraction", s3.language.instance_fraction,
+                  "Stage 3: a pixel belongs to a cluster holding at least this share of its weight (default 0.5)")
+      ->check(CLI::Range(0.5, 0.999));
   set_action(sub, [&global, a] { cmd_train(global, *a); });
 }
 

@@ -31,7 +31,9 @@ __kernel void project_bwd(
     for (uint i = 0; i < cnt; ++i)
       for (int c = 0; c < G2_SIZE; ++c) v2[c] += p[(size_t)i * G2_SIZE + c];
   }
-  for (int k = 0; k < SH_K; ++k) vstore3((float3)(0.f), g * SH_K + k, v_sh);
+  const int K_ACTIVE = (SH_ACTIVE + 1) * (SH_ACTIVE + 1);
+  // Inactive SH bands get zero gradients; the active ones are written once below.
+  for (int k = cnt == 0 ? 0 : K_ACTIVE; k < SH_K; ++k) vstore3((float3)(0.f), g * SH_K + k, v_sh);
   vstore2((float2)(v2[G2_U], v2[G2_V]), g, v_means2d);
   v_opacities[g] = v2[G2_OPACITY];
   vstore3((float3)(v2[G2_FEAT], v2[G2_FEAT + 1], v2[G2_FEAT + 2]), g, v_features);
@@ -123,7 +125,6 @@ __kernel void project_bwd(
   // Colour = max(SH(d) + 0.5, 0), d = normalize(mean - campos).
   float inv_norm;
   float3 d = view_dir(mean, vload3(0, cam + CAM_POS), &inv_norm);
-  const int K_ACTIVE = (SH_ACTIVE + 1) * (SH_ACTIVE + 1);
   float3 raw = (float3)(0.5f);
   // Fully unrolled: the constant k folds sh_basis's switch away.
   #pragma unroll

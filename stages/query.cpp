@@ -199,6 +199,13 @@ QueryEngine::QueryEngine(Runtime& rt, const AnchorModel& model, const QueryConfi
   gaussians_ = expand_reference(model, 0);
   device_.upload(gaussians_);
   selection_features_ = gaussians_.features;
+  // One small render compiles the renderer's kernels now, so that the first
+  // query's latency is the query's own.
+  Camera warm;
+  warm.width = warm.height = 16;
+  warm.fx = warm.fy = 16;
+  warm.cx = warm.cy = 8;
+  renderer_.forward(device_, warm, RenderSettings{});
   prepare_ms_ = ms_since(t0);
 }
 

@@ -120,7 +120,8 @@ struct TextResult {
 
 // Everything a query needs, prepared once per model: the query graph, the
 // k-d tree over anchor centres and the expanded Gaussians on the device (SH
-// degree 0: queries need geometry, not colour).
+// degree 0: queries need geometry, not colour); the constructor also renders
+// once so that kernel compilation is not part of the first query.
 class QueryEngine {
  public:
   QueryEngine(Runtime& rt, const AnchorModel& model, const QueryConfig& config = {});

@@ -4,6 +4,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
@@ -50,6 +51,11 @@ void TrainConfig::validate() const {
   if (!(w_is >= 0) || !std::isfinite(w_is)) bad("w_is must be finite and >= 0");
   if (!(w_ic >= 0) || !std::isfinite(w_ic)) bad("w_ic must be finite and >= 0");
   if (mask_from < -1) bad("mask_from must be -1 (iterations / 6) or >= 0");
+  if (prop_iters < -1) bad("prop_iters must be -1 (iterations / 6), 0 (no stage 2) or more");
+  if (static_cast<int64_t>(iterations) + effective_prop_iters() > std::numeric_limits<int>::max())
+    bad("iterations + prop_iters is too large");
+  if (!(w_prop >= 0) || !std::isfinite(w_prop)) bad("w_prop must be finite and >= 0");
+  if (!(prop_tau > 0) || !std::isfinite(prop_tau)) bad("prop_tau must be finite and > 0");
   const std::pair<const char*, double> rates[] = {
       {"offset_lr_init", offset_lr_init}, {"offset_lr_final", offset_lr_final},
       {"feature_lr", feature_lr},         {"sh_dc_lr", sh_dc_lr},
@@ -117,6 +123,9 @@ nlohmann::json TrainConfig::to_json() const {
           {"mask_from", effective_mask_from()},
           {"mask_alpha_normalise", mask_alpha_normalise},
           {"mask_geometry", mask_geometry},
+          {"prop_iters", effective_prop_iters()},
+          {"w_prop", w_prop},
+          {"prop_tau", prop_tau},
           {"offset_lr_init", offset_lr_init},
           {"offset_lr_final", offset_lr_final},
           {"offset_lr_extent", offset_lr_extent},
@@ -195,6 +204,10 @@ TrainConfig TrainConfig::from_json(const nlohmann::json& j) {
     c.mask_from = j.at("mask_from").get<int>();
     c.mask_alpha_normalise = j.at("mask_alpha_normalise").get<bool>();
     c.mask_geometry = j.at("mask_geometry").get<bool>();
+    // Written before stage 2 existed: stage 1 only.
+    c.prop_iters = j.value("prop_iters", 0);
+    c.w_prop = j.value("w_prop", kPropagationWeight);
+    c.prop_tau = j.value("prop_tau", kPropagationTau);
     c.offset_lr_init = j.at("offset_lr_init").get<double>();
     c.offset_lr_final = j.at("offset_lr_final").get<double>();
     c.offset_lr_extent = j.at("offset_lr_extent").get<bool>();
@@ -265,7 +278,8 @@ Trainer::Trainer(Runtime& rt, Scene& scene, const TrainConfig& config)
       image_loss_(rt),
       mask_loss_(rt),
       adam_(rt, config.adam),
-      growth_(rt, GrowthConfig{}) {
+      growth_(rt, GrowthConfig{}),
+      prop_(rt, PropagationLossConfig{config.prop_tau > 0 ? config.prop_tau : kPropagationTau, false, 0}) {
   config_.validate();
   scene_.require_points();
   train_views_ = scene_.train_views();
@@ -327,7 +341,8 @@ int Trainer::view_for_iteration(int it) const {
 
 bool Trainer::opacity_reset_due(int iteration) const {
   const int every = config_.opacity_reset_every;
-  return every > 0 && iteration % every == 0 && iteration < config_.effective_grow_until();
+  return every > 0 && iteration % every == 0 && iteration < config_.effective_grow_until() &&
+         iteration <= config_.iterations;
 }
 
 AdamGroup& Trainer::adam_group(const std::string& name) {
@@ -350,6 +365,14 @@ StepStats Trainer::step(bool compute_offset_loss) {
   StepStats st;
   const int it = iteration_;
   st.iteration = it + 1;
+  st.stage2 = it >= config_.iterations;
+  if (st.stage2 && !graph_ready_) {
+    // Growing is over: the anchors keep their rows for the rest of the run.
+    graph_ = AnchorGraph::build(model());
+    prop_.set_graph(graph_);
+    graph_ready_ = true;
+    spdlog::debug("stage 2: anchor graph of {} anchors, {} edges", graph_.anchors(), graph_.edges());
+  }
   st.view = view_for_iteration(it);
   st.sh_degree = active_sh_degree();
   const SceneView& view = scene_.views()[st.view];
@@ -386,7 +409,7 @@ StepStats Trainer::step(bool compute_offset_loss) {
     og.distortion = &grad_dist_dev_;
   }
   std::shared_ptr<const ViewMasks> masks;
-  if (has_masks_ && it >= config_.effective_mask_from()) masks = scene_.masks(st.view);
+  if (has_masks_ && (it >= config_.effective_mask_from() || st.stage2)) masks = scene_.masks(st.view);
   if (masks) {
     mask_loss_.set_masks(*masks, st.view);
     const DeviceBuffer* alpha = config_.mask_alpha_normalise ? &renderer_.device_alpha() : nullptr;
@@ -452,7 +475,21 @@ StepStats Trainer::step(bool compute_offset_loss) {
   adam_.accumulate_nonfinite(grads_.sh_dc, n * 3);
   adam_.accumulate_nonfinite(grads_.sh_rest, n * 3 * kShRestCoeffs);
   DeviceBuffer& feature_grad = config_.mask_geometry ? grads_.feature : feature_grads_.feature;
-  if (st.with_masks) adam_.accumulate_nonfinite(feature_grad, anchors_.anchors * 3);
+  // Stage 2: the features step on every iteration, with or without masks.
+  const bool with_prop = st.stage2 && config_.w_prop > 0;
+  const bool step_features = st.with_masks || with_prop;
+  if (with_prop) {
+    const size_t fbytes = anchors_.anchors * 3 * sizeof(float);
+    if (!st.with_masks && !config_.mask_geometry) {
+      // No mask pass wrote this buffer this step.
+      feature_grad.reserve(fbytes);
+      feature_grad.fill_zero(fbytes);
+    }
+    prop_.enqueue(anchors_.feature, &feature_grad, anchors_.anchors, config_.w_prop);
+    st.l_prop = prop_.result();
+    st.loss += config_.w_prop * st.l_prop;
+  }
+  if (step_features) adam_.accumulate_nonfinite(feature_grad, anchors_.anchors * 3);
   st.nonfinite = adam_.read_nonfinite();
   if (st.nonfinite > 0 || !std::isfinite(st.loss)) {
     st.skipped = true;
@@ -465,13 +502,13 @@ StepStats Trainer::step(bool compute_offset_loss) {
     adam_.step(*g_opacity_, anchors_.opacity_logit, grads_.opacity_logit, config_.opacity_lr);
     adam_.step(*g_dc_, anchors_.sh_dc, grads_.sh_dc, config_.sh_dc_lr);
     adam_.step(*g_rest_, anchors_.sh_rest, grads_.sh_rest, config_.sh_rest_lr);
-    if (st.with_masks) adam_.step(*g_feature_, anchors_.feature, feature_grad, config_.feature_lr);
+    if (step_features) adam_.step(*g_feature_, anchors_.feature, feature_grad, config_.feature_lr);
     host_stale_ = true;
     // The renderer's gradients and radii of this view are still on the device.
-    if (growth_.collecting(st.iteration))
+    if (!st.stage2 && growth_.collecting(st.iteration))
       growth_.accumulate(*renderer_.device_grads().means2d, renderer_.device_radii(), w, h);
   }
-  if (growth_.due(st.iteration)) {
+  if (!st.stage2 && growth_.due(st.iteration)) {
     model();  // host values current
     // No opacity pruning shortly after a reset (a pure function of the
     // iteration, so a resumed run decides the same).
@@ -590,6 +627,7 @@ void Trainer::save_checkpoint(const std::string& model_dir) {
   archive.put("growth/grad_sum", gs.grad_sum);
   archive.put("growth/count", gs.count);
   archive.put("growth/last_seen", gs.last_seen);
+  if (graph_ready_) graph_.to_archive(archive);
   archive.meta["checkpoint"] = {{"iteration", iteration_},
                                 {"config", config_.to_json()},
                                 {"scene", scene_fingerprint()},
@@ -623,10 +661,16 @@ void Trainer::resume(const std::string& model_dir) {
       fail("written with another training config; checkpoint vs now:" + list);
     }
     const int iteration = ck.at("iteration").get<int>();
-    if (iteration < 0 || iteration > config_.iterations)
+    if (iteration < 0 || iteration > config_.total_iterations())
       fail("iteration " + std::to_string(iteration) + " is outside the run's 0.." +
-           std::to_string(config_.iterations));
+           std::to_string(config_.total_iterations()));
     AnchorModel m = AnchorModel::from_archive(archive);
+    AnchorGraph graph;
+    const bool has_graph = AnchorGraph::in_archive(archive);
+    if (has_graph) {
+      graph = AnchorGraph::from_archive(archive);
+      if (!graph.matches(m)) fail("its anchor graph does not describe its anchors; train stage 2 afresh");
+    }
     const int64_t a = static_cast<int64_t>(m.size()), n = static_cast<int64_t>(m.gaussians());
     std::vector<std::pair<AdamGroup*, int64_t>> groups;
     const std::pair<const char*, int> specs[] = {{"offset", 3}, {"scaling", 3}, {"rotation", 4}, {"opacity", 1},
@@ -661,6 +705,12 @@ void Trainer::resume(const std::string& model_dir) {
     growth_.set_config(config_.growth_config(train_views_.size()));
     growth_.restore(gs);
     iteration_ = iteration;
+    graph_ready_ = false;
+    if (has_graph && iteration >= config_.iterations) {
+      graph_ = std::move(graph);
+      prop_.set_graph(graph_);
+      graph_ready_ = true;
+    }
   } catch (const nlohmann::json::exception& e) {
     fail(std::string("bad training state: ") + e.what());
   } catch (const std::invalid_argument& e) {
@@ -673,7 +723,8 @@ void Trainer::save(const std::string& model_dir) {
   const AnchorModel& m = model();
   ModelArchive archive;
   m.to_archive(archive);
-  archive.meta["train"] = {{"stage", 1},
+  if (graph_ready_) graph_.to_archive(archive);
+  archive.meta["train"] = {{"stage", iteration_ > config_.iterations ? 2 : 1},
                            {"iteration", iteration_},
                            {"seed", config_.seed},
                            {"active_sh_degree", active_sh_degree()},
@@ -685,6 +736,63 @@ void Trainer::save(const std::string& model_dir) {
   write_model_archive((fs::path(model_dir) / "model.ag2gs").string(), archive);
   GaussianSet set = expand_reference(m, active_sh_degree());
   write_ply((fs::path(model_dir) / "point_cloud.ply").string(), set, true, PlyValues::activated);
+}
+
+Stage3Summary run_stage3_on_model(Runtime& rt, Scene& scene, const std::string& model_dir,
+                                  const std::vector<int>& views, const Stage3Config& config) {
+  const auto t0 = std::chrono::steady_clock::now();
+  const std::string path = (fs::path(model_dir) / "model.ag2gs").string();
+  if (!fs::exists(path))
+    throw std::runtime_error("no model " + path + " for stage 3; train stage 1 (and 2) into " + model_dir + " first");
+  ModelArchive archive = read_model_archive(path);
+  const AnchorModel model = AnchorModel::from_archive(archive);
+  AnchorGraph graph;
+  if (AnchorGraph::in_archive(archive)) graph = AnchorGraph::from_archive(archive);
+  if (!AnchorGraph::in_archive(archive) || !graph.matches(model)) {
+    spdlog::info("stage 3: {} has no current anchor graph (no stage 2?); building it", path);
+    graph = AnchorGraph::build(model);
+    graph.to_archive(archive);
+  }
+  const AnchorGraphView gv{graph.anchors(), graph.row_offsets().data(), graph.neighbours().data(), nullptr};
+  Stage3Summary sum;
+  sum.anchors = model.size();
+  Clustering clustering;
+  if (scene.semantics() == SemanticsKind::language_features) {
+    Stage3Result r = run_stage3(rt, model, gv, scene, views, config);
+    clustering = std::move(r.clustering);
+    sum.language = true;
+    sum.with_language = r.language.with_language();
+    sum.stats = r.stats;
+    sum.cluster_ms = r.cluster_ms;
+    language_to_archive(archive, r.language, config.language);
+  } else {
+    const auto tc = std::chrono::steady_clock::now();
+    std::vector<float> values = edge_feature_distances(gv, model.feature());
+    if (config.cluster.edge_value == EdgeValue::bilateral_weight)
+      for (float& v : values) v = static_cast<float>(std::exp(-double(v) * v / (2.0 * config.tau * config.tau)));
+    AnchorGraphView g = gv;
+    g.edge_values = values.data();
+    clustering = cluster_anchors(g, config.cluster);
+    sum.cluster_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - tc).count();
+    // A language entry from an earlier run would describe other clusters.
+    ModelArchive kept;
+    kept.source = archive.source;
+    kept.meta = archive.meta;
+    kept.meta.erase("language");
+    for (const auto& [name, t] : archive.arrays())
+      if (name.rfind("clusters/language", 0) != 0) kept.put_tensor(name, t);
+    archive = std::move(kept);
+    spdlog::info("stage 3: scene {} has no CLIP features (language_features/<stem>_f.npy): clusters only, no "
+                 "language features attached",
+                 scene.dir());
+  }
+  sum.clusters = clustering.clusters();
+  sum.components = clustering.components;
+  sum.skipped_anchors = clustering.skipped_anchors;
+  clustering_to_archive(archive, clustering, config.cluster);
+  write_model_archive(path, archive);
+  sum.total_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+  return sum;
 }
 
 }  // namespace ag2gs

@@ -35,6 +35,19 @@
 // the opacity_reset_pause iterations after a reset do not prune by opacity:
 // the mean opacity says nothing until training has restored it.
 //
+// Stage 2 (DESIGN.md section 4): after the `iterations` stage-1 steps come
+// prop_iters more with the same losses plus w_prop L_prop
+// (stages/propagation_loss.h) over the anchor graph (stages/anchor_graph.h),
+// which is built once at the first stage-2 step (growing, pruning and opacity
+// resets are over by then: none of them runs in stage 2). The features are
+// stepped on every stage-2 iteration (mask losses where the view has masks,
+// plus the propagation term). The graph goes into the checkpoint and
+// model.ag2gs; a run resumed inside stage 2 reads it back.
+//
+// Stage 3 (run_stage3_on_model): clusters of the saved model's anchors over
+// its graph and, for scenes with CLIP features, one language feature per
+// cluster, written back into model.ag2gs.
+//
 // Checkpoints (save_checkpoint, resume): MODEL_DIR/checkpoint.ag2gs holds the
 // anchor model, every Adam group's moments and step count, AnchorGrowth's
 // statistics and counters, the iteration, the config and a fingerprint of the
@@ -60,14 +73,22 @@
 #include "host/mask_loss.h"
 #include "host/renderer.h"
 #include "host/scene.h"
+#include "stages/anchor_graph.h"
 #include "stages/anchor_growth.h"
 #include "stages/anchor_model.h"
 #include "stages/expander.h"
+#include "stages/language.h"
+#include "stages/propagation_loss.h"
 
 namespace ag2gs {
 
 struct TrainConfig {
-  int iterations = 30000;
+  int iterations = 30000;  // stage 1
+  // Stage 2: this many more iterations with w_prop L_prop added; -1 =
+  // iterations / 6 (the official 5k after 30k), 0 = no stage 2.
+  int prop_iters = -1;
+  float w_prop = kPropagationWeight;  // weight of L_prop (paper 0.01)
+  float prop_tau = kPropagationTau;   // bilateral bandwidth of L_prop
   uint64_t seed = 0;
 
   // Representation (children, layers, voxel size, init, highest SH degree).
@@ -145,6 +166,9 @@ struct TrainConfig {
   // The SH interval actually used.
   int effective_sh_interval() const;
   int effective_grow_until() const;
+  int effective_prop_iters() const { return prop_iters >= 0 ? prop_iters : iterations / 6; }
+  // Stage 1 + stage 2.
+  int total_iterations() const { return iterations + effective_prop_iters(); }
   int effective_mask_from() const;
   // AnchorGrowth's schedule and rules for a scene with `train_views`
   // training views (grow_from/until/every -> start/stop/every as given, not
@@ -163,6 +187,8 @@ struct StepStats {
   double l1 = 0, ssim = 1, psnr = 0;
   double distortion = 0;  // mean over pixels (unweighted)
   double offset_reg = 0;  // L_in (unweighted), 0 unless computed this step
+  bool stage2 = false;    // a stage-2 step (L_prop included in loss)
+  double l_prop = 0;      // unweighted L_prop of this step (stage 2)
   bool with_masks = false;  // the mask losses were applied (and included in loss)
   double l_is = 0, l_ic = 0;  // unweighted mask losses of this view
   int masks = 0;              // masks of this view with rendered pixels
@@ -218,6 +244,9 @@ class Trainer {
   nlohmann::json scene_fingerprint() const;
 
   int iteration() const { return iteration_; }
+  // The stage-2 anchor graph (empty before the first stage-2 step).
+  bool has_graph() const { return graph_ready_; }
+  const AnchorGraph& graph() const { return graph_; }
   int active_sh_degree() const;
   size_t anchors() const { return model_.size(); }
   size_t gaussians() const { return model_.gaussians(); }
@@ -268,7 +297,29 @@ class Trainer {
   float grad_dist_value_ = 0.f;
   std::vector<float> target_planar_, distortion_host_;
   AnchorGrowth growth_;  // statistics on the device, decisions in growing rounds
+  PropagationLoss prop_;
+  AnchorGraph graph_;
+  bool graph_ready_ = false;
 };
+
+// Stage 3 on a saved model: reads MODEL_DIR/model.ag2gs, takes its anchor
+// graph (built when missing or stale), clusters the anchors
+// (config.cluster), attaches CLIP language features from `views` when the
+// scene has them (SemanticsKind::language_features; otherwise the clusters
+// alone are stored and `language` is false), and replaces model.ag2gs
+// atomically with the graph, clusters and language features added (earlier
+// stage-3 entries are overwritten). Throws std::runtime_error naming the file
+// when the model is missing or broken.
+struct Stage3Summary {
+  int clusters = 0;
+  size_t components = 0, skipped_anchors = 0, anchors = 0;
+  bool language = false;  // the scene had CLIP features
+  int with_language = 0;  // clusters with a language feature
+  double cluster_ms = 0, total_ms = 0;
+  LanguageStats stats;
+};
+Stage3Summary run_stage3_on_model(Runtime& rt, Scene& scene, const std::string& model_dir,
+                                  const std::vector<int>& views, const Stage3Config& config);
 
 // Creates `dir` if needed and checks that a file can be written in it;
 // throws std::runtime_error naming the directory otherwise. The trainer's

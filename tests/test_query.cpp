@@ -465,8 +465,9 @@ std::vector<int32_t> json_ids(const nlohmann::json& j) { return j.get<std::vecto
 TEST(QueryCli, ClickWritesSelectionRemainderJsonAndMasks) {
   CliWorld w;
   const Eigen::Vector2i px = w.pixel(1);
-  const auto r = test::run_cli(w.base("plain", "out") + "--view view_000 --click " + std::to_string(px.x()) + "," +
-                               std::to_string(px.y()) + " --views view_003,view_000");
+  // Clicks are in the pixels of the full-size image (160x120; the run loads -r 2).
+  const auto r = test::run_cli(w.base("plain", "out") + "--view view_000 --click " + std::to_string(2 * px.x()) +
+                               "," + std::to_string(2 * px.y()) + " --views view_003,view_000");
   ASSERT_EQ(r.code, 0) << r.output;
   EXPECT_NE(r.output.find("query latency"), std::string::npos) << r.output;
   std::ifstream in(w.dir.file("out/selection.json"));
@@ -522,7 +523,7 @@ TEST(QueryCli, TextByVocabularyAndByEmbedding) {
 TEST(QueryCli, Errors) {
   CliWorld w;
   const Eigen::Vector2i px = w.pixel(0);
-  const std::string click = " --click " + std::to_string(px.x()) + "," + std::to_string(px.y());
+  const std::string click = " --click " + std::to_string(2 * px.x()) + "," + std::to_string(2 * px.y());
   auto expect_fail = [&](const std::string& args, const std::vector<std::string>& needles) {
     const auto r = test::run_cli(args);
     EXPECT_EQ(r.code, 1) << args << "\n" << r.output;
@@ -530,8 +531,8 @@ TEST(QueryCli, Errors) {
       EXPECT_NE(r.output.find(n), std::string::npos) << "output lacks '" << n << "': " << r.output;
   };
   expect_fail(w.base("plain", "e") + "--view no_such_view" + click, {"no_such_view", "view_000"});
-  expect_fail(w.base("plain", "e") + "--view view_000 --click 80,10", {"outside", "80x60"});
-  expect_fail(w.base("plain", "e") + "--view view_000 --click 1,1", {"(1, 1)", "alpha"});
+  expect_fail(w.base("plain", "e") + "--view view_000 --click 160,10", {"outside", "160x120"});
+  expect_fail(w.base("plain", "e") + "--view view_000 --click 1,1", {"--click 1,1", "(0, 0)", "alpha 0 < 0.5"});
   expect_fail(w.base("plain", "e") + "--view view_000 --click 1:1", {"X,Y"});
   expect_fail(w.base("plain", "e") + "--text-embedding " + w.dir.file("green.npy"), {"clusters", "stage 3"});
   expect_fail(w.base("stage3", "e") + "--text-embedding " + w.dir.file("wrong.npy"), {"wrong.npy", "[7]", "[8]"});

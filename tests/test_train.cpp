@@ -152,7 +152,8 @@ const std::string kGrow = "--grow-from 40 --grow-every 40 --grow-threshold 1e-3"
 TEST(Train, SameSeedGivesByteIdenticalModelFiles) {
   test::ScratchDir dir("train_det");
   const std::string args =
-      "train " + sample_scene() + " -r 2 --top-cells 50 --iters 60 --seed 5 --log-every 0 " + kGrow + " -o ";
+      "train " + sample_scene() + " -r 2 --top-cells 50 --iters 60 --seed 5 --log-every 0 --stages 1 " + kGrow +
+      " -o ";
   Result r1 = run_cli(args + dir.file("a"));
   ASSERT_EQ(r1.code, 0) << r1.output;
   Result r2 = run_cli(args + dir.file("b"));
@@ -164,7 +165,7 @@ TEST(Train, SameSeedGivesByteIdenticalModelFiles) {
     ASSERT_FALSE(a.empty()) << f;
     EXPECT_TRUE(a == b) << f << " differs between two runs with the same seed";
   }
-  Result r3 = run_cli("train " + sample_scene() + " -r 2 --top-cells 50 --iters 60 --seed 6 --log-every 0 " + kGrow +
+  Result r3 = run_cli("train " + sample_scene() + " -r 2 --top-cells 50 --iters 60 --seed 6 --log-every 0 --stages 1 " + kGrow +
                       " -o " + dir.file("c"));
   ASSERT_EQ(r3.code, 0) << r3.output;
   EXPECT_FALSE(test::read_bytes(dir.file("a/model.ag2gs")) == test::read_bytes(dir.file("c/model.ag2gs")));
@@ -192,7 +193,7 @@ TEST(Train, EvalWritesTestMetrics) {
   test::ScratchDir dir("train_eval");
   Result r =
       run_cli("train " + sample_scene() +
-              " -r 2 --top-cells 50 --white-bg --iters 30 --eval --test-every 15 --log-every 10 -o " + dir.file("m"));
+              " -r 2 --top-cells 50 --white-bg --iters 30 --eval --test-every 15 --log-every 10 --stages 1 -o " + dir.file("m"));
   ASSERT_EQ(r.code, 0) << r.output;
   EXPECT_NE(r.output.find("anchors"), std::string::npos) << r.output;
   EXPECT_NE(r.output.find("it/s"), std::string::npos) << r.output;
