@@ -239,6 +239,7 @@ void register_commands(CLI::App& app, GlobalOptions& global) {
   register_train(app, global);
   register_baseline(app, global);
   register_query(app, global);
+  register_eval(app, global);
 }
 
 void set_action(CLI::App* sub, std::function<void()> action) {

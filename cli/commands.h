@@ -22,6 +22,7 @@ void register_synth(CLI::App& app, GlobalOptions& global);          // synth (cm
 void register_train(CLI::App& app, GlobalOptions& global);          // train (cmd_train.cpp)
 void register_baseline(CLI::App& app, GlobalOptions& global);       // baseline (cmd_baseline.cpp)
 void register_query(CLI::App& app, GlobalOptions& global);          // query (cmd_query.cpp)
+void register_eval(CLI::App& app, GlobalOptions& global);           // eval (cmd_eval.cpp)
 // Runs the parsed subcommand; returns the process exit code.
 int run_selected(CLI::App& app, const GlobalOptions& global);
 

@@ -222,6 +222,28 @@ void QueryEngine::set_language(const Clustering& clustering, const LanguageFeatu
   have_language_ = true;
 }
 
+std::vector<int32_t> similar_anchors(const std::vector<float>& features, const std::vector<float>& seed_features,
+                                     double max_distance) {
+  if (features.size() % 3 != 0 || seed_features.size() % 3 != 0)
+    throw std::invalid_argument("similar_anchors: features and seed features must be [n,3]");
+  const double d2max = max_distance * max_distance;
+  std::vector<int32_t> out;
+  for (size_t a = 0; a < features.size() / 3; ++a) {
+    for (size_t s = 0; s < seed_features.size() / 3; ++s) {
+      double d2 = 0;
+      for (int k = 0; k < 3; ++k) {
+        const double x = static_cast<double>(features[3 * a + k]) - seed_features[3 * s + k];
+        d2 += x * x;
+      }
+      if (d2 < d2max) {
+        out.push_back(static_cast<int32_t>(a));
+        break;
+      }
+    }
+  }
+  return out;
+}
+
 ClickResult QueryEngine::click(const Camera& camera, double x, double y) {
   const auto t0 = std::chrono::steady_clock::now();
   camera.validate();
@@ -254,7 +276,12 @@ ClickResult QueryEngine::click(const Camera& camera, double x, double y) {
   r.seed = tree_.nearest(r.point, &d2);
   if (r.seed < 0) throw std::runtime_error("the model has no anchors to select");
   r.seed_distance = std::sqrt(d2);
-  r.selected = region_grow(graph_, model_.feature(), {r.seed}, config_.tau, config_.min_weight);
+  if (config_.grow) {
+    r.selected = region_grow(graph_, model_.feature(), {r.seed}, config_.tau, config_.min_weight);
+  } else {
+    const float* f = &model_.feature()[3 * static_cast<size_t>(r.seed)];
+    r.selected = similar_anchors(model_.feature(), {f[0], f[1], f[2]}, config_.equivalent_distance());
+  }
   r.ms = ms_since(t0);
   return r;
 }
@@ -280,7 +307,23 @@ TextResult QueryEngine::text(const std::vector<float>& embedding) {
     const int32_t c = clustering_.anchor_cluster[a];
     if (c >= 0 && seed_cluster[c]) r.seeds.push_back(static_cast<int32_t>(a));
   }
-  r.selected = region_grow(graph_, model_.feature(), r.seeds, config_.tau, config_.min_weight);
+  if (config_.grow) {
+    r.selected = region_grow(graph_, model_.feature(), r.seeds, config_.tau, config_.min_weight);
+  } else {
+    // Each seed cluster's mean feature (double sums, in anchor order).
+    std::vector<double> sum(3 * r.scores.size(), 0.0);
+    std::vector<int64_t> count(r.scores.size(), 0);
+    for (int32_t a : r.seeds) {
+      const int32_t c = clustering_.anchor_cluster[a];
+      for (int k = 0; k < 3; ++k) sum[3 * c + k] += model_.feature()[3 * static_cast<size_t>(a) + k];
+      ++count[c];
+    }
+    std::vector<float> means;
+    for (int32_t c : r.seed_clusters)
+      if (count[c] > 0)
+        for (int k = 0; k < 3; ++k) means.push_back(static_cast<float>(sum[3 * c + k] / count[c]));
+    r.selected = similar_anchors(model_.feature(), means, config_.equivalent_distance());
+  }
   r.ms = ms_since(t0);
   return r;
 }

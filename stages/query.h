@@ -27,6 +27,9 @@
 // feature (clusters without one are skipped); the clusters scoring within
 // text_margin of the best are the seeds' clusters, all their anchors seeds.
 //
+// Without growing (QueryConfig::grow false, an ablation): the selection is
+// similar_anchors() of the seeds' features instead, for both queries.
+//
 // Masks: the model rendered with feature (1, 0, 0) on the selected anchors'
 // Gaussians and 0 elsewhere, normal occlusion: the first feature channel is
 // the selection's blending weight W(p) = sum of w_i over selected Gaussians,
@@ -57,6 +60,11 @@ struct QueryConfig {
   float text_margin = 0.1f;      // text seeds: clusters with score >= best - text_margin
   float min_click_alpha = 0.5f;  // clicks on pixels with less alpha are background
   float mask_threshold = 0.5f;   // mask(p) = selection weight > mask_threshold
+  // false: the ablation without graph region growing. The selection is then
+  // every anchor whose feature lies within equivalent_distance() of a seed
+  // feature (click: the seed anchor's; text: each seed cluster's mean),
+  // anywhere in the scene: plain feature similarity, no connectivity.
+  bool grow = true;
   // Throws std::invalid_argument naming the field out of range.
   void validate() const;
   // tau * sqrt(-2 ln min_weight): the feature distance below which an edge passes.
@@ -93,6 +101,11 @@ class PointKdTree {
 // Throws std::invalid_argument for a seed out of range or a graph of another size.
 std::vector<int32_t> region_grow(const AnchorGraph& graph, const std::vector<float>& features,
                                  const std::vector<int32_t>& seeds, float tau, float min_weight);
+
+// The ablation's selection: every anchor a with |f_a - s| < max_distance for
+// some row s of seed_features [S,3]; ascending ids.
+std::vector<int32_t> similar_anchors(const std::vector<float>& features, const std::vector<float>& seed_features,
+                                     double max_distance);
 
 // Cosine similarity of `embedding` [D] to each cluster's language feature;
 // NaN for clusters without one (matches 0 or a zero row). Throws

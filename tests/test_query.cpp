@@ -1,4 +1,5 @@
-// Click and text queries (stages/query.h, cli/cmd_query.cpp) on constructed
+// Click and text queries (stages/query.h, cli/cmd_query.cpp) and their
+// evaluation (stages/query_eval.h, cli/cmd_eval.cpp) on constructed
 // models: solid boxes of anchors with known features, so the right selection
 // is known exactly and the masks have an analytic ground truth (the first box
 // a pixel-centre ray hits, computed in double by slab intersection).
@@ -11,6 +12,7 @@
 #include <fstream>
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 #include <random>
 
 #include "cli_test_util.h"
@@ -20,6 +22,7 @@
 #include "host/scene.h"
 #include "io_test_util.h"
 #include "stages/query.h"
+#include "stages/query_eval.h"
 #include "test_util.h"
 
 namespace fs = std::filesystem;
@@ -540,6 +543,234 @@ TEST(QueryCli, Errors) {
               {"blue cube", "red cube", "green cube"});
   expect_fail(w.base("plain", "e") + "--view view_000" + click + " --text-embedding x.npy", {"exactly one"});
   EXPECT_FALSE(fs::exists(w.dir.file("e/selection.json")));
+}
+
+
+// ---------------------------------------------------------------- evaluation
+
+// The boundary region by its definition: a mask pixel with some pixel within
+// Chebyshev distance d that is outside the image or outside the mask.
+std::vector<uint8_t> boundary_reference(const std::vector<uint8_t>& m, int w, int h, int d) {
+  std::vector<uint8_t> out(m.size(), 0);
+  for (int y = 0; y < h; ++y)
+    for (int x = 0; x < w; ++x) {
+      if (!m[static_cast<size_t>(y) * w + x]) continue;
+      bool edge = false;
+      for (int dy = -d; dy <= d && !edge; ++dy)
+        for (int dx = -d; dx <= d && !edge; ++dx) {
+          const int u = x + dx, v = y + dy;
+          edge = u < 0 || v < 0 || u >= w || v >= h || !m[static_cast<size_t>(v) * w + u];
+        }
+      out[static_cast<size_t>(y) * w + x] = edge;
+    }
+  return out;
+}
+
+TEST(QueryEval, IouAndBoundaryIouMatchTheirDefinitions) {
+  // Hand-computed: a 4x4 square and the same square shifted by 2 columns in
+  // a 10x6 image: intersection 8, union 24.
+  const int w = 10, h = 6;
+  std::vector<uint8_t> a(w * h, 0), b(w * h, 0);
+  for (int y = 1; y < 5; ++y)
+    for (int x = 1; x < 5; ++x) {
+      a[y * w + x] = 1;
+      b[y * w + x + 2] = 1;
+    }
+  EXPECT_DOUBLE_EQ(mask_iou(a, b), 8.0 / 24.0);
+  EXPECT_DOUBLE_EQ(mask_iou(a, a), 1.0);
+  EXPECT_DOUBLE_EQ(mask_iou(std::vector<uint8_t>(w * h, 0), std::vector<uint8_t>(w * h, 0)), 1.0);
+  EXPECT_DOUBLE_EQ(mask_iou(a, std::vector<uint8_t>(w * h, 0)), 0.0);
+  // d = 1: a 4x4 square's boundary is its 12-pixel ring.
+  EXPECT_EQ(boundary_width(10, 6), 1);
+  EXPECT_EQ(boundary_width(160, 120), 4);   // 0.02 * 200
+  EXPECT_EQ(boundary_width(986, 728), 25);  // 0.02 * 1225.6
+  const std::vector<uint8_t> ra = mask_boundary(a, w, h, 1);
+  int ring = 0;
+  for (uint8_t v : ra) ring += v;
+  EXPECT_EQ(ring, 12);
+  // Random blobs, several widths, masks touching the image border: equal to
+  // the definition pixel for pixel.
+  std::mt19937 rng(3);
+  for (int trial = 0; trial < 20; ++trial) {
+    const int W = 23 + trial, H = 17 + trial % 5;
+    cv::Mat m = cv::Mat::zeros(H, W, CV_8U);
+    std::uniform_int_distribution<int> ux(-5, W + 5), uy(-5, H + 5), ur(1, 9);
+    for (int k = 0; k < 4; ++k) cv::circle(m, {ux(rng), uy(rng)}, ur(rng), cv::Scalar(1), cv::FILLED);
+    const std::vector<uint8_t> mv(m.data, m.data + m.total());
+    for (int d = 1; d <= 4; ++d)
+      ASSERT_EQ(mask_boundary(mv, W, H, d), boundary_reference(mv, W, H, d)) << "trial " << trial << " d " << d;
+  }
+  // Boundary IoU of a and b by the reference.
+  const std::vector<uint8_t> ba = boundary_reference(a, w, h, 1), bb = boundary_reference(b, w, h, 1);
+  EXPECT_DOUBLE_EQ(boundary_iou(a, b, w, h), iou(ba, bb));
+  EXPECT_THROW(mask_iou(a, std::vector<uint8_t>(3, 0)), std::invalid_argument);
+}
+
+TEST(QueryEval, AblationWithoutGrowingSelectsBySimilarityAlone) {
+  // Box C has A's feature but stands apart: growing from a click on A stops
+  // at A's edge; plain feature similarity also takes C.
+  const World& w = world();
+  QueryConfig cfg;
+  cfg.grow = false;
+  QueryEngine plain(test::runtime(), w.built.model, cfg);
+  const Camera cam = World::front();
+  const Eigen::Vector2i px = interior_pixel(w.boxes, w.origin, w.voxel, cam, 0);
+  std::vector<int32_t> ac = w.built.anchors[0];
+  ac.insert(ac.end(), w.built.anchors[2].begin(), w.built.anchors[2].end());
+  std::sort(ac.begin(), ac.end());
+  EXPECT_EQ(plain.click(cam, px.x() + 0.5, px.y() + 0.5).selected, ac);
+  QueryEngine grown(test::runtime(), w.built.model);
+  EXPECT_EQ(grown.click(cam, px.x() + 0.5, px.y() + 0.5).selected, w.built.anchors[0]);
+  // similar_anchors against a brute-force count.
+  const std::vector<float>& f = w.built.model.feature();
+  const std::vector<float> seeds = {0.3f, 0.f, 0.f, 0.f, 0.f, 0.3f};
+  const std::vector<int32_t> got = similar_anchors(f, seeds, 0.01);
+  std::vector<int32_t> want;
+  for (size_t a = 0; a < f.size() / 3; ++a) {
+    bool in = false;
+    for (int s = 0; s < 2; ++s) {
+      double d2 = 0;
+      for (int c = 0; c < 3; ++c) d2 += std::pow(double(f[3 * a + c]) - seeds[3 * s + c], 2);
+      in = in || d2 < 1e-4;
+    }
+    if (in) want.push_back(static_cast<int32_t>(a));
+  }
+  EXPECT_EQ(got, want);
+  EXPECT_EQ(want.size(), w.built.anchors[0].size() + w.built.anchors[2].size() + w.built.anchors[3].size());
+}
+
+// CliWorld plus LERF-style labels of view_000 (the analytic masks of the two
+// boxes at full size, as OpenCV contours), a click list and a vocabulary.
+struct EvalWorld : CliWorld {
+  Camera full;
+  std::vector<std::vector<uint8_t>> truth;  // per box, at full size
+  Eigen::Vector2i click[2];
+  EvalWorld() {
+    full = Scene::open(scene)->views()[0].full_camera;
+    nlohmann::json objects = nlohmann::json::array();
+    const char* names[2] = {"red cube", "green cube"};
+    fs::create_directories(dir.path() / "label");
+    for (int k = 0; k < 2; ++k) {
+      truth.push_back(gt_mask(boxes, origin, voxel, full, k));
+      cv::Mat m(full.height, full.width, CV_8U, truth.back().data());
+      std::vector<std::vector<cv::Point>> contours;
+      cv::findContours(m.clone(), contours, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_NONE);
+      for (const auto& c : contours) {
+        if (c.size() < 3) continue;
+        nlohmann::json seg = nlohmann::json::array();
+        for (const cv::Point& p : c) seg.push_back({p.x, p.y});
+        objects.push_back({{"category", names[k]}, {"segmentation", seg}, {"bbox", {0, 0, 1, 1}}});
+      }
+      click[k] = interior_pixel(boxes, origin, voxel, full, k);
+    }
+    const nlohmann::json label = {{"info", {{"width", full.width}, {"height", full.height}, {"name", "view_000.png"}}},
+                                  {"objects", objects}};
+    std::ofstream(dir.file("label/view_000.json")) << label.dump();
+    const nlohmann::json clicks = {
+        {{"frame", "view_000"}, {"x", click[0].x()}, {"y", click[0].y()}, {"category", "red cube"}},
+        {{"frame", "view_000"}, {"x", click[1].x()}, {"y", click[1].y()}, {"category", "green cube"}},
+        {{"frame", "view_000"}, {"x", 1}, {"y", 1}, {"category", "green cube"}},  // background: scores 0
+        {{"frame", "view_000"}, {"x", 5}, {"y", 5}},                              // no category: not scored
+    };
+    std::ofstream(dir.file("clicks.json")) << clicks.dump();
+  }
+  std::string eval(const std::string& out) const {
+    return "eval " + dir.file("stage3") + " --scene " + scene + " --labels " + dir.file("label") + " --vocab " +
+           dir.file("vocab.json") + " -o " + dir.file(out) + " ";
+  }
+};
+
+TEST(QueryEval, CliScoresTextAndClickQueriesAgainstTheLabels) {
+  EvalWorld w;
+  // The label polygons give back the analytic masks (so the scores below
+  // measure the renderer and the selection, not the label conversion).
+  const LabelFrame lf = read_label_frame(w.dir.file("label/view_000.json"));
+  EXPECT_EQ(lf.mask("red cube"), w.truth[0]);
+  EXPECT_EQ(lf.mask("green cube"), w.truth[1]);
+
+  const auto r = test::run_cli(w.eval("report.json") + "--clicks " + w.dir.file("clicks.json"));
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_NE(r.output.find("view_000"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("mean"), std::string::npos) << r.output;
+  const nlohmann::json j = nlohmann::json::parse(std::ifstream(w.dir.file("report.json")));
+  ASSERT_EQ(j["text"]["items"].size(), 2u);
+  ASSERT_EQ(j["click"]["items"].size(), 3u);
+  EXPECT_EQ(j["unscored_clicks"].get<int>(), 1);
+  // Each box's text and click query selects exactly it; its full-size mask
+  // matches the analytic truth (IoU recomputed here from the truth).
+  QueryEngine engine(test::runtime(), w.built.model);
+  double text_sum = 0, click_sum = 0, biou_sum = 0;
+  for (int k = 0; k < 2; ++k) {
+    const std::vector<uint8_t> m = engine.mask(w.full, w.built.anchors[k]);
+    const double want = iou(m, w.truth[k]);
+    EXPECT_GT(want, 0.85) << k;
+    const nlohmann::json& t = j["text"]["items"][k];
+    const nlohmann::json& c = j["click"]["items"][k];
+    // Text items come in sorted category order: green (box 1), red (box 0).
+    const nlohmann::json& tk = j["text"]["items"][1 - k];
+    EXPECT_EQ(tk["category"], k == 0 ? "red cube" : "green cube");
+    EXPECT_NEAR(tk["iou"].get<double>(), want, 1e-12) << k;
+    EXPECT_EQ(tk["selected_anchors"].get<size_t>(), w.built.anchors[k].size());
+    EXPECT_NEAR(c["iou"].get<double>(), want, 1e-12) << k;
+    EXPECT_TRUE(c["predicted"].get<bool>());
+    EXPECT_NEAR(c["biou"].get<double>(), boundary_iou(m, w.truth[k], w.full.width, w.full.height), 1e-12);
+    EXPECT_GT(c["biou"].get<double>(), 0.6);
+    text_sum += t["iou"].get<double>();
+    click_sum += c["iou"].get<double>();
+    biou_sum += c["biou"].get<double>();
+  }
+  // The background click has no prediction and counts as 0 in the mean.
+  const nlohmann::json& bg = j["click"]["items"][2];
+  EXPECT_FALSE(bg["predicted"].get<bool>());
+  EXPECT_EQ(bg["iou"].get<double>(), 0.0);
+  EXPECT_NE(bg["note"].get<std::string>().find("background"), std::string::npos);
+  EXPECT_NEAR(j["text"]["mean_iou"].get<double>(), text_sum / 2, 1e-12);
+  EXPECT_NEAR(j["click"]["mean_iou"].get<double>(), click_sum / 3, 1e-12);
+  EXPECT_NEAR(j["click"]["mean_biou"].get<double>(), biou_sum / 3, 1e-12);
+  EXPECT_EQ(j["frames"][0]["frame"], "view_000");
+  EXPECT_TRUE(j["config"]["grow"].get<bool>());
+
+  // The ablation switch reaches the report; here both boxes have distinct
+  // features, so plain similarity selects the same anchors.
+  const auto ng = test::run_cli(w.eval("ng.json") + "--no-grow");
+  ASSERT_EQ(ng.code, 0) << ng.output;
+  const nlohmann::json jn = nlohmann::json::parse(std::ifstream(w.dir.file("ng.json")));
+  EXPECT_FALSE(jn["config"]["grow"].get<bool>());
+  EXPECT_NEAR(jn["text"]["mean_iou"].get<double>(), j["text"]["mean_iou"].get<double>(), 1e-12);
+}
+
+TEST(QueryEval, CliErrors) {
+  EvalWorld w;
+  auto expect_fail = [&](const std::string& args, const std::vector<std::string>& needles) {
+    const auto r = test::run_cli(args);
+    EXPECT_EQ(r.code, 1) << args << "\n" << r.output;
+    for (const std::string& n : needles)
+      EXPECT_NE(r.output.find(n), std::string::npos) << "output lacks '" << n << "': " << r.output;
+  };
+  // A model without stage 3.
+  expect_fail("eval " + w.dir.file("plain") + " --scene " + w.scene + " --labels " + w.dir.file("label") +
+                  " --vocab " + w.dir.file("vocab.json") + " -o " + w.dir.file("e.json"),
+              {"stage 3"});
+  // A label folder without labels.
+  fs::create_directories(w.dir.path() / "nolabels");
+  expect_fail("eval " + w.dir.file("stage3") + " --scene " + w.scene + " --labels " + w.dir.file("nolabels") +
+                  " --vocab " + w.dir.file("vocab.json") + " -o " + w.dir.file("e.json"),
+              {"nolabels", ".json"});
+  // A category the vocabulary lacks.
+  std::ofstream(w.dir.file("small_vocab.json")) << nlohmann::json({{"red cube", w.language[0]}}).dump();
+  expect_fail("eval " + w.dir.file("stage3") + " --scene " + w.scene + " --labels " + w.dir.file("label") +
+                  " --vocab " + w.dir.file("small_vocab.json") + " -o " + w.dir.file("e.json"),
+              {"green cube", "vocabulary"});
+  // A label frame for an image the scene lacks.
+  fs::create_directories(w.dir.path() / "badlabel");
+  fs::copy_file(w.dir.file("label/view_000.json"), w.dir.file("badlabel/frame_999.json"));
+  std::string txt = test::read_bytes(w.dir.file("badlabel/frame_999.json"));
+  txt.replace(txt.find("view_000.png"), 12, "frame_99.png");
+  std::ofstream(w.dir.file("badlabel/frame_999.json")) << txt;
+  expect_fail("eval " + w.dir.file("stage3") + " --scene " + w.scene + " --labels " + w.dir.file("badlabel") +
+                  " --vocab " + w.dir.file("vocab.json") + " -o " + w.dir.file("e.json"),
+              {"frame_999", "names no image"});
+  EXPECT_FALSE(fs::exists(w.dir.file("e.json")));
 }
 
 }  // namespace

@@ -47,7 +47,9 @@ TEST(Sfm, RecoversTheSyntheticCamerasUpToASimilarity) {
   const ColmapModel truth = read_colmap_model(dir.file("truth/sparse/0"));
 
   SfmOptions o;
-  o.threads = 2;
+  // One thread: COLMAP (random_seed 0) is then deterministic; with 2 threads a
+  // run under load once registered a mirrored ring (34 degrees off).
+  o.threads = 1;
   // Synthetic photos: exact pinhole cameras, few features per small image.
   o.camera_model = "SIMPLE_PINHOLE";  // one focal length: separate fx, fy drift apart on a ring of small views
   o.init_min_inliers = 30;
