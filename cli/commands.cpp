@@ -18,6 +18,10 @@
 #include "host/npy_io.h"
 #include "host/ply_io.h"
 #include "host/renderer.h"
+#include "host/model_io.h"
+#include "stages/anchor_model.h"
+#include "stages/clustering.h"
+#include "stages/instance_map.h"
 
 namespace fs = std::filesystem;
 
@@ -118,6 +122,21 @@ std::vector<Camera> pick_views(const std::vector<Camera>& all, const std::string
   return select_views(all, views);
 }
 
+// A cluster id as a colour: hues spread by the golden ratio, black for -1.
+std::vector<float> instance_colours(const std::vector<int32_t>& ids) {
+  std::vector<float> rgb(3 * ids.size(), 0.f);
+  for (size_t p = 0; p < ids.size(); ++p) {
+    if (ids[p] < 0) continue;
+    const double h = std::fmod(0.618033988749895 * ids[p], 1.0) * 6.0;
+    const int k = static_cast<int>(h);
+    const float f = static_cast<float>(h - k), v = 0.95f, s = 0.75f;
+    const float pp = v * (1 - s), q = v * (1 - s * f), t = v * (1 - s * (1 - f));
+    const float c[6][3] = {{v, t, pp}, {q, v, pp}, {pp, v, t}, {pp, q, v}, {t, pp, v}, {v, pp, q}};
+    for (int j = 0; j < 3; ++j) rgb[3 * p + j] = c[k % 6][j];
+  }
+  return rgb;
+}
+
 // A feature vector as a colour: its direction mapped from [-1,1] to [0,1].
 std::vector<float> feature_colours(const std::vector<float>& feature, const std::vector<float>& alpha) {
   std::vector<float> rgb(feature.size(), 0.f);
@@ -132,19 +151,6 @@ std::vector<float> feature_colours(const std::vector<float>& feature, const std:
 
 void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
   if (a.resolution < 1) throw std::invalid_argument("-r must be >= 1 (it divides the camera resolution)");
-  std::string ply = a.ply;
-  if (!a.model.empty()) {
-    if (!ply.empty()) throw std::invalid_argument("give either MODEL_DIR or --ply, not both");
-    const fs::path candidate = fs::path(a.model) / "point_cloud.ply";
-    if (!fs::is_directory(a.model)) {
-      throw std::runtime_error(a.model + ": no such model folder (a folder written by `ag2gs train`)");
-    }
-    if (!fs::exists(candidate)) {
-      throw std::runtime_error(a.model + ": has no point_cloud.ply; is it a model folder written by `ag2gs train`?");
-    }
-    ply = candidate.string();
-  }
-  if (ply.empty()) throw std::invalid_argument("give a model folder (MODEL_DIR) or a Gaussian file (--ply FILE)");
   std::vector<std::string> outputs = split_list(a.outputs);
   if (a.extras) {
     for (const char* o : {"depth", "alpha"}) {
@@ -152,16 +158,54 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
     }
   }
   for (const std::string& o : outputs) {
-    if (o != "rgb" && o != "depth" && o != "alpha" && o != "feature") {
-      throw std::invalid_argument("--outputs: unknown output '" + o + "'; choose from rgb,depth,alpha,feature");
+    if (o != "rgb" && o != "depth" && o != "alpha" && o != "feature" && o != "instance") {
+      throw std::invalid_argument("--outputs: unknown output '" + o +
+                                  "'; choose from rgb,depth,alpha,feature,instance");
     }
   }
-  if (outputs.empty()) throw std::invalid_argument("--outputs is empty; choose from rgb,depth,alpha,feature");
+  if (outputs.empty()) throw std::invalid_argument("--outputs is empty; choose from rgb,depth,alpha,feature,instance");
   auto wants = [&](const char* o) { return std::find(outputs.begin(), outputs.end(), o) != outputs.end(); };
+
+  std::string ply = a.ply;
+  if (!a.model.empty()) {
+    if (!ply.empty()) throw std::invalid_argument("give either MODEL_DIR or --ply, not both");
+    const fs::path candidate = fs::path(a.model) / "point_cloud.ply";
+    if (!fs::is_directory(a.model)) {
+      throw std::runtime_error(a.model + ": no such model folder (a folder written by `ag2gs train`)");
+    }
+    if (!fs::exists(candidate) && !wants("instance")) {
+      throw std::runtime_error(a.model + ": has no point_cloud.ply; is it a model folder written by `ag2gs train`?");
+    }
+    ply = candidate.string();
+  }
+  if (ply.empty()) throw std::invalid_argument("give a model folder (MODEL_DIR) or a Gaussian file (--ply FILE)");
 
   RenderSettings settings;
   settings.background = parse_rgb(a.bg);
-  GaussianSet set = read_ply(ply);
+  GaussianSet set;
+  // Instance maps need the anchors' clusters: the model's Gaussians are then
+  // expanded from model.ag2gs (row g = anchor g / K, the same Gaussians as
+  // its point_cloud.ply) instead of read from the PLY.
+  std::vector<int32_t> anchor_cluster;
+  int children = 0;
+  if (wants("instance")) {
+    if (a.model.empty())
+      throw std::invalid_argument("--outputs instance needs a model folder with clusters (stage 3), not --ply");
+    const std::string mf = (fs::path(a.model) / "model.ag2gs").string();
+    if (!fs::exists(mf)) throw std::runtime_error(a.model + ": no model.ag2gs, which --outputs instance needs");
+    const ModelArchive archive = read_model_archive(mf);
+    if (!archive.meta.contains("clusters"))
+      throw std::runtime_error(mf + " has no clusters, which --outputs instance needs: run stage 3 "
+                               "(`ag2gs train SCENE_DIR -o MODEL_DIR --stages 3`)");
+    const AnchorModel am = AnchorModel::from_archive(archive);
+    const nlohmann::json tr = archive.meta.value("train", nlohmann::json::object());
+    const int sh = std::min(tr.value("active_sh_degree", am.config().sh_degree), am.config().sh_degree);
+    set = expand_reference(am, sh);
+    anchor_cluster = clustering_from_archive(archive, am.size()).anchor_cluster;
+    children = am.config().children;
+  } else {
+    set = read_ply(ply);
+  }
   fs::path sparse = fs::path(a.scene) / a.sparse;
   if (!fs::is_directory(sparse))
     throw std::runtime_error(sparse.string() + " is not a directory; --scene must hold a COLMAP model in " + a.sparse +
@@ -176,6 +220,8 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
   Renderer renderer(rt);
   DeviceGaussians dg(rt);
   dg.upload(set);
+  InstanceMapper mapper(rt);
+  if (wants("instance")) mapper.set_clusters(anchor_cluster, children);
   fs::path out_dir(a.out);
   for (const std::string& o : outputs) fs::create_directories(out_dir / o);
   auto t0 = std::chrono::steady_clock::now();
@@ -202,6 +248,14 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
       write_rgb_png(file("feature", ".png"), feature_colours(out.feature, out.alpha), w, h);
       write_npy(file("feature", ".npy"), out.feature, {h, w, 3});
     }
+    if (wants("instance")) {
+      // Cluster ids (-1 = none): the pixels where one cluster holds more
+      // than half of the blending weight (stages/instance_map.h).
+      mapper.compute(renderer);
+      const InstanceMap im = mapper.download();
+      write_rgb_png(file("instance", ".png"), instance_colours(im.ids), w, h);
+      write_npy(file("instance", ".npy"), std::vector<float>(im.ids.begin(), im.ids.end()), {h, w});
+    }
     const double el = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     const double eta = el / (i + 1) * (cams.size() - i - 1);
     spdlog::info("[{}/{}] {} {}x{}  {} intersections  {:.1f} s elapsed, ETA {:.1f} s", i + 1, cams.size(), cam.name, w,
@@ -227,7 +281,7 @@ void register_commands(CLI::App& app, GlobalOptions& global) {
       ->required();
   render->add_option("--views", ra->views,
                      "train, test (every 8th image, as --eval), all (default), or comma-separated names/stems");
-  render->add_option("--outputs", ra->outputs, "Comma-separated: rgb (default), depth, alpha, feature");
+  render->add_option("--outputs", ra->outputs, "Comma-separated: rgb (default), depth, alpha, feature, instance (cluster ids; needs stage 3)");
   render->add_option("--bg", ra->bg, "Background colour R,G,B in [0,1] (default 0,0,0)");
   render->add_option("-r,--resolution", ra->resolution, "Divide the camera resolution by R (default 1)");
   render->add_option("--sparse", ra->sparse, "COLMAP model folder inside the scene (default sparse/0)");

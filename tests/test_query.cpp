@@ -773,5 +773,48 @@ TEST(QueryEval, CliErrors) {
   EXPECT_FALSE(fs::exists(w.dir.file("e.json")));
 }
 
+
+// Batch rendering: the instance maps and feature maps of `ag2gs render` agree
+// with what the queries select.
+TEST(QueryCli, RenderedInstanceAndFeatureMapsAgreeWithTheQueries) {
+  CliWorld w;
+  const auto r = test::run_cli("render " + w.dir.file("stage3") + " --scene " + w.scene +
+                               " -r 2 --views view_000,view_003 --outputs instance,feature,alpha -o " +
+                               w.dir.file("maps"));
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_NE(r.output.find("views/s"), std::string::npos) << r.output;
+  EXPECT_TRUE(fs::exists(w.dir.file("maps/instance/view_003.png")));
+  const NpyArray ids = read_npy(w.dir.file("maps/instance/view_000.npy"));
+  const NpyArray feat = read_npy(w.dir.file("maps/feature/view_000.npy"));
+  const NpyArray alpha = read_npy(w.dir.file("maps/alpha/view_000.npy"));
+  ASSERT_EQ(ids.shape, (std::vector<int64_t>{w.cam.height, w.cam.width}));
+  QueryEngine engine(test::runtime(), w.built.model);
+  size_t labelled = 0, mismatched = 0;
+  for (int k = 0; k < 2; ++k) {
+    const std::vector<uint8_t> m = engine.mask(w.cam, w.built.anchors[k]);
+    for (size_t p = 0; p < m.size(); ++p) {
+      const bool in_map = ids.data[p] == static_cast<float>(k);
+      mismatched += in_map != (m[p] != 0);
+      if (!m[p]) continue;
+      ++labelled;
+      // The rendered feature / alpha is the box's feature (within its jitter).
+      for (int c = 0; c < 3; ++c)
+        EXPECT_NEAR(feat.data[3 * p + c] / alpha.data[p], w.boxes[k].feature[c], 0.01) << "pixel " << p;
+    }
+  }
+  EXPECT_GT(labelled, 100u);
+  // Both threshold the same selection weight at 0.5 (summed in another
+  // order): at most a pixel or two on the outline may differ.
+  EXPECT_LE(mismatched, 2u) << "of " << labelled;
+  const auto bad = test::run_cli("render --ply " + w.dir.file("x.ply") + " --scene " + w.scene +
+                                 " --outputs instance -o " + w.dir.file("m2"));
+  EXPECT_EQ(bad.code, 1);
+  EXPECT_NE(bad.output.find("model folder with clusters"), std::string::npos) << bad.output;
+  const auto noclusters = test::run_cli("render " + w.dir.file("plain") + " --scene " + w.scene +
+                                        " --outputs instance -o " + w.dir.file("m3"));
+  EXPECT_EQ(noclusters.code, 1);
+  EXPECT_NE(noclusters.output.find("stage 3"), std::string::npos) << noclusters.output;
+}
+
 }  // namespace
 }  // namespace ag2gs

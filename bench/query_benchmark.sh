@@ -1,0 +1,72 @@
+#!/usr/bin/env bash
+# Query accuracy and the paper's ablation on a synthetic scene with exact
+# ground truth: trains the full method (stage 2 with L_prop) and the same
+# schedule without L_prop (--w-prop 0), evaluates both with and without
+# region growing (`ag2gs eval`, --no-grow), and writes a table of text and
+# click mIoU / mBIoU and query latency:
+#
+#   full                 = L_prop + region growing
+#   L_prop only          = L_prop, plain feature similarity
+#   region growing only  = no L_prop, region growing
+#   neither
+#
+#   bench/query_benchmark.sh SCENE_DIR OUT_DIR [--iters N] [--generate SEED] [--eval-flags "..."]
+#                            [-- extra train flags]
+#
+# --generate SEED writes a fresh hard scene (`ag2gs synth --hard`: touching
+# objects, similar colours, a thin pole, occlusion) to SCENE_DIR first.
+# Example (~6 minutes on 2 CPU cores):
+#   bench/query_benchmark.sh out/synth_hard_7 out/bench_query --generate 7 --iters 3000 -- --top-cells 50
+set -euo pipefail
+here="$(cd "$(dirname "$0")/.." && pwd)"
+bin="${AG2GS_BIN:-$here/build/ag2gs}"
+[ $# -ge 2 ] || { sed -n 2,20p "$0" | sed 's/^# \{0,1\}//'; exit 2; }
+scene="$1"; out="$2"; shift 2
+iters=3000; generate=""; eval_flags=""; extra=()
+while [ $# -gt 0 ]; do
+  case "$1" in
+    --iters) iters="$2"; shift 2 ;;
+    --generate) generate="$2"; shift 2 ;;
+    --eval-flags) eval_flags="$2"; shift 2 ;;
+    --) shift; extra=("$@"); break ;;
+    *) echo "query_benchmark: unknown argument '$1'" >&2; exit 2 ;;
+  esac
+done
+[ -x "$bin" ] || { echo "query_benchmark: $bin not built; run scripts/build.sh first" >&2; exit 2; }
+if [ -n "$generate" ]; then
+  "$bin" synth "$scene" --hard --seed "$generate" --views 16 --mask-factor 2 --points 3000
+fi
+for f in label vocab.json clicks.json; do
+  [ -e "$scene/$f" ] || { echo "query_benchmark: $scene/$f missing (a scene from \`ag2gs synth\` has it)" >&2; exit 2; }
+done
+mkdir -p "$out"
+for run in full no_prop; do
+  flags=()
+  [ "$run" = no_prop ] && flags=(--w-prop 0)
+  "$bin" train "$scene" -o "$out/$run" --iters "$iters" --eval --seed 1 --log-every 1000 "${flags[@]}" "${extra[@]}" \
+    2>&1 | tee "$out/$run.log"
+  for grow in grow no_grow; do
+    g=()
+    [ "$grow" = no_grow ] && g=(--no-grow)
+    # shellcheck disable=SC2086
+    "$bin" eval "$out/$run" --scene "$scene" --labels "$scene/label" --vocab "$scene/vocab.json" \
+      --clicks "$scene/clicks.json" -o "$out/eval_${run}_${grow}.json" "${g[@]}" $eval_flags | tee "$out/eval_${run}_${grow}.txt"
+  done
+done
+python3 - "$out" <<'EOF'
+import json, sys, os
+out = sys.argv[1]
+rows = [("full (L_prop + growing)", "full", "grow"), ("L_prop only", "full", "no_grow"),
+        ("region growing only", "no_prop", "grow"), ("neither", "no_prop", "no_grow")]
+lines = ["| variant | text mIoU | text mBIoU | click mIoU | click mBIoU | query ms (mean / max) |",
+         "|---|---:|---:|---:|---:|---:|"]
+for name, run, grow in rows:
+    j = json.load(open(os.path.join(out, f"eval_{run}_{grow}.json")))
+    t, c = j["text"], j["click"]
+    lines.append(f"| {name} | {100*t['mean_iou']:.2f} | {100*t['mean_biou']:.2f} | {100*c['mean_iou']:.2f} | "
+                 f"{100*c['mean_biou']:.2f} | {max(t['mean_ms'], c['mean_ms']):.1f} / {max(t['max_ms'], c['max_ms']):.1f} |")
+table = "\n".join(lines) + "\n"
+open(os.path.join(out, "table.md"), "w").write(table)
+print(table)
+EOF
+echo "wrote $out/table.md"
