@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # One command for a fresh Debian machine: install what is missing, build, and
-# run the main job on a sample scene: train stage 1 on the synthetic scene
+# run the main job on a sample scene: train stages 1-3 on the synthetic scene
 # data_samples/synth_small (holding out every 8th view) and render the
 # held-out views. Training and rendering take under a minute on 2 CPU cores.
 set -euo pipefail
@@ -9,8 +9,12 @@ scripts/install_deps.sh
 scripts/build.sh -DAG2GS_BUILD_TESTS=OFF
 build/ag2gs devices
 build/ag2gs info data_samples/synth_small --eval
-build/ag2gs train data_samples/synth_small -o out/synth_small --eval --iters 1000 --top-cells 50 --seed 1
+build/ag2gs train data_samples/synth_small -o out/synth_small --eval --iters 1000 --top-cells 50 --seed 1 \
+  --cluster-distance 0.1
 build/ag2gs render out/synth_small --scene data_samples/synth_small --views test --outputs rgb,depth,alpha \
   -o out/synth_small/test_renders
+# Text and click queries on the held-out views against the scene's labels.
+build/ag2gs eval out/synth_small --scene data_samples/synth_small --labels data_samples/synth_small/label \
+  --vocab data_samples/synth_small/vocab.json --clicks data_samples/synth_small/clicks.json -o out/synth_small/eval.json
 echo "setup: done. Model in out/synth_small/ (point_cloud.ply, model.ag2gs, metrics.json);"
-echo "       renders of the held-out views in out/synth_small/test_renders/"
+echo "       renders of the held-out views in out/synth_small/test_renders/; query scores in out/synth_small/eval.json"

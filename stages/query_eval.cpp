@@ -196,6 +196,7 @@ QueryEvalReport evaluate_queries(QueryEngine& engine, const Scene& scene, const 
   // Text: one selection per category, scored in every frame that labels it.
   if (in.vocab) {
     std::map<std::string, TextResult> selections;
+    std::string no_text_reason;
     for (size_t fi = 0; fi < in.frames.size(); ++fi) {
       const NamedLabelFrame& f = in.frames[fi];
       const SceneView& view = scene.views()[frame_view[fi]];
@@ -212,9 +213,17 @@ QueryEvalReport evaluate_queries(QueryEngine& engine, const Scene& scene, const 
           if (e == in.vocab->phrases.end())
             throw std::invalid_argument("label frame " + f.stem + " has category \"" + cat +
                                         "\", which the vocabulary lacks; add its CLIP text embedding");
-          it = selections.emplace(cat, engine.text(e->second)).first;
+          TextResult tr;
+          try {
+            tr = engine.text(e->second);
+          } catch (const std::invalid_argument& err) {
+            // No cluster carries a language feature: no prediction (scores 0).
+            no_text_reason = err.what();
+          }
+          it = selections.emplace(cat, std::move(tr)).first;
           q.select_ms = it->second.ms;  // counted once, at the first frame that asks
         }
+        if (it->second.selected.empty() && !no_text_reason.empty()) q.note = no_text_reason;
         score(q, f.frame, &it->second.selected, cam);
         report.items.push_back(q);
       }
