@@ -487,7 +487,7 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                   "Stage-2 iterations after stage 1 (default -1 = iters / 6, the official 5000 after 30000; 0 = no "
                   "stage 2)")
       ->check(CLI::Range(-1, std::numeric_limits<int>::max()));
-  sub->add_option("--w-prop", c.w_prop, "Weight of the propagation loss L_prop in stage 2 (default 0.01)")
+  sub->add_option("--w-prop", c.w_prop, "Weight of the propagation loss L_prop (a mean over edges) in stage 2 (default 10; the paper's 0.01 is on a sum)")
       ->check(CLI::NonNegativeNumber);
   sub->add_option("--prop-tau", c.prop_tau, "Bilateral bandwidth tau of L_prop (default 0.05)")
       ->check(CLI::PositiveNumber);

@@ -11,13 +11,22 @@
 // to are means (over pixels, over offsets). An anchor's share of a pixel-mean
 // gradient shrinks as 1/A with the anchor count A; so does its gradient of
 // the edge mean, ~ 4 |f_i - f_j| / A (|E| ~ A * degree / 2). The ratio of the
-// two, and so the meaning of the paper's weight 0.01, then depends neither on
+// two, and so the meaning of the weight, then depends neither on
 // the scene's size nor on the graph's density (cell_scale 2 has ~4x the
 // edges, not ~4x the loss). With a sum, the propagation gradient per anchor
 // would stay constant while the photometric one shrinks: at 0.01 it would
 // swamp large scenes and be weak on small ones. The loss is a mean edge
 // energy in [0, 2 tau^2 / e] ~ [0, 1.8e-3] (w d peaks at d = 2 tau^2), easy to
 // read in logs whatever the scene.
+//
+// Weight: the paper's 0.01 multiplies a sum over ordered pairs, 2 |E| times
+// this mean (0.02 |E| ~ 3700 at the 185k edges of a 5k-anchor scene), so
+// its number does not carry over. Measured on two generated hard scenes
+// (160x120, 3000 + 500 iterations, bench/query_benchmark.sh): 0.01 leaves
+// the features as rough as without L_prop (click mIoU at the default growing
+// threshold 0.7-0.8%, anchor ARI 0.64), 1 gives 44%, 10 gives 35-55% with
+// ARI 0.84-0.90, and ~2000 (the paper's sum) fragments the features into
+// locally flat patches (click 6%). Default 10.
 //
 // Gradient: by default the weights are held constant (stop-gradient), so
 //   dL/df_i = (2 / |E|) sum_{j in N(i)} w_ij (f_i - f_j).
@@ -37,8 +46,8 @@
 //   PropagationLoss prop(rt);  prop.set_graph(graph);
 //   per iteration, after expander.backward(anchors, renderer.device_grads(), grads)
 //   (which overwrites grads.feature) and before the Adam step of the feature group:
-//     prop.enqueue(anchors.feature, &grads.feature, anchors.anchors, 0.01f);
-//                                                 // grads.feature += 0.01 dL_prop/df
+//     prop.enqueue(anchors.feature, &grads.feature, anchors.anchors, w);
+//                                                 // grads.feature += w dL_prop/df
 //     ... when logging: double l = prop.result();              // waits; unweighted L_prop
 //   After every growing/pruning round (anchor ids change): rebuild and
 //   set_graph again; enqueue() refuses a graph whose anchor count differs from
@@ -65,7 +74,7 @@
 namespace ag2gs {
 
 constexpr float kPropagationTau = 0.05f;     // bilateral bandwidth tau
-constexpr float kPropagationWeight = 0.01f;  // weight of L_prop in L_stage2
+constexpr float kPropagationWeight = 10.0f;  // weight of the edge-mean L_prop in L_stage2 (see above)
 
 struct PropagationLossConfig {
   float tau = kPropagationTau;         // > 0

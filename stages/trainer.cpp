@@ -206,7 +206,7 @@ TrainConfig TrainConfig::from_json(const nlohmann::json& j) {
     c.mask_geometry = j.at("mask_geometry").get<bool>();
     // Written before stage 2 existed: stage 1 only.
     c.prop_iters = j.value("prop_iters", 0);
-    c.w_prop = j.value("w_prop", kPropagationWeight);
+    c.w_prop = j.value("w_prop", 0.01f);  // the default of that time
     c.prop_tau = j.value("prop_tau", kPropagationTau);
     c.offset_lr_init = j.at("offset_lr_init").get<double>();
     c.offset_lr_final = j.at("offset_lr_final").get<double>();

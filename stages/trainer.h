@@ -87,7 +87,7 @@ struct TrainConfig {
   // Stage 2: this many more iterations with w_prop L_prop added; -1 =
   // iterations / 6 (the official 5k after 30k), 0 = no stage 2.
   int prop_iters = -1;
-  float w_prop = kPropagationWeight;  // weight of L_prop (paper 0.01)
+  float w_prop = kPropagationWeight;  // weight of the edge-mean L_prop (stages/propagation_loss.h)
   float prop_tau = kPropagationTau;   // bilateral bandwidth of L_prop
   uint64_t seed = 0;
 
