@@ -423,6 +423,12 @@ void register_train(CLI::App& app, GlobalOptions& global) {
   sub->add_flag("--mask-geometry", c.mask_geometry,
                 "Let the mask losses' gradient reach every Gaussian parameter (joint), not only the semantic "
                 "features");
+  sub->add_flag("!--no-unmasked-group", c.mask_unmasked_group,
+                "Leave pixels without a SAM mask out of the mask losses (default: they form one more mask, so "
+                "object features are pushed away from the unmasked surroundings)");
+  sub->add_flag("!--no-feature-ball", c.feature_ball,
+                "Let the semantic features grow without bound (default: projected into the unit ball after each "
+                "step, so the graph stages' absolute thresholds keep their meaning)");
   sub->add_option("--lr-feature", c.feature_lr, "Semantic feature learning rate (default 0.05)");
   sub->add_option("--lr-offset", c.offset_lr_init, "Offset learning rate at the start (default 1e-3, voxel units)");
   sub->add_option("--lr-offset-final", c.offset_lr_final, "Offset learning rate at the end (default 1e-4)");

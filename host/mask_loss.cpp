@@ -44,6 +44,26 @@ MaskLoss::MaskLoss(Runtime& rt, MaskLossOptions options) : rt_(rt) {
   lanes_ = shape.lanes;
 }
 
+ViewMasks with_unmasked_group(const ViewMasks& masks) {
+  ViewMasks out = masks;
+  const size_t npix = static_cast<size_t>(masks.width) * masks.height;
+  if (npix == 0 || masks.layers < 1 || masks.labels.size() != npix * masks.layers) return out;
+  int64_t n = 0;
+  for (size_t p = 0; p < npix; ++p) {
+    bool covered = false;
+    for (int l = 0; l < masks.layers && !covered; ++l) covered = masks.labels[static_cast<size_t>(l) * npix + p] >= 0;
+    if (!covered) {
+      out.labels[p] = masks.count;
+      ++n;
+    }
+  }
+  if (n == 0) return masks;
+  ++out.count;
+  out.pixels.push_back(n);
+  if (out.feature_dim > 0) out.features.resize(out.features.size() + out.feature_dim, 0.f);
+  return out;
+}
+
 bool MaskLoss::set_masks(const ViewMasks& masks, int64_t key) {
   if (key >= 0 && loaded_ && key == key_) return false;
   const int w = masks.width, h = masks.height, layers = masks.layers, count = masks.count;

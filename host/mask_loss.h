@@ -54,6 +54,14 @@ struct MaskLossResult {
   double loss(double w_is, double w_ic) const { return w_is * l_is + w_ic * l_ic; }
 };
 
+// `masks` plus one more mask: the pixels that no mask of any layer covers
+// (id count, in layer 0; a zero CLIP row when the masks carry features).
+// Training with it makes L_ic push every object's feature away from the
+// unmasked surroundings (ground, walls that SAM left out), which otherwise
+// nothing constrains; L_is pulls the surroundings together. Masks of size
+// 0 x 0 or without unmasked pixels come back unchanged.
+ViewMasks with_unmasked_group(const ViewMasks& masks);
+
 // How the kernels split the work; the defaults suit the device.
 struct MaskLossOptions {
   int work_group = 0;  // a power of two; 0: the device's (at most 256)

@@ -20,3 +20,18 @@ __kernel void offset_reg(int n, float scale,           // scale = weight / N
     value[g] = 1.f;
   }
 }
+
+// Keeps the semantic features inside the unit ball after their Adam step:
+// f <- f / max(1, |f|). The contrast loss L_ic = 1 / (d + 1) never stops
+// pushing mask means apart; unbounded, the features drift to a scale of
+// several units where the absolute thresholds of the graph stages (tau 0.05,
+// the growing and clustering distances) no longer mean anything. One
+// work-item per anchor.
+__kernel void feature_ball(int n,
+                           __global float* feature) {  // [A,3] anchor features, projected in place
+  const int a = get_global_id(0);
+  if (a >= n) return;
+  const float3 f = vload3(a, feature);
+  const float len = length(f);
+  if (len > 1.f) vstore3(f / len, a, feature);
+}

@@ -123,6 +123,8 @@ nlohmann::json TrainConfig::to_json() const {
           {"mask_from", effective_mask_from()},
           {"mask_alpha_normalise", mask_alpha_normalise},
           {"mask_geometry", mask_geometry},
+          {"mask_unmasked_group", mask_unmasked_group},
+          {"feature_ball", feature_ball},
           {"prop_iters", effective_prop_iters()},
           {"w_prop", w_prop},
           {"prop_tau", prop_tau},
@@ -204,6 +206,8 @@ TrainConfig TrainConfig::from_json(const nlohmann::json& j) {
     c.mask_from = j.at("mask_from").get<int>();
     c.mask_alpha_normalise = j.at("mask_alpha_normalise").get<bool>();
     c.mask_geometry = j.at("mask_geometry").get<bool>();
+    c.mask_unmasked_group = j.value("mask_unmasked_group", false);  // written before the option
+    c.feature_ball = j.value("feature_ball", false);
     // Written before stage 2 existed: stage 1 only.
     c.prop_iters = j.value("prop_iters", 0);
     c.w_prop = j.value("w_prop", 0.01f);  // the default of that time
@@ -411,7 +415,8 @@ StepStats Trainer::step(bool compute_offset_loss) {
   std::shared_ptr<const ViewMasks> masks;
   if (has_masks_ && (it >= config_.effective_mask_from() || st.stage2)) masks = scene_.masks(st.view);
   if (masks) {
-    mask_loss_.set_masks(*masks, st.view);
+    if (mask_loss_.masks_key() != st.view || !mask_loss_.mask_count())
+      mask_loss_.set_masks(config_.mask_unmasked_group ? with_unmasked_group(*masks) : *masks, st.view);
     const DeviceBuffer* alpha = config_.mask_alpha_normalise ? &renderer_.device_alpha() : nullptr;
     mask_loss_.enqueue(renderer_.device_feature(), alpha, w, h, ImageLayout::kPlanar, config_.w_is, config_.w_ic,
                        &grad_feat_dev_, alpha ? &grad_alpha_dev_ : nullptr);
@@ -502,7 +507,14 @@ StepStats Trainer::step(bool compute_offset_loss) {
     adam_.step(*g_opacity_, anchors_.opacity_logit, grads_.opacity_logit, config_.opacity_lr);
     adam_.step(*g_dc_, anchors_.sh_dc, grads_.sh_dc, config_.sh_dc_lr);
     adam_.step(*g_rest_, anchors_.sh_rest, grads_.sh_rest, config_.sh_rest_lr);
-    if (step_features) adam_.step(*g_feature_, anchors_.feature, feature_grad, config_.feature_lr);
+    if (step_features) {
+      adam_.step(*g_feature_, anchors_.feature, feature_grad, config_.feature_lr);
+      if (config_.feature_ball && anchors_.anchors > 0) {
+        cl::Kernel k = rt_.kernel("train.cl", "feature_ball", {});
+        set_kernel_args(k, static_cast<cl_int>(anchors_.anchors), anchors_.feature.get());
+        rt_.launch("feature_ball", k, cl::NDRange((anchors_.anchors + 63) / 64 * 64), cl::NDRange(64));
+      }
+    }
     host_stale_ = true;
     // The renderer's gradients and radii of this view are still on the device.
     if (!st.stage2 && growth_.collecting(st.iteration))

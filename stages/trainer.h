@@ -27,6 +27,12 @@
 // expander to the anchors' semantic features, which Adam steps with
 // feature_lr on those iterations only (with mask_geometry also to every
 // Gaussian parameter, as the RGB loss does). Scenes without masks train appearance only.
+// Two additions to the method as published, both measured (see the README):
+// the pixels no mask covers form one more mask (mask_unmasked_group), so the
+// objects' features are pushed away from their unmasked surroundings; and
+// after each step the features are projected into the unit ball
+// (feature_ball), so the contrast term cannot inflate their scale past the
+// absolute thresholds of stages 2 and 3 and the queries.
 //
 // Opacity reset (3DGS): at every opacity_reset_every-th iteration before
 // growing stops (iteration < grow_until, whether or not growing is on), every
@@ -115,6 +121,12 @@ struct TrainConfig {
   // kept), so appearance and geometry train exactly as without masks; true:
   // joint, their gradient also reaches every Gaussian parameter.
   bool mask_geometry = false;
+  // The pixels no SAM mask covers form one more mask in the mask losses
+  // (with_unmasked_group in host/mask_loss.h).
+  bool mask_unmasked_group = true;
+  // Project the semantic features into the unit ball after each of their
+  // steps (kernels/train.cl feature_ball).
+  bool feature_ball = true;
 
   // Learning rates (DESIGN.md section 9). The offset rate decays
   // exponentially from init to final over the run; offsets are in voxel

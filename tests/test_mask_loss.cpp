@@ -551,6 +551,38 @@ TEST(MaskLoss, DeviceApiAndMaskCache) {
   EXPECT_TRUE(loss.set_masks(other));  // key -1: always
 }
 
+TEST(MaskLoss, UnmaskedPixelsBecomeOneMoreMask) {
+  // 4x2, two layers: pixel 0 in mask 0 (layer 0), pixel 1 in mask 1 (layer 1
+  // only), pixels 2..7 uncovered except pixel 5 (mask 0, layer 1).
+  ViewMasks m;
+  m.width = 4;
+  m.height = 2;
+  m.layers = 2;
+  m.count = 2;
+  m.labels = {0, -1, -1, -1, -1, -1, -1, -1,   // layer 0
+              -1, 1, -1, -1, -1, 0, -1, -1};   // layer 1
+  m.pixels = {2, 1};
+  m.feature_dim = 2;
+  m.features = {1, 2, 3, 4};
+  const ViewMasks u = with_unmasked_group(m);
+  EXPECT_EQ(u.count, 3);
+  EXPECT_EQ(u.pixels, (std::vector<int64_t>{2, 1, 5}));
+  EXPECT_EQ(u.labels, (std::vector<int32_t>{0, -1, 2, 2, 2, -1, 2, 2,  //
+                                            -1, 1, -1, -1, -1, 0, -1, -1}));
+  EXPECT_EQ(u.features, (std::vector<float>{1, 2, 3, 4, 0, 0}));
+  // Every pixel covered: unchanged.
+  ViewMasks full = m;
+  full.layers = 1;
+  full.labels = {0, 1, 0, 1, 0, 1, 0, 1};
+  const ViewMasks same = with_unmasked_group(full);
+  EXPECT_EQ(same.count, 2);
+  EXPECT_EQ(same.labels, full.labels);
+  // The loss accepts the result and counts the extra mask.
+  MaskLoss loss(test::runtime());
+  EXPECT_TRUE(loss.set_masks(u));
+  EXPECT_EQ(loss.mask_count(), 3);
+}
+
 TEST(MaskLoss, RejectsBadArguments) {
   MaskLoss loss(test::runtime());
   std::vector<float> f(12 * 3), g;

@@ -146,6 +146,39 @@ TEST(TrainMasks, FeaturesSeparateGroundTruthObjectsAndMaskLossFalls) {
   EXPECT_TRUE(again.model().opacity_logit() == trainer.model().opacity_logit());
 }
 
+// The features are projected into the unit ball after each step (default);
+// without it the contrast loss drives them past it. The unmasked pixels form
+// one more mask by default (host/mask_loss.h with_unmasked_group): the
+// object features then also separate from the ground and backdrop (gt 0).
+TEST(TrainMasks, FeaturesStayInTheUnitBall) {
+  SceneOptions so;
+  so.resolution = 2;
+  auto scene = Scene::open(sample_scene(), so);
+  TrainConfig cfg = mask_config();
+  cfg.iterations = 100;
+  TrainConfig free_cfg = cfg;
+  free_cfg.feature_ball = false;
+  Trainer ball(test::runtime(), *scene, cfg), unbounded(test::runtime(), *scene, free_cfg);
+  for (int it = 0; it < cfg.iterations; ++it) {
+    ASSERT_FALSE(ball.step().skipped);
+    ASSERT_FALSE(unbounded.step().skipped);
+  }
+  auto max_norm = [](const std::vector<float>& f) {
+    double m = 0;
+    for (size_t a = 0; a + 2 < f.size(); a += 3)
+      m = std::max(m, std::sqrt(double(f[a]) * f[a] + double(f[a + 1]) * f[a + 1] + double(f[a + 2]) * f[a + 2]));
+    return m;
+  };
+  const double in_ball = max_norm(ball.model().feature()), free_max = max_norm(unbounded.model().feature());
+  std::printf("largest feature norm after %d iterations: %.4f with the ball, %.4f without\n", cfg.iterations, in_ball,
+              free_max);
+  EXPECT_LE(in_ball, 1.0 + 1e-6);
+  EXPECT_GT(in_ball, 0.9);  // the contrast loss does push out to it
+  EXPECT_GT(free_max, 1.2);
+  // The geometry is the same (features only take the mask losses' gradient).
+  EXPECT_TRUE(ball.model().opacity_logit() == unbounded.model().opacity_logit());
+}
+
 // By default the mask losses train the features only: every other parameter
 // follows the run without mask losses bit for bit (so RGB cannot get worse);
 // with mask_geometry they move the geometry too.
