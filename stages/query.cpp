@@ -29,6 +29,7 @@ void QueryConfig::validate() const {
   if (!(text_margin >= 0) || !std::isfinite(text_margin)) bad("text_margin must be >= 0");
   if (!(min_click_alpha >= 0 && min_click_alpha <= 1)) bad("min_click_alpha must lie in [0, 1]");
   if (!(mask_threshold >= 0 && mask_threshold < 1)) bad("mask_threshold must lie in [0, 1)");
+  if (click_candidates < 1 || click_candidates > 4096) bad("click_candidates must lie in 1..4096");
 }
 
 double QueryConfig::equivalent_distance() const {
@@ -104,6 +105,40 @@ void PointKdTree::search(int node, const Eigen::Vector3d& p, int* best, double* 
   const int far = diff < 0 ? nd.right : nd.left;
   search(near, p, best, best_d2);
   if (diff * diff <= *best_d2) search(far, p, best, best_d2);
+}
+
+void PointKdTree::search_k(int node, const Eigen::Vector3d& p, size_t k,
+                           std::vector<std::pair<double, int>>* heap) const {
+  const Node& nd = nodes_[node];
+  if (nd.axis < 0) {
+    for (int i = nd.lo; i < nd.hi; ++i) {
+      const int id = ids_[i];
+      const double dx = p[0] - points_[3 * id], dy = p[1] - points_[3 * id + 1], dz = p[2] - points_[3 * id + 2];
+      const std::pair<double, int> e(dx * dx + dy * dy + dz * dz, id);
+      if (heap->size() < k) {
+        heap->push_back(e);
+        std::push_heap(heap->begin(), heap->end());
+      } else if (e < heap->front()) {
+        std::pop_heap(heap->begin(), heap->end());
+        heap->back() = e;
+        std::push_heap(heap->begin(), heap->end());
+      }
+    }
+    return;
+  }
+  const double diff = p[nd.axis] - static_cast<double>(nd.split);
+  search_k(diff < 0 ? nd.left : nd.right, p, k, heap);
+  if (heap->size() < k || diff * diff <= heap->front().first) search_k(diff < 0 ? nd.right : nd.left, p, k, heap);
+}
+
+std::vector<int> PointKdTree::nearest_k(const Eigen::Vector3d& p, int k) const {
+  std::vector<std::pair<double, int>> heap;
+  if (k <= 0 || nodes_.empty()) return {};
+  search_k(0, p, static_cast<size_t>(k), &heap);
+  std::sort(heap.begin(), heap.end());
+  std::vector<int> out;
+  for (const auto& e : heap) out.push_back(e.second);
+  return out;
 }
 
 int PointKdTree::nearest(const Eigen::Vector3d& p, double* dist2) const {
@@ -257,6 +292,10 @@ ClickResult QueryEngine::click(const Camera& camera, double x, double y) {
   r.pixel_y = static_cast<int>(std::floor(y));
   RenderSettings settings;
   settings.sh_degree = 0;
+  if (!features_are_model_) {  // mask() left selection weights there
+    device_.features.upload(gaussians_.features);
+    features_are_model_ = true;
+  }
   renderer_.forward(device_, camera, settings);
   const RenderOutput out = renderer_.download_output();
   const size_t p = static_cast<size_t>(r.pixel_y) * out.width + r.pixel_x;
@@ -272,10 +311,24 @@ ClickResult QueryEngine::click(const Camera& camera, double x, double y) {
   const double u = r.pixel_x + 0.5, v = r.pixel_y + 0.5;
   const Eigen::Vector3d xc((u - camera.cx) / camera.fx * r.depth, (v - camera.cy) / camera.fy * r.depth, r.depth);
   r.point = camera.R.transpose() * (xc - camera.t);
-  double d2 = 0;
-  r.seed = tree_.nearest(r.point, &d2);
-  if (r.seed < 0) throw std::runtime_error("the model has no anchors to select");
-  r.seed_distance = std::sqrt(d2);
+  r.pixel_feature = {out.feature[3 * p] / static_cast<float>(r.alpha), out.feature[3 * p + 1] / static_cast<float>(r.alpha),
+                     out.feature[3 * p + 2] / static_cast<float>(r.alpha)};
+  const std::vector<int> candidates = tree_.nearest_k(r.point, config_.click_candidates);
+  if (candidates.empty()) throw std::runtime_error("the model has no anchors to select");
+  double best = std::numeric_limits<double>::infinity();
+  for (int a : candidates) {  // nearest first: ties keep the nearer
+    double d2 = 0;
+    for (int c = 0; c < 3; ++c) {
+      const double x = static_cast<double>(model_.feature()[3 * static_cast<size_t>(a) + c]) - r.pixel_feature[c];
+      d2 += x * x;
+    }
+    if (d2 < best) {
+      best = d2;
+      r.seed = a;
+    }
+  }
+  const float* c = &model_.pos()[3 * static_cast<size_t>(r.seed)];
+  r.seed_distance = (r.point - Eigen::Vector3d(c[0], c[1], c[2])).norm();
   if (config_.grow) {
     r.selected = region_grow(graph_, model_.feature(), {r.seed}, config_.tau, config_.min_weight);
   } else {
@@ -338,6 +391,7 @@ std::vector<uint8_t> QueryEngine::mask(const Camera& camera, const std::vector<i
     for (int i = 0; i < k; ++i) selection_features_[3 * (static_cast<size_t>(a) * k + i)] = 1.f;
   }
   device_.features.upload(selection_features_);
+  features_are_model_ = false;
   RenderSettings settings;
   settings.sh_degree = 0;
   renderer_.forward(device_, camera, settings);

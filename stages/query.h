@@ -19,7 +19,11 @@
 // Click: render the model at the clicked view, read alpha and the expected
 // depth sum at the pixel, mean depth z = depth / alpha, unproject the pixel
 // centre (x + 0.5, y + 0.5) to X_cam = ((u - cx) z / fx, (v - cy) z / fy, z)
-// and to the world, take the nearest anchor centre (k-d tree) as the seed.
+// and to the world; of the click_candidates anchor centres nearest to it
+// (k-d tree), the seed is the one whose feature is closest to the rendered
+// feature F / alpha at the pixel (ties to the nearer): at the touching face
+// of two objects the nearest centre may belong to the other object, the
+// pixel's own feature says which one was clicked.
 // A pixel with alpha < min_click_alpha is background: an error naming the
 // pixel and its alpha.
 //
@@ -60,6 +64,10 @@ struct QueryConfig {
   float text_margin = 0.1f;      // text seeds: clusters with score >= best - text_margin
   float min_click_alpha = 0.5f;  // clicks on pixels with less alpha are background
   float mask_threshold = 0.5f;   // mask(p) = selection weight > mask_threshold
+  // Click seed: of the click_candidates anchors nearest the unprojected
+  // point, the one whose feature is closest to the rendered feature at the
+  // pixel (F / alpha); 1 = the nearest anchor alone.
+  int click_candidates = 8;
   // false: the ablation without graph region growing. The selection is then
   // every anchor whose feature lies within equivalent_distance() of a seed
   // feature (click: the seed anchor's; text: each seed cluster's mean),
@@ -81,6 +89,9 @@ class PointKdTree {
   size_t size() const { return ids_.size(); }
   // The id of the nearest point to p and its squared distance; -1 when empty.
   int nearest(const Eigen::Vector3d& p, double* dist2 = nullptr) const;
+  // The k nearest ids, nearest first (ties to the lower id); fewer when the
+  // tree holds fewer points.
+  std::vector<int> nearest_k(const Eigen::Vector3d& p, int k) const;
 
  private:
   struct Node {
@@ -91,6 +102,7 @@ class PointKdTree {
   };
   int build(int lo, int hi);
   void search(int node, const Eigen::Vector3d& p, int* best, double* best_d2) const;
+  void search_k(int node, const Eigen::Vector3d& p, size_t k, std::vector<std::pair<double, int>>* heap) const;
   std::vector<float> points_;
   std::vector<int32_t> ids_;
   std::vector<Node> nodes_;
@@ -116,7 +128,8 @@ struct ClickResult {
   int pixel_x = 0, pixel_y = 0;
   double alpha = 0, depth = 0;   // at the pixel (depth = mean depth along the ray)
   Eigen::Vector3d point = Eigen::Vector3d::Zero();  // unprojected world point
-  int seed = -1;                 // nearest anchor
+  int seed = -1;                 // seed anchor
+  std::vector<float> pixel_feature;  // [3] rendered F / alpha at the pixel
   double seed_distance = 0;      // |point - anchor centre|
   std::vector<int32_t> selected;
   double ms = 0;                 // render + unproject + nearest + grow
@@ -169,6 +182,7 @@ class QueryEngine {
   Renderer renderer_;
   DeviceGaussians device_;
   std::vector<float> selection_features_;  // [N,3] of the last mask upload
+  bool features_are_model_ = true;         // the device holds the model's features (not a selection)
   bool have_language_ = false;
   Clustering clustering_;
   LanguageFeatures language_;

@@ -223,8 +223,20 @@ TEST(Query, KdTreeMatchesBruteForce) {
     double d2 = 0;
     ASSERT_EQ(tree.nearest(p, &d2), best) << "query " << q;
     EXPECT_EQ(d2, bd);
+    // k nearest: the first k of all points sorted by (distance, id).
+    std::vector<std::pair<double, int>> all;
+    for (int i = 0; i < 2000; ++i)
+      if (i != 17) all.emplace_back((p - Eigen::Vector3d(pts[3 * i], pts[3 * i + 1], pts[3 * i + 2])).squaredNorm(), i);
+    std::sort(all.begin(), all.end());
+    const int k = 1 + q % 12;
+    std::vector<int> want;
+    for (int i = 0; i < k; ++i) want.push_back(all[i].second);
+    ASSERT_EQ(tree.nearest_k(p, k), want) << "query " << q << " k " << k;
   }
   EXPECT_EQ(PointKdTree(std::vector<float>{}).nearest(Eigen::Vector3d::Zero()), -1);
+  EXPECT_TRUE(PointKdTree(std::vector<float>{}).nearest_k(Eigen::Vector3d::Zero(), 3).empty());
+  EXPECT_EQ(PointKdTree(std::vector<float>{0, 0, 0, 1, 1, 1}).nearest_k(Eigen::Vector3d::Zero(), 5),
+            (std::vector<int>{0, 1}));
 }
 
 TEST(Query, RegionGrowMatchesFixedPointReference) {
@@ -293,6 +305,45 @@ TEST(Query, ClickSelectsExactlyTheClickedObject) {
       EXPECT_LT(r.seed_distance, w.voxel);
     }
   }
+}
+
+// At the touching face of two boxes the anchor nearest to the unprojected
+// point may belong to the other box; the feature-matched seed picks the box
+// the pixel shows. Every pixel of box A (front view) within 2 pixels of box B.
+TEST(Query, ClickAtATouchingFaceSeedsTheClickedBox) {
+  const World& w = world();
+  const Camera cam = World::front();
+  const std::vector<uint8_t> a = gt_mask(w.boxes, w.origin, w.voxel, cam, 0);
+  const std::vector<uint8_t> b = gt_mask(w.boxes, w.origin, w.voxel, cam, 1);
+  QueryConfig one;
+  one.click_candidates = 1;
+  QueryEngine matched(test::runtime(), w.built.model), nearest(test::runtime(), w.built.model, one);
+  int tried = 0, right_matched = 0, right_nearest = 0;
+  for (int y = 2; y < cam.height - 2; ++y)
+    for (int x = 2; x < cam.width - 2; ++x) {
+      if (!a[static_cast<size_t>(y) * cam.width + x]) continue;
+      bool near_b = false;
+      for (int dx = -2; dx <= 2; ++dx) near_b = near_b || b[static_cast<size_t>(y) * cam.width + x + dx];
+      if (!near_b) continue;
+      ++tried;
+      try {
+        right_matched += matched.click(cam, x + 0.5, y + 0.5).selected == w.built.anchors[0];
+        right_nearest += nearest.click(cam, x + 0.5, y + 0.5).selected == w.built.anchors[0];
+      } catch (const std::runtime_error&) {
+        // alpha < 0.5 at the very edge: a background click
+      }
+    }
+  std::printf("clicks on box A next to box B: %d, right with the feature-matched seed %d, nearest anchor %d\n",
+              tried, right_matched, right_nearest);
+  ASSERT_GT(tried, 10);
+  EXPECT_GE(right_matched, right_nearest);
+  EXPECT_GE(right_matched, tried * 9 / 10);
+  // The mask() of a query in between does not change what a click sees.
+  matched.mask(cam, w.built.anchors[1]);
+  const Eigen::Vector2i px = interior_pixel(w.boxes, w.origin, w.voxel, cam, 0);
+  const ClickResult r = matched.click(cam, px.x() + 0.5, px.y() + 0.5);
+  EXPECT_EQ(r.selected, w.built.anchors[0]);
+  EXPECT_NEAR(r.pixel_feature[0], w.boxes[0].feature[0], 0.01);
 }
 
 TEST(Query, MasksMatchAnalyticGroundTruth) {
