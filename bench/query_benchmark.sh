@@ -14,7 +14,9 @@
 #                            [-- extra train flags]
 #
 # --generate SEED writes a fresh hard scene (`ag2gs synth --hard`: touching
-# objects, similar colours, a thin pole, occlusion) to SCENE_DIR first.
+# objects, similar colours, a thin pole, occlusion) to SCENE_DIR first, with
+# full-size masks as SAM gives them (at half size the thin pole's masks are
+# about a pixel wide and stage 3 cannot match it).
 # Example (~6 minutes on 2 CPU cores):
 #   bench/query_benchmark.sh out/synth_hard_7 out/bench_query --generate 7 --iters 3000 -- --top-cells 50
 set -euo pipefail
@@ -34,7 +36,7 @@ while [ $# -gt 0 ]; do
 done
 [ -x "$bin" ] || { echo "query_benchmark: $bin not built; run scripts/build.sh first" >&2; exit 2; }
 if [ -n "$generate" ]; then
-  "$bin" synth "$scene" --hard --seed "$generate" --views 16 --mask-factor 2 --points 3000
+  "$bin" synth "$scene" --hard --seed "$generate" --views 16 --points 3000
 fi
 for f in label vocab.json clicks.json; do
   [ -e "$scene/$f" ] || { echo "query_benchmark: $scene/$f missing (a scene from \`ag2gs synth\` has it)" >&2; exit 2; }

@@ -150,6 +150,15 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   a.eval = so.eval;
   std::unique_ptr<Scene> scene = Scene::open(a.scene, so);
   scene->require_points();
+  // Without SAM masks the features never train: nothing to propagate or cluster.
+  const bool semantics = scene->semantics() != SemanticsKind::none;
+  if (!semantics && !a.resume && (has_stage(a, 2) || has_stage(a, 3)) &&
+      (a.config.effective_prop_iters() > 0 || has_stage(a, 3))) {
+    spdlog::info("scene {} has no SAM masks: stages 2 and 3 skipped (no semantic features to propagate or cluster)",
+                 scene->dir());
+    a.config.prop_iters = 0;
+    a.stages.erase(std::remove_if(a.stages.begin(), a.stages.end(), [](int s) { return s != 1; }), a.stages.end());
+  }
 
   Runtime rt(global.device);
   rt.set_profiling(a.profile);

@@ -236,5 +236,23 @@ TEST(TrainStages, CliRunsAllStagesAndInfoReportsThem) {
   EXPECT_NE(missing.output.find("model.ag2gs"), std::string::npos) << missing.output;
 }
 
+// A scene without SAM masks trains stage 1 only: its features never train,
+// so there is nothing for stages 2 and 3.
+TEST(TrainStages, SceneWithoutMasksSkipsStages2And3) {
+  test::ScratchDir dir("train_nomasks");
+  fs::create_directories(dir.path() / "scene");
+  for (const char* sub : {"images", "sparse"})
+    fs::copy(fs::path(sample_scene()) / sub, dir.path() / "scene" / sub, fs::copy_options::recursive);
+  const test::CliResult r = test::run_cli("train " + dir.file("scene") +
+                                          " -r 2 --top-cells 50 --iters 30 --seed 1 --log-every 0 -o " +
+                                          dir.file("m"));
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_NE(r.output.find("stages 2 and 3 skipped"), std::string::npos) << r.output;
+  const ModelArchive ar = read_model_archive(dir.file("m/model.ag2gs"));
+  EXPECT_FALSE(AnchorGraph::in_archive(ar));
+  EXPECT_FALSE(ar.meta.contains("clusters"));
+  EXPECT_EQ(ar.meta["train"]["iteration"].get<int>(), 30);
+}
+
 }  // namespace
 }  // namespace ag2gs
