@@ -435,6 +435,9 @@ void register_train(CLI::App& app, GlobalOptions& global) {
   sub->add_flag("!--no-unmasked-group", c.mask_unmasked_group,
                 "Leave pixels without a SAM mask out of the mask losses (default: they form one more mask, so "
                 "object features are pushed away from the unmasked surroundings)");
+  sub->add_flag("!--no-grow-same-layer", c.grow_same_layer,
+                "Grow only finer anchors (default: also anchors of a child's own layer where its mean left its "
+                "voxel, so the model spreads into regions without SfM points)");
   sub->add_flag("!--no-feature-ball", c.feature_ball,
                 "Let the semantic features grow without bound (default: projected into the unit ball after each "
                 "step, so the graph stages' absolute thresholds keep their meaning)");

@@ -171,7 +171,7 @@ GrowthResult AnchorGrowth::step(AnchorModel& model, uint64_t seed) {
     if (st.count[g] < min_count) continue;
     const size_t a = g / K;
     const int layer = model.layer()[a];
-    if (layer + 1 >= layers) continue;
+    if (layer + 1 >= layers && !config_.same_layer) continue;
     const double mean_grad = static_cast<double>(st.grad_sum[g]) / st.count[g];
     const double threshold =
         static_cast<double>(config_.grad_threshold) * std::pow(static_cast<double>(config_.layer_factor), layer);
@@ -180,9 +180,16 @@ GrowthResult AnchorGrowth::step(AnchorModel& model, uint64_t seed) {
     Eigen::Vector3d mean;
     for (int k = 0; k < 3; ++k) mean[k] = double(model.pos()[3 * a + k]) + double(model.offset()[3 * g + k]) * l;
     if (!mean.allFinite()) continue;
-    const Eigen::Vector3i cell = grid.cell_of(layer + 1, mean);
-    if ((cell.array() < -kMaxAnchorCell).any() || (cell.array() >= kMaxAnchorCell).any()) continue;
-    requests.push_back({anchor_voxel_key(layer + 1, cell), static_cast<int64_t>(g), layer + 1, cell});
+    auto request = [&](int to_layer) {
+      const Eigen::Vector3i cell = grid.cell_of(to_layer, mean);
+      if ((cell.array() < -kMaxAnchorCell).any() || (cell.array() >= kMaxAnchorCell).any()) return;
+      requests.push_back({anchor_voxel_key(to_layer, cell), static_cast<int64_t>(g), to_layer, cell});
+    };
+    if (layer + 1 < layers) request(layer + 1);
+    if (config_.same_layer) {
+      const Eigen::Vector3d centre(model.pos()[3 * a], model.pos()[3 * a + 1], model.pos()[3 * a + 2]);
+      if (grid.cell_of(layer, mean) != grid.cell_of(layer, centre)) request(layer);
+    }
   }
   r.requests = static_cast<int>(requests.size());
   std::sort(requests.begin(), requests.end(),

@@ -22,7 +22,9 @@
 //     * steps since the last decision)) and mean gradient grad_sum / count >
 //     grad_threshold * layer_factor^layer(anchor), whose anchor is not on the
 //     finest layer, asks for an anchor of layer + 1 at the voxel holding its
-//     mean (pos + offset * l, from the model's host values). Requests are
+//     mean (pos + offset * l, from the model's host values); with same_layer,
+//     a growing child (any layer) whose mean lies outside its anchor's own
+//     voxel also asks for an anchor of its layer at that voxel. Requests are
 //     sorted by (voxel key, child row); the first request of a voxel wins
 //     (its child is the parent: the new children copy its SH, opacity and
 //     rotation, AnchorModel::add_anchor), taken voxels are skipped. New
@@ -99,6 +101,11 @@ struct GrowthConfig {
   bool prune_unseen = true;        // prune anchors none of whose children was seen in the window
   int unseen_window = 0;           // accumulation steps; max(this, steps since last decision)
   bool ndc = true;                 // gradients in NDC units (x W/2, H/2) rather than pixels
+  // Also grow sideways: a growing child whose mean left its anchor's voxel
+  // asks for an anchor of the same layer at the voxel holding its mean (any
+  // layer, the finest too). Lets the model spread into regions without SfM
+  // points (textureless walls) instead of only refining where points were.
+  bool same_layer = false;
 
   // Throws std::invalid_argument naming the first field out of range.
   void validate() const;

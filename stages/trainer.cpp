@@ -101,6 +101,7 @@ GrowthConfig TrainConfig::growth_config(size_t train_views) const {
   const size_t two_epochs = std::min<size_t>(2 * train_views, static_cast<size_t>(std::numeric_limits<int>::max()));
   g.unseen_window = prune_unseen_window > 0 ? prune_unseen_window : static_cast<int>(two_epochs);
   g.ndc = true;
+  g.same_layer = grow_same_layer;
   return g;
 }
 
@@ -125,6 +126,7 @@ nlohmann::json TrainConfig::to_json() const {
           {"mask_geometry", mask_geometry},
           {"mask_unmasked_group", mask_unmasked_group},
           {"feature_ball", feature_ball},
+          {"grow_same_layer", grow_same_layer},
           {"prop_iters", effective_prop_iters()},
           {"w_prop", w_prop},
           {"prop_tau", prop_tau},
@@ -208,6 +210,7 @@ TrainConfig TrainConfig::from_json(const nlohmann::json& j) {
     c.mask_geometry = j.at("mask_geometry").get<bool>();
     c.mask_unmasked_group = j.value("mask_unmasked_group", false);  // written before the option
     c.feature_ball = j.value("feature_ball", false);
+    c.grow_same_layer = j.value("grow_same_layer", false);
     // Written before stage 2 existed: stage 1 only.
     c.prop_iters = j.value("prop_iters", 0);
     c.w_prop = j.value("w_prop", 0.01f);  // the default of that time

@@ -151,6 +151,9 @@ struct TrainConfig {
   int grow_until = 0;
   int grow_every = 100;
   double grow_threshold = 1.5e-4;
+  // Growing also adds anchors of a child's own layer where its mean left its
+  // voxel (GrowthConfig::same_layer).
+  bool grow_same_layer = true;
   // A child grows only when visible in at least this fraction of the
   // iterations since the last round (official: 0.4 = 40 of 100).
   double grow_min_seen = 0.4;

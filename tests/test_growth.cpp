@@ -299,6 +299,41 @@ TEST(GrowthDecision, GrowsOneFinerAnchorPerRequestedVoxel) {
   m.check();
 }
 
+// Sideways growth (same_layer): a growing child whose mean left its anchor's
+// voxel asks for an anchor of its own layer there, on the finest layer too;
+// children inside their voxel ask for nothing more.
+TEST(GrowthDecision, SameLayerGrowthFollowsChildrenOutOfTheirVoxel) {
+  GrowthConfig sideways;
+  sideways.same_layer = true;
+  // The base scenario keeps every mean inside its own voxel: same decisions.
+  const Ran base = run_scenario(), same = run_scenario(sideways);
+  EXPECT_EQ(same.r.added, base.r.added);
+  EXPECT_EQ(same.r.anchor_rows, base.r.anchor_rows);
+
+  Scenario s = scenario();
+  const float l2 = s.model.voxel()[2];  // a2 is on layer 2 (the finest)
+  s.model.offset()[2 * 3] = 0.7f;        // row 2 mean x = 1.2: layer-0 cell (1,0,0), free
+  s.model.offset()[10 * 3 + 1] = 0.9f;   // row 10 mean leaves a2's cell along y
+  s.model.offset()[6 * 3] = 0.9f;        // row 6 below the threshold: stays put
+  AnchorGrowth growth(runtime(), sideways);
+  growth.reset(s.model.gaussians());
+  feed(growth, s.v_px, s.radii, 10, kW, kH, s.seen);
+  AnchorModel m = s.model;
+  const GrowthResult r = growth.step(m, 5);
+  // Row 2 asks for layer-1 (4,2,2) (row 3 asks for (3,2,2)) and layer-0
+  // (1,0,0); row 10 asks for layer-2 (1,2,1) beside a2; rows 5, 15, 26 as before.
+  EXPECT_GE(m.find(0, {1, 0, 0}), 0);
+  EXPECT_GE(m.find(1, {4, 2, 2}), 0);
+  EXPECT_GE(m.find(1, {3, 2, 2}), 0);
+  const Eigen::Vector3d c2(m.grid().centre(2, {1, 1, 1}));
+  const Eigen::Vector3i beside = m.grid().cell_of(2, c2 + Eigen::Vector3d(0, 0.9 * l2, 0));
+  EXPECT_EQ(beside, Eigen::Vector3i(1, 2, 1));
+  EXPECT_GE(m.find(2, beside), 0);
+  EXPECT_EQ(m.find(0, {3, 0, 0}), -1);  // row 6 (a1, below the threshold) moved out but does not grow
+  EXPECT_EQ(r.added, base.r.added + 3);
+  m.check();
+}
+
 TEST(GrowthDecision, PrunesLowOpacityAndUnseenButNotNewAnchors) {
   const Ran x = run_scenario();
   EXPECT_EQ(x.r.pruned, 2);
