@@ -29,6 +29,8 @@ struct BaselineArgs {
   bool eval = false;
   int log_every = 100;
   int test_every = 0;
+  std::vector<int> test_at;              // --test-at: evaluate at these iterations too
+  std::vector<std::string> test_images;  // --test-views: held out instead of every 8th
   bool profile = false;
   FreeTrainConfig config;
 };
@@ -51,7 +53,9 @@ void cmd_baseline(const GlobalOptions& global, BaselineArgs& a) {
   check_model_dir_writable(a.out);
   SceneOptions so;
   so.resolution = a.resolution;
-  so.eval = a.eval;
+  so.eval = a.eval || !a.test_images.empty();
+  so.test_images = a.test_images;
+  a.eval = so.eval;
   std::unique_ptr<Scene> scene = Scene::open(a.scene, so);
   scene->require_points();
 
@@ -132,7 +136,9 @@ void cmd_baseline(const GlobalOptions& global, BaselineArgs& a) {
       sum_loss = sum_psnr = sum_l1 = sum_ssim = 0;
       count = 0;
     }
-    if (a.eval && a.test_every > 0 && st.iteration % a.test_every == 0 && st.iteration != c.iterations)
+    const bool test_now = (a.test_every > 0 && st.iteration % a.test_every == 0) ||
+                          std::find(a.test_at.begin(), a.test_at.end(), st.iteration) != a.test_at.end();
+    if (a.eval && test_now && st.iteration != c.iterations)
       run_eval(st.iteration);
   }
   const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
@@ -217,6 +223,12 @@ void register_baseline(CLI::App& app, GlobalOptions& global) {
       ->check(CLI::NonNegativeNumber);
   sub->add_option("--log-every", a->log_every, "Progress line every N iterations (default 100; 0 = none)")
       ->check(CLI::NonNegativeNumber);
+  sub->add_option("--test-at", a->test_at, "With --eval: also test at these iterations (comma-separated)")
+      ->delimiter(',');
+  sub->add_option("--test-views", a->test_images,
+                  "Hold out these images (comma-separated names or stems, e.g. 6.jpg) instead of every 8th; implies "
+                  "--eval")
+      ->delimiter(',');
   sub->add_option("--test-every", a->test_every, "With --eval: test metrics every N iterations (default 0 = end only)")
       ->check(CLI::NonNegativeNumber);
   sub->add_flag("--profile", a->profile, "Time every kernel and print the per-iteration breakdown");

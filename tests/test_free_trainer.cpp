@@ -385,6 +385,15 @@ TEST(FreeTrainer, CliProgressEvalMetricsAndErrors) {
   EXPECT_EQ(m["test_views"].get<int>(), 2);
   EXPECT_EQ(m["gaussians"].get<size_t>(), read_ply(dir.file("m/point_cloud.ply")).size());
 
+  // --test-views holds out the named image (implies --eval); --test-at adds evaluations.
+  r = test::run_cli("baseline " + sample_scene() + " -r 2 --iters 20 --test-views view_003 --test-at 10 --log-every 0 -o " +
+                    dir.file("named"));
+  ASSERT_EQ(r.code, 0) << r.output;
+  const nlohmann::json named = nlohmann::json::parse(std::ifstream(dir.file("named/metrics.json")));
+  EXPECT_EQ(named["test_views"].get<int>(), 1);
+  ASSERT_EQ(named["test"].size(), 2u) << named.dump();
+  EXPECT_EQ(named["test"][0]["iteration"].get<int>(), 10);
+
   // An unwritable model folder fails before training.
   test::write_bytes(dir.file("file"), "not a folder");
   r = test::run_cli("baseline " + sample_scene() + " -r 2 --iters 5 -o " + dir.file("file/model"));
