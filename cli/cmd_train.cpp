@@ -263,7 +263,13 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
       stage1_end_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() - eval_seconds;
       spdlog::info("stage 2 from iteration {}: {} anchors", it + 1, trainer.anchors());
     }
-    StepStats st = trainer.step(log_now);
+    // Tests run inside the step, before its growing round and opacity
+    // reset (as 3DGS does), so a test at a reset iteration is meaningful.
+    const int iteration = it + 1;
+    const bool test_now = a.eval && iteration != it_end &&
+                          ((a.test_every > 0 && iteration % a.test_every == 0) ||
+                           std::find(a.test_at.begin(), a.test_at.end(), iteration) != a.test_at.end());
+    StepStats st = test_now ? trainer.step(log_now, [&] { run_eval(iteration); }) : trainer.step(log_now);
     if (st.stage2 && it == c.iterations)
       spdlog::info("stage 2: anchor graph with {} edges (mean degree {:.2f})", trainer.graph().edges(),
                    trainer.anchors() ? 2.0 * trainer.graph().edges() / trainer.anchors() : 0.0);
@@ -310,9 +316,6 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
       count = count_masks = count_prop = 0;
       sum_prop = 0;
     }
-    const bool test_now = (a.test_every > 0 && st.iteration % a.test_every == 0) ||
-                          std::find(a.test_at.begin(), a.test_at.end(), st.iteration) != a.test_at.end();
-    if (a.eval && test_now && st.iteration != it_end) run_eval(st.iteration);
     if (g_interrupted && st.iteration != it_end) {
       trainer.save(a.out);
       spdlog::warn("interrupted: checkpoint at iteration {} of {} in {}; continue with\n  ag2gs train {} -o {} --resume",

@@ -368,7 +368,7 @@ const AnchorModel& Trainer::model() {
   return model_;
 }
 
-StepStats Trainer::step(bool compute_offset_loss) {
+StepStats Trainer::step(bool compute_offset_loss, const std::function<void()>& before_rounds) {
   StepStats st;
   const int it = iteration_;
   st.iteration = it + 1;
@@ -523,6 +523,7 @@ StepStats Trainer::step(bool compute_offset_loss) {
     if (!st.stage2 && growth_.collecting(st.iteration))
       growth_.accumulate(*renderer_.device_grads().means2d, renderer_.device_radii(), w, h);
   }
+  if (before_rounds) before_rounds();
   if (!st.stage2 && growth_.due(st.iteration)) {
     model();  // host values current
     // No opacity pruning shortly after a reset (a pure function of the

@@ -235,7 +235,11 @@ class Trainer {
   // One training iteration. With compute_offset_loss the (unweighted) L_in
   // is read back and included in the stats' loss (a host synchronisation,
   // for progress lines); the gradient is always applied.
-  StepStats step(bool compute_offset_loss = false);
+  // before_rounds, when set, runs after the parameter update and before
+  // this iteration's growing round and opacity reset (3DGS evaluates there:
+  // a test at a reset iteration then sees the trained opacities, not the
+  // reset ones). It must leave the parameters alone (evaluate() does).
+  StepStats step(bool compute_offset_loss = false, const std::function<void()>& before_rounds = {});
 
   // Mean PSNR/SSIM/L1 over `views` (rendered at the active SH degree, no
   // clamping of the rendered colours).

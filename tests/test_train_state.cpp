@@ -85,6 +85,44 @@ TEST(TrainState, OpacityResetCapsOpacityAndZeroesItsMoments) {
   }
 }
 
+// A callback given to step() runs after the update and before the growing
+// round and opacity reset of that iteration (where 3DGS evaluates): a test
+// there sees the trained opacities. It changes nothing in the training.
+TEST(TrainState, EvaluationBeforeTheResetOfItsIteration) {
+  SceneOptions so;
+  so.resolution = 2;
+  so.eval = true;
+  auto scene = Scene::open(sample_scene(), so);
+  TrainConfig cfg;
+  cfg.iterations = 45;
+  cfg.seed = 2;
+  cfg.anchors.top_cells = 50;
+  cfg.grow_every = 0;
+  cfg.opacity_reset_every = 20;
+  Trainer a(test::runtime(), *scene, cfg), b(test::runtime(), *scene, cfg);
+  const std::vector<int> tests = scene->test_views();
+  EvalStats before{}, after{};
+  for (int it = 1; it <= 25; ++it) {
+    if (it == 20) {
+      bool called = false;
+      const StepStats st = a.step(false, [&] {
+        called = true;
+        before = a.evaluate(tests);
+      });
+      EXPECT_TRUE(called);
+      EXPECT_TRUE(st.opacity_reset);
+      after = a.evaluate(tests);
+    } else {
+      a.step();
+    }
+    b.step();
+  }
+  std::printf("test PSNR at the reset iteration: %.3f dB before the reset, %.3f dB after\n", before.psnr, after.psnr);
+  EXPECT_GT(before.psnr, after.psnr + 1.0);
+  EXPECT_TRUE(a.model().opacity_logit() == b.model().opacity_logit());
+  EXPECT_TRUE(a.model().sh() == b.model().sh());
+}
+
 // Growing rounds at 25 and 50, opacity resets at 30 and 60: the split at 40
 // lies between a round and the next (whose statistics then span both
 // halves) and between two resets.
