@@ -322,6 +322,9 @@ void register_query(CLI::App& app, GlobalOptions& global) {
   q->add_option("--tau", a->config.tau, "Bilateral weight scale tau (default 0.05)");
   q->add_option("--text-margin", a->config.text_margin, "Text seeds: clusters within this of the best score (0.1)");
   q->add_option("--graph-scale", a->config.graph_cell_scale, "Query graph neighbourhood in top voxels (default 2)");
+  q->add_option("--click-candidates", a->config.click_candidates,
+                "Click seed: of this many anchors nearest the clicked point, the one whose feature is closest to the "
+                "pixel's rendered feature (default 8; 1 = the nearest anchor)");
   set_action(q, [&global, a] { cmd_query(global, *a); });
 }
 
