@@ -134,14 +134,7 @@ void register_eval(CLI::App& app, GlobalOptions& global) {
   e->add_option("-o,--out", a->out, "Report JSON to write")->required();
   e->add_flag("--no-grow", a->no_grow,
               "Ablation: select by plain feature similarity to the seeds instead of region growing over the graph");
-  e->add_option("--min-weight", a->config.min_weight,
-                "Grow along edges with exp(-|fi-fj|^2/(2 tau^2)) above this (default 0.9)");
-  e->add_option("--tau", a->config.tau, "Bilateral weight scale tau (default 0.05)");
-  e->add_option("--text-margin", a->config.text_margin, "Text seeds: clusters within this of the best score (0.1)");
-  e->add_option("--graph-scale", a->config.graph_cell_scale, "Query graph neighbourhood in top voxels (default 2)");
-  e->add_option("--click-candidates", a->config.click_candidates,
-                "Click seed: of this many anchors nearest the clicked point, the one whose feature is closest to the "
-                "pixel's rendered feature (default 8; 1 = the nearest anchor)");
+  add_query_config_options(e, a->config);
   e->add_option("--boundary-ratio", a->boundary_ratio, "Boundary IoU width as a fraction of the diagonal (0.02)");
   set_action(e, [&global, a] { cmd_eval(global, *a); });
 }

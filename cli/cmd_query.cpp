@@ -303,6 +303,17 @@ void cmd_query(const GlobalOptions& global, QueryArgs a) {
 
 }  // namespace
 
+void add_query_config_options(CLI::App* sub, QueryConfig& c) {
+  sub->add_option("--min-weight", c.min_weight,
+                  "Grow along edges with exp(-|fi-fj|^2/(2 tau^2)) above this (default 0.9)");
+  sub->add_option("--tau", c.tau, "Bilateral weight scale tau (default 0.05)");
+  sub->add_option("--text-margin", c.text_margin, "Text seeds: clusters within this of the best score (0.1)");
+  sub->add_option("--graph-scale", c.graph_cell_scale, "Query graph neighbourhood in top voxels (default 2)");
+  sub->add_option("--click-candidates", c.click_candidates,
+                  "Click seed: of this many anchors nearest the clicked point, the one whose feature is closest to "
+                  "the pixel's rendered feature (default 8; 1 = the nearest anchor)");
+}
+
 void register_query(CLI::App& app, GlobalOptions& global) {
   auto a = std::make_shared<QueryArgs>();
   auto* q = app.add_subcommand("query", "Select an object by a click or by text; write its Gaussians and masks");
@@ -317,14 +328,7 @@ void register_query(CLI::App& app, GlobalOptions& global) {
   q->add_option("--views", a->views,
                 "Also write masks for: train, test (every 8th image in name order), all, or comma-separated names");
   q->add_option("-r,--resolution", a->resolution, "Divide the cameras by R (default: the model's training -r)");
-  q->add_option("--min-weight", a->config.min_weight,
-                "Grow along edges with exp(-|fi-fj|^2/(2 tau^2)) above this (default 0.9)");
-  q->add_option("--tau", a->config.tau, "Bilateral weight scale tau (default 0.05)");
-  q->add_option("--text-margin", a->config.text_margin, "Text seeds: clusters within this of the best score (0.1)");
-  q->add_option("--graph-scale", a->config.graph_cell_scale, "Query graph neighbourhood in top voxels (default 2)");
-  q->add_option("--click-candidates", a->config.click_candidates,
-                "Click seed: of this many anchors nearest the clicked point, the one whose feature is closest to the "
-                "pixel's rendered feature (default 8; 1 = the nearest anchor)");
+  add_query_config_options(q, a->config);
   set_action(q, [&global, a] { cmd_query(global, *a); });
 }
 

@@ -3,6 +3,8 @@
 #include <CLI/CLI.hpp>
 #include <functional>
 
+#include "stages/query.h"
+
 namespace ag2gs::cli {
 
 struct GlobalOptions {
@@ -23,6 +25,8 @@ void register_train(CLI::App& app, GlobalOptions& global);          // train (cm
 void register_baseline(CLI::App& app, GlobalOptions& global);       // baseline (cmd_baseline.cpp)
 void register_query(CLI::App& app, GlobalOptions& global);          // query (cmd_query.cpp)
 void register_eval(CLI::App& app, GlobalOptions& global);           // eval (cmd_eval.cpp)
+// The QueryConfig flags shared by query and eval (cmd_query.cpp).
+void add_query_config_options(CLI::App* sub, QueryConfig& config);
 // Runs the parsed subcommand; returns the process exit code.
 int run_selected(CLI::App& app, const GlobalOptions& global);
 
