@@ -214,10 +214,10 @@ void cmd_query(const GlobalOptions& global, QueryArgs a) {
       throw std::invalid_argument("--click " + a.click + " is outside the " + std::to_string(cv.full_camera.width) +
                                   "x" + std::to_string(cv.full_camera.height) + " image " + cv.name +
                                   " (x is the column in [0, width), y the row in [0, height))");
-    const double sx = double(cam.width) / cv.full_camera.width, sy = double(cam.height) / cv.full_camera.height;
+    const Eigen::Vector2d px = full_size_click(cv.full_camera, cam, cx, cy);
     ClickResult r;
     try {
-      r = engine.click(cam, (std::floor(cx) + 0.5) * sx, (std::floor(cy) + 0.5) * sy);
+      r = engine.click(cam, px.x(), px.y());
     } catch (const std::runtime_error& e) {
       throw std::runtime_error("--click " + a.click + " (full-size pixel; rendered at -r " +
                                std::to_string(a.resolution) + "): " + e.what());

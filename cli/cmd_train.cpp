@@ -50,6 +50,14 @@ struct TrainArgs {
 
 bool has_stage(const TrainArgs& a, int s) { return std::find(a.stages.begin(), a.stages.end(), s) != a.stages.end(); }
 
+// The stage-3 summary line, after training or for --stages 3 alone.
+void log_stage3(const Stage3Summary& s, const Stage3Config& config) {
+  spdlog::info("stage 3: {} clusters of {} anchors ({} components, {} anchors in clusters under {} skipped), {} with "
+               "a language feature{}",
+               s.clusters, s.anchors, s.components, s.skipped_anchors, config.cluster.min_cluster_size,
+               s.with_language, s.language ? "" : " (scene without CLIP features: none attached)");
+}
+
 // --stages 3 alone: stage 3 on MODEL_DIR/model.ag2gs, at the resolution and
 // split it was trained with.
 void stage3_only(const GlobalOptions& global, TrainArgs& a) {
@@ -65,10 +73,8 @@ void stage3_only(const GlobalOptions& global, TrainArgs& a) {
   std::unique_ptr<Scene> scene = Scene::open(a.scene, so);
   Runtime rt(global.device);
   const Stage3Summary s = run_stage3_on_model(rt, *scene, a.out, scene->train_views(), a.stage3);
-  spdlog::info("stage 3: {} clusters of {} anchors ({} components, {} anchors in clusters under {} skipped), {} with "
-               "a language feature{}, {:.1f} s; wrote {}",
-               s.clusters, s.anchors, s.components, s.skipped_anchors, a.stage3.cluster.min_cluster_size,
-               s.with_language, s.language ? "" : " (scene without CLIP features)", s.total_ms / 1000, path);
+  log_stage3(s, a.stage3);
+  spdlog::info("stage 3: {:.1f} s; wrote {}", s.total_ms / 1000, path);
 }
 
 std::string fmt_duration(double s) {
@@ -378,10 +384,7 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   nlohmann::json stages = {{"stage1_seconds", s1}, {"stage2_seconds", s2}};
   if (has_stage(a, 3)) {
     const Stage3Summary s3 = run_stage3_on_model(rt, *scene, a.out, scene->train_views(), a.stage3);
-    spdlog::info("stage 3: {} clusters of {} anchors ({} components, {} anchors in clusters under {} skipped), {} "
-                 "with a language feature{}",
-                 s3.clusters, s3.anchors, s3.components, s3.skipped_anchors, a.stage3.cluster.min_cluster_size,
-                 s3.with_language, s3.language ? "" : " (scene without CLIP features: none attached)");
+    log_stage3(s3, a.stage3);
     stages["stage3_seconds"] = s3.total_ms / 1000;
     stages["clusters"] = s3.clusters;
     stages["clusters_with_language"] = s3.with_language;

@@ -279,6 +279,10 @@ std::vector<int32_t> similar_anchors(const std::vector<float>& features, const s
   return out;
 }
 
+Eigen::Vector2d full_size_click(const Camera& full, const Camera& camera, double x, double y) {
+  return {(std::floor(x) + 0.5) * camera.width / full.width, (std::floor(y) + 0.5) * camera.height / full.height};
+}
+
 ClickResult QueryEngine::click(const Camera& camera, double x, double y) {
   const auto t0 = std::chrono::steady_clock::now();
   camera.validate();

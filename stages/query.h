@@ -124,6 +124,11 @@ std::vector<int32_t> similar_anchors(const std::vector<float>& features, const s
 // std::invalid_argument when the dimension differs, saying both.
 std::vector<double> text_scores(const LanguageFeatures& language, const std::vector<float>& embedding);
 
+// A click given in pixels of the full-size image (column x, row y) as a
+// position in `camera`, the same view at another size: the centre of the
+// clicked pixel, scaled. Queries take full-size clicks (click lists, --click).
+Eigen::Vector2d full_size_click(const Camera& full, const Camera& camera, double x, double y);
+
 struct ClickResult {
   int pixel_x = 0, pixel_y = 0;
   double alpha = 0, depth = 0;   // at the pixel (depth = mean depth along the ray)

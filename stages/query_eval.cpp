@@ -253,12 +253,11 @@ QueryEvalReport evaluate_queries(QueryEngine& engine, const Scene& scene, const 
       throw std::invalid_argument("click (" + std::to_string(c.x) + ", " + std::to_string(c.y) + ") in frame " +
                                   c.frame + " lies outside its " + std::to_string(view.full_camera.width) + "x" +
                                   std::to_string(view.full_camera.height) + " image");
-    const double px = (std::floor(c.x) + 0.5) * cam.width / view.full_camera.width;
-    const double py = (std::floor(c.y) + 0.5) * cam.height / view.full_camera.height;
+    const Eigen::Vector2d px = full_size_click(view.full_camera, cam, c.x, c.y);
     std::vector<int32_t> selected;
     const auto t0 = std::chrono::steady_clock::now();
     try {
-      selected = engine.click(cam, px, py).selected;
+      selected = engine.click(cam, px.x(), px.y()).selected;
     } catch (const std::runtime_error& e) {
       q.note = e.what();  // background: no prediction
     }
