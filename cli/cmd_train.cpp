@@ -260,6 +260,7 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   double psnr0 = NAN;
   // Running means over the iterations since the last progress line.
   double sum_loss = 0, sum_psnr = 0, sum_l1 = 0, sum_ssim = 0, sum_dist = 0, sum_is = 0, sum_ic = 0;
+  double sum_isect = 0;
   int count = 0, count_masks = 0;
   double stage1_end_s = -1, sum_prop = 0;
   int count_prop = 0;
@@ -294,6 +295,7 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
     sum_l1 += st.l1;
     sum_ssim += st.ssim;
     sum_dist += st.distortion;
+    sum_isect += static_cast<double>(st.intersections);
     if (st.with_masks) {
       sum_is += st.l_is;
       sum_ic += st.l_ic;
@@ -316,9 +318,10 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
           st.iteration, it_end, sum_loss / count + c.w_offset * st.offset_reg, sum_l1 / count, sum_ssim / count,
           sum_dist / count, st.offset_reg, mask_terms, sum_psnr / count, st.sh_degree, trainer.anchors(),
           trainer.gaussians(), its, fmt_duration(eta));
+      spdlog::debug("  {:.0f} tile intersections per iteration", sum_isect / count);
       t_last = now;
       it_last = st.iteration;
-      sum_loss = sum_psnr = sum_l1 = sum_ssim = sum_dist = sum_is = sum_ic = 0;
+      sum_loss = sum_psnr = sum_l1 = sum_ssim = sum_dist = sum_is = sum_ic = sum_isect = 0;
       count = count_masks = count_prop = 0;
       sum_prop = 0;
     }

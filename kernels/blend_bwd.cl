@@ -45,12 +45,13 @@ inline RowTotals load_totals(PixelRow pr, int width, size_t npix,
 }
 
 #if NO_STAGING
-// CPU layout: one work-item per tile walks its rows (VW pixels each) in order,
-// so there are no barriers and the running state stays in SIMD registers
-// (PoCL keeps values that live across a barrier in memory). The tile's slots
-// are zeroed first; each row then adds its lane-summed partials in row order,
-// the same order of additions as the work-group sum of the staged layout.
-// A row adds nothing for a Gaussian that none of its pixels blended.
+// CPU layout: one work-item per tile. The Gaussians are the outer loop and the
+// tile's rows (VW pixels each) the inner one, with each row's running state
+// in private arrays: a record is read once per tile, and the intersection's
+// 13 partials are summed over rows as vectors (rows in order, per lane) and
+// reduced across lanes once, not once per row. No barriers, so PoCL keeps
+// the vectors in registers and cache. A row adds nothing for a Gaussian that
+// none of its pixels blended.
 __kernel __attribute__((reqd_work_group_size(1, 1, 1)))
 void blend_bwd(int width, int height, int tiles_x,
                __constant const float* cam,          // [CAM_SIZE]
@@ -73,77 +74,116 @@ void blend_bwd(int width, int height, int tiles_x,
   const size_t npix = (size_t)width * height;
   const float dnear = cam[CAM_DNEAR], dfar = cam[CAM_DFAR];
   int2 range = ranges[tile];
-  int n = range.y - range.x;
+  const int n = range.y - range.x;
   __global const uint* vals = isect_vals + range.x;
-  for (int k = 0; k < n; ++k) {
-    __global float* o = isect_grads + (size_t)vals[k] * G2_SIZE;
-    for (int c = 0; c < G2_SIZE; ++c) o[c] = 0.f;
-  }
+
+  RowTotals tot[WG_SIZE];
+  vfloat Ts[WG_SIZE], GPs[WG_SIZE], As[WG_SIZE], Qs[WG_SIZE];
+  vfloat pxs[WG_SIZE];
+  float pys[WG_SIZE], dx0s[WG_SIZE], dx1s[WG_SIZE];
+  int bounds[WG_SIZE];
+  int bound = 0;
   for (int row = 0; row < WG_SIZE; ++row) {
     PixelRow pr = pixel_row_of(tile, row, tiles_x, width, height);
+    bounds[row] = 0;
+    pxs[row] = pr.px;
+    pys[row] = pr.py;
+    dx0s[row] = -(pr.x0 + 0.5f);
+    dx1s[row] = -(pr.x0 + (VW - 0.5f));
+    Ts[row] = 1.f;
+    GPs[row] = As[row] = Qs[row] = 0.f;
     if (!ANY(pr.inside)) continue;
-    RowTotals t = load_totals(pr, width, npix, out_rgb, out_feat, out_depth, out_aux, out_last, v_rgb, v_feat,
-                              v_depth, v_alpha, v_dist);
-    int bound = 0;
+    tot[row] = load_totals(pr, width, npix, out_rgb, out_feat, out_depth, out_aux, out_last, v_rgb, v_feat, v_depth,
+                           v_alpha, v_dist);
 #if VW == 1
-    bound = t.last;
+    int b = tot[row].last;
 #else
+    int b = 0;
     {
       int tmp[VW];
-      VSTORE(t.last, tmp);
-      for (int l = 0; l < VW; ++l) bound = max(bound, tmp[l]);
+      VSTORE(tot[row].last, tmp);
+      for (int l = 0; l < VW; ++l) b = max(b, tmp[l]);
     }
 #endif
-    bound = min(bound, n);
-    const float dx0 = -(pr.x0 + 0.5f), dx1 = -(pr.x0 + (VW - 0.5f));
-    vfloat T = 1.f, G_P = 0.f, A = 0.f, Q = 0.f;
-    for (int j = 0; j < bound; ++j) {
-      uint slot = vals[j];
-      __global const float* q = records + (size_t)isect_gid[slot] * REC_SIZE;
-      const float u = q[REC_U];
-      float dy = q[REC_V] - pr.py;
-      if (row_culled(q, dy, u + dx0, u + dx1)) continue;
-      const float cA = q[REC_CA], cB = q[REC_CB], cC = q[REC_CC], o = q[REC_OPACITY];
-      vfloat dx = u - pr.px;
-      vfloat sigma = blend_sigma(cA, cB, cC, dx, dy);
-      vfloat G = blend_falloff(sigma);
-      vfloat oG = o * G;
-      vfloat alpha = fmin(ALPHA_MAX, oG);
-      vint ok = (vint)j < t.last && sigma >= 0.f && alpha >= ALPHA_MIN;
-      if (!ANY(ok)) continue;
-      vfloat w = select((vfloat)0.f, alpha * T, ok);
+    bounds[row] = min(b, n);
+    bound = max(bound, bounds[row]);
+  }
 
+  for (int j = 0; j < n; ++j) {
+    const uint slot = vals[j];
+    __global float* o2 = isect_grads + (size_t)slot * G2_SIZE;
+    vfloat s_u = 0.f, s_v = 0.f, s_ca = 0.f, s_cb = 0.f, s_cc = 0.f, s_op = 0.f;
+    vfloat s_r = 0.f, s_g = 0.f, s_b = 0.f, s_f0 = 0.f, s_f1 = 0.f, s_f2 = 0.f, s_z = 0.f;
+    int touched = 0;
+    if (j < bound) {
+      __global const float* q = records + (size_t)isect_gid[slot] * REC_SIZE;
+      const float u = q[REC_U], v = q[REC_V];
+      const float cA = q[REC_CA], cB = q[REC_CB], cC = q[REC_CC], o = q[REC_OPACITY];
       const float cr = q[REC_RGB], cg = q[REC_RGB + 1], cb = q[REC_RGB + 2];
       const float c0 = q[REC_FEAT], c1 = q[REC_FEAT + 1], c2 = q[REC_FEAT + 2], z = q[REC_Z], m = q[REC_M];
-      vfloat gc = t.gr * cr + t.gg * cg + t.gb * cb + t.gf0 * c0 + t.gf1 * c1 + t.gf2 * c2 + t.gd * z;
-      G_P += w * gc;
-      vfloat dm = m - t.mu_T;
-      A += w;
-      Q += w * dm * dm;
-      vfloat e = t.M2_T + t.A_T * dm * dm;
-      vfloat S = t.M2_T * (t.A_T - A) + t.A_T * (t.M2_T - Q);
-      vfloat inv = 1.f / (1.f - alpha);
-      vfloat v_a = gc * T - (t.G_O - G_P) * inv + t.ga * t.T_final * inv + t.gD * (T * e - S * inv);
-      vfloat v_oG = select((vfloat)0.f, v_a, ok && oG <= ALPHA_MAX);
-      vfloat v_sigma = -v_oG * oG;
-      vfloat v_z = t.gd * w + t.gD * 2.f * w * t.A_T * dm * dist_depth_vjp(z, dnear, dfar);
-
-      __global float* o2 = isect_grads + (size_t)slot * G2_SIZE;
-      o2[G2_U] += HSUM(v_sigma * (cA * dx + cB * dy));
-      o2[G2_V] += HSUM(v_sigma * (cB * dx + cC * dy));
-      o2[G2_CA] += HSUM(0.5f * v_sigma * dx * dx);
-      o2[G2_CB] += HSUM(v_sigma * dx * dy);
-      o2[G2_CC] += HSUM(0.5f * v_sigma * dy * dy);
-      o2[G2_OPACITY] += HSUM(v_oG * G);
-      o2[G2_RGB] += HSUM(t.gr * w);
-      o2[G2_RGB + 1] += HSUM(t.gg * w);
-      o2[G2_RGB + 2] += HSUM(t.gb * w);
-      o2[G2_FEAT] += HSUM(t.gf0 * w);
-      o2[G2_FEAT + 1] += HSUM(t.gf1 * w);
-      o2[G2_FEAT + 2] += HSUM(t.gf2 * w);
-      o2[G2_Z] += HSUM(v_z);
-      T = select(T, T * (1.f - alpha), ok);
+      const float zj = dist_depth_vjp(z, dnear, dfar);
+      for (int row = 0; row < WG_SIZE; ++row) {
+        if (j >= bounds[row]) continue;
+        const float dy = v - pys[row];
+        if (row_culled(q, dy, u + dx0s[row], u + dx1s[row])) continue;
+        const vfloat dx = u - pxs[row];
+        const vfloat sigma = blend_sigma(cA, cB, cC, dx, dy);
+        const vfloat G = blend_falloff(sigma);
+        const vfloat oG = o * G;
+        const vfloat alpha = fmin(ALPHA_MAX, oG);
+        const RowTotals t = tot[row];
+        const vint ok = (vint)j < t.last && sigma >= 0.f && alpha >= ALPHA_MIN;
+        if (!ANY(ok)) continue;
+        touched = 1;
+        const vfloat T = Ts[row];
+        const vfloat w = select((vfloat)0.f, alpha * T, ok);
+        const vfloat gc = t.gr * cr + t.gg * cg + t.gb * cb + t.gf0 * c0 + t.gf1 * c1 + t.gf2 * c2 + t.gd * z;
+        const vfloat G_P = GPs[row] + w * gc;
+        const vfloat dm = m - t.mu_T;
+        const vfloat A = As[row] + w;
+        const vfloat Q = Qs[row] + w * dm * dm;
+        const vfloat e = t.M2_T + t.A_T * dm * dm;
+        const vfloat S = t.M2_T * (t.A_T - A) + t.A_T * (t.M2_T - Q);
+        const vfloat inv = 1.f / (1.f - alpha);
+        const vfloat v_a = gc * T - (t.G_O - G_P) * inv + t.ga * t.T_final * inv + t.gD * (T * e - S * inv);
+        const vfloat v_oG = select((vfloat)0.f, v_a, ok && oG <= ALPHA_MAX);
+        const vfloat v_sigma = -v_oG * oG;
+        s_u += v_sigma * (cA * dx + cB * dy);
+        s_v += v_sigma * (cB * dx + cC * dy);
+        s_ca += 0.5f * v_sigma * dx * dx;
+        s_cb += v_sigma * dx * dy;
+        s_cc += 0.5f * v_sigma * dy * dy;
+        s_op += v_oG * G;
+        s_r += t.gr * w;
+        s_g += t.gg * w;
+        s_b += t.gb * w;
+        s_f0 += t.gf0 * w;
+        s_f1 += t.gf1 * w;
+        s_f2 += t.gf2 * w;
+        s_z += t.gd * w + t.gD * 2.f * w * t.A_T * dm * zj;
+        GPs[row] = G_P;
+        As[row] = A;
+        Qs[row] = Q;
+        Ts[row] = select(T, T * (1.f - alpha), ok);
+      }
     }
+    if (!touched) {
+      for (int c = 0; c < G2_SIZE; ++c) o2[c] = 0.f;
+      continue;
+    }
+    o2[G2_U] = HSUM(s_u);
+    o2[G2_V] = HSUM(s_v);
+    o2[G2_CA] = HSUM(s_ca);
+    o2[G2_CB] = HSUM(s_cb);
+    o2[G2_CC] = HSUM(s_cc);
+    o2[G2_OPACITY] = HSUM(s_op);
+    o2[G2_RGB] = HSUM(s_r);
+    o2[G2_RGB + 1] = HSUM(s_g);
+    o2[G2_RGB + 2] = HSUM(s_b);
+    o2[G2_FEAT] = HSUM(s_f0);
+    o2[G2_FEAT + 1] = HSUM(s_f1);
+    o2[G2_FEAT + 2] = HSUM(s_f2);
+    o2[G2_Z] = HSUM(s_z);
   }
 }
 #else
