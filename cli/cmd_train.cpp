@@ -199,6 +199,10 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   }
   spdlog::info("{} iterations, seed {}, SH degree up to {} (+1 every {} iterations), background {}", c.iterations,
                c.seed, c.anchors.sh_degree, c.effective_sh_interval(), c.white_background ? "white" : "black");
+  if (c.downscales > 0)
+    spdlog::info("coarse to fine: images / {} at first, resolution doubled every {} iterations (full from iteration {}{})",
+                 1 << c.downscales, c.res_schedule, c.downscales * c.res_schedule,
+                 scene->semantics() != SemanticsKind::none ? "; mask-loss iterations always full" : "");
   if (c.grow_every > 0 && c.grow_from <= c.effective_grow_until()) {
     const GrowthConfig g = c.growth_config(scene->train_views().size());
     spdlog::info(
@@ -427,6 +431,13 @@ void register_train(CLI::App& app, GlobalOptions& global) {
   sub->add_option("--w-offset", c.w_offset, "Weight of the offset regulariser L_in (default 0.5)");
   sub->add_option("--w-dist", c.w_distortion, "Weight of the depth distortion L_d (default 50)");
   sub->add_option("--dist-from", c.distortion_from, "First iteration with the distortion term (default 0)");
+  sub->add_option("--downscales", c.downscales,
+                  "Coarse-to-fine: start at the images divided by 2^N, doubling the resolution every --res-schedule "
+                  "iterations (default 0 = off; mask-loss iterations and stage 2 always at full resolution)")
+      ->check(CLI::Range(0, 6));
+  sub->add_option("--res-schedule", c.res_schedule,
+                  "Iterations per resolution doubling with --downscales (default 250)")
+      ->check(CLI::PositiveNumber);
   sub->add_option("--w-is", c.w_is,
                   "Weight of the mask-internal loss L_is on the rendered features (default 0.1; scenes with masks)")
       ->check(CLI::NonNegativeNumber);

@@ -64,6 +64,8 @@ void TrainConfig::validate() const {
   for (const auto& [name, v] : rates)
     if (!(v >= 0) || !std::isfinite(v)) bad(std::string(name) + " must be finite and >= 0");
   if (!(prune_opacity >= 0 && prune_opacity < 1)) bad("prune_opacity must be in [0, 1)");
+  if (downscales < 0 || downscales > 6) bad("downscales is " + std::to_string(downscales) + "; use 0 (off) to 6");
+  if (res_schedule < 1) bad("res_schedule must be at least 1 iteration");
   if (grow_every < 0 || grow_from < 0 || grow_until < 0 || !(grow_min_seen >= 0 && grow_min_seen <= 1))
     bad("grow_every, grow_from and grow_until must be >= 0 and grow_min_seen in [0, 1]");
   if (!(grow_threshold > 0) || !std::isfinite(grow_threshold)) bad("grow_threshold must be finite and > 0");
@@ -150,7 +152,9 @@ nlohmann::json TrainConfig::to_json() const {
           {"prune_opacity", prune_opacity},
           {"prune_unseen_window", prune_unseen_window},
           {"opacity_reset_every", opacity_reset_every},
-          {"opacity_reset_pause", opacity_reset_pause}};
+          {"opacity_reset_pause", opacity_reset_pause},
+          {"downscales", downscales},
+          {"res_schedule", res_schedule}};
 }
 
 namespace {
@@ -238,6 +242,8 @@ TrainConfig TrainConfig::from_json(const nlohmann::json& j) {
     c.prune_unseen_window = j.at("prune_unseen_window").get<int>();
     c.opacity_reset_every = j.at("opacity_reset_every").get<int>();
     c.opacity_reset_pause = j.at("opacity_reset_pause").get<int>();
+    c.downscales = j.value("downscales", 0);  // written before the option: full resolution throughout
+    c.res_schedule = j.value("res_schedule", 250);
   } catch (const nlohmann::json::exception& e) {
     throw std::runtime_error(std::string("training config: ") + e.what());
   }
@@ -245,6 +251,37 @@ TrainConfig TrainConfig::from_json(const nlohmann::json& j) {
 }
 
 // ------------------------------------------------------------------ helpers
+Camera downscaled_camera(const Camera& cam, int factor) {
+  if (factor <= 1) return cam;
+  Camera c = cam;
+  c.width = std::max(1, cam.width / factor);
+  c.height = std::max(1, cam.height / factor);
+  // Pixel (x, y) of the small image covers [f x, f x + f) of the large one:
+  // u_small = u_large / f exactly (a partial block at the right or bottom
+  // edge is cropped, not resampled).
+  c.fx = cam.fx / factor;
+  c.fy = cam.fy / factor;
+  c.cx = cam.cx / factor;
+  c.cy = cam.cy / factor;
+  return c;
+}
+
+void box_downscale_planar(const Image& img, int factor, float* out) {
+  const int w = std::max(1, img.width / factor), h = std::max(1, img.height / factor);
+  const size_t npix = static_cast<size_t>(w) * h;
+  const int fx = std::min(factor, img.width), fy = std::min(factor, img.height);
+  const float inv = 1.f / static_cast<float>(fx * fy);
+  for (int y = 0; y < h; ++y)
+    for (int x = 0; x < w; ++x)
+      for (int c = 0; c < 3; ++c) {
+        float sum = 0.f;
+        for (int dy = 0; dy < fy; ++dy)
+          for (int dx = 0; dx < fx; ++dx)
+            sum += img.rgb[(static_cast<size_t>(y * fy + dy) * img.width + (x * fx + dx)) * 3 + c];
+        out[c * npix + static_cast<size_t>(y) * w + x] = sum * inv;
+      }
+}
+
 void check_model_dir_writable(const std::string& dir) {
   std::error_code ec;
   fs::create_directories(dir, ec);
@@ -384,22 +421,30 @@ StepStats Trainer::step(bool compute_offset_loss, const std::function<void()>& b
   st.sh_degree = active_sh_degree();
   const SceneView& view = scene_.views()[st.view];
   std::shared_ptr<const Image> target = scene_.image(st.view);
+  const bool mask_step = has_masks_ && (it >= config_.effective_mask_from() || st.stage2);
+  const int level = st.stage2 || mask_step ? 0 : config_.resolution_level(it);
+  st.downscale = 1 << level;
+  const Camera camera = level > 0 ? downscaled_camera(view.camera, st.downscale) : view.camera;
 
   RenderSettings settings;
   const float bg = config_.white_background ? 1.f : 0.f;
   settings.background = {bg, bg, bg};
 
   expander_.forward(anchors_, gaussians_, st.sh_degree);
-  renderer_.forward(gaussians_, view.camera, settings);
+  renderer_.forward(gaussians_, camera, settings);
   st.intersections = renderer_.stats().n_intersections;
-  const int w = view.camera.width, h = view.camera.height;
+  const int w = camera.width, h = camera.height;
   const size_t npix = static_cast<size_t>(w) * h;
 
   // The losses read the rendered planes where they are, on the device; only
   // the target goes up and the distortion plane comes back (for the report).
   target_planar_.resize(npix * 3);
-  for (size_t p = 0; p < npix; ++p)
-    for (int c = 0; c < 3; ++c) target_planar_[c * npix + p] = target->rgb[p * 3 + c];
+  if (level > 0) {
+    box_downscale_planar(*target, st.downscale, target_planar_.data());
+  } else {
+    for (size_t p = 0; p < npix; ++p)
+      for (int c = 0; c < 3; ++c) target_planar_[c * npix + p] = target->rgb[p * 3 + c];
+  }
   target_dev_.upload(target_planar_);
   image_loss_.enqueue(renderer_.device_rgb(), target_dev_, w, h, config_.lambda_ssim, &grad_rgb_dev_, nullptr,
                       ImageLayout::kPlanar);
@@ -416,7 +461,7 @@ StepStats Trainer::step(bool compute_offset_loss, const std::function<void()>& b
     og.distortion = &grad_dist_dev_;
   }
   std::shared_ptr<const ViewMasks> masks;
-  if (has_masks_ && (it >= config_.effective_mask_from() || st.stage2)) masks = scene_.masks(st.view);
+  if (mask_step) masks = scene_.masks(st.view);
   if (masks) {
     if (mask_loss_.masks_key() != st.view || !mask_loss_.mask_count())
       mask_loss_.set_masks(config_.mask_unmasked_group ? with_unmasked_group(*masks) : *masks, st.view);

@@ -170,6 +170,14 @@ struct TrainConfig {
   // Growing rounds within this many iterations after a reset skip the opacity pruning.
   int opacity_reset_pause = 500;
 
+  // Coarse-to-fine resolution (as in splatfacto / OpenSplat): stage-1
+  // iterations render and compare images downscaled by 2^level, level =
+  // max(0, downscales - iteration / res_schedule), each pixel the mean of a
+  // 2^level square of the loaded image. Iterations with the mask losses and
+  // stage 2 always run at the loaded resolution. 0 = off.
+  int downscales = 0;
+  int res_schedule = 250;
+
   // Throws std::invalid_argument naming the first field out of range.
   void validate() const;
   // Every field (for the model archive and metrics).
@@ -185,6 +193,11 @@ struct TrainConfig {
   // Stage 1 + stage 2.
   int total_iterations() const { return iterations + effective_prop_iters(); }
   int effective_mask_from() const;
+  // The downscale level (a power of two) of stage-1 iteration `it` (0-based),
+  // before the mask-loss rule.
+  int resolution_level(int it) const {
+    return downscales > 0 && res_schedule > 0 ? std::max(0, downscales - it / res_schedule) : 0;
+  }
   // AnchorGrowth's schedule and rules for a scene with `train_views`
   // training views (grow_from/until/every -> start/stop/every as given, not
   // rescaled; grow_threshold -> grad_threshold, layer factor 2; grow_min_seen
@@ -210,6 +223,7 @@ struct StepStats {
   bool with_offset_loss = false;
   int sh_degree = 0;
   size_t intersections = 0;
+  int downscale = 1;  // the images of this step were the loaded ones divided by this
   int grown = 0;   // anchors added after this step
   bool opacity_reset = false;  // opacities reset after this step
   int pruned = 0;  // anchors removed after this step
@@ -350,5 +364,12 @@ std::vector<std::string> config_differences(const nlohmann::json& a, const nlohm
 
 // A JSON document written atomically (host/atomic_file.h).
 void write_json_atomic(const std::string& path, const nlohmann::json& doc);
+
+// The camera of an image downscaled by an integer factor: width / factor
+// (rounded down, at least 1) and every intrinsic divided by the factor.
+Camera downscaled_camera(const Camera& cam, int factor);
+// That image's pixels, each the mean of its factor x factor block of `img`,
+// written planar [3, H, W] to `out` (room for 3 x the small image's pixels).
+void box_downscale_planar(const Image& img, int factor, float* out);
 
 }  // namespace ag2gs
