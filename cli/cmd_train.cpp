@@ -464,7 +464,9 @@ void register_train(CLI::App& app, GlobalOptions& global) {
   sub->add_option("--lr-feature", c.feature_lr, "Semantic feature learning rate (default 0.05)");
   sub->add_option("--lr-offset", c.offset_lr_init, "Offset learning rate at the start (default 1e-3, voxel units)");
   sub->add_option("--lr-offset-final", c.offset_lr_final, "Offset learning rate at the end (default 1e-4)");
-  sub->add_flag("--lr-offset-extent", c.offset_lr_extent, "Multiply the offset rates by the camera radius");
+  sub->add_flag("--lr-offset-extent,!--no-lr-offset-extent", c.offset_lr_extent,
+                "Multiply the offset rates by the camera radius (default on, as the official code; "
+                "--no-lr-offset-extent for voxel units alone)");
   sub->add_option("--lr-sh", c.sh_dc_lr, "SH DC learning rate (default 0.0025)");
   sub->add_option("--lr-sh-rest", c.sh_rest_lr, "Higher SH learning rate (default 0.0025 / 20)");
   sub->add_option("--lr-opacity", c.opacity_lr, "Opacity logit learning rate (default 0.05)");

@@ -130,11 +130,13 @@ struct TrainConfig {
 
   // Learning rates (DESIGN.md section 9). The offset rate decays
   // exponentially from init to final over the run; offsets are in voxel
-  // units, so with offset_lr_extent the rates are multiplied by the scene's
-  // camera radius as the official code does for its (world-unit) offsets.
+  // units, and with offset_lr_extent (the default, as the official code) the
+  // rates are multiplied by the scene's camera radius. Measured without it
+  // (README, train section): 1.4-2.4 dB lower test PSNR on the sample scene
+  // and the cup at 1500-2000 iterations.
   double offset_lr_init = 1e-3;
   double offset_lr_final = 1e-4;
-  bool offset_lr_extent = false;
+  bool offset_lr_extent = true;
   double feature_lr = 0.05;  // semantic features (stepped on iterations with the mask losses)
   double sh_dc_lr = 0.0025;
   double sh_rest_lr = 0.0025 / 20;
