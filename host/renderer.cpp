@@ -275,7 +275,9 @@ void Renderer::backward(const OutputGrads& grads) {
   upload_plane(g_depth_, grads.depth, 1, "depth");
   upload_plane(g_alpha_, grads.alpha, 1, "alpha");
   upload_plane(g_dist_, grads.distortion, 1, "distortion");
-  backward_from(g_rgb_, g_feat_, g_depth_, g_alpha_, g_dist_);
+  backward_from(g_rgb_, g_feat_, g_depth_, g_alpha_, g_dist_,
+                {!grads.rgb.empty(), !grads.feature.empty(), !grads.depth.empty(), !grads.alpha.empty(),
+                 !grads.distortion.empty()});
 }
 
 void Renderer::backward(const DeviceOutputGrads& grads) {
@@ -297,11 +299,14 @@ void Renderer::backward(const DeviceOutputGrads& grads) {
   };
   backward_from(pick(grads.rgb, g_rgb_, 3, "rgb"), pick(grads.feature, g_feat_, 3, "feature"),
                 pick(grads.depth, g_depth_, 1, "depth"), pick(grads.alpha, g_alpha_, 1, "alpha"),
-                pick(grads.distortion, g_dist_, 1, "distortion"));
+                pick(grads.distortion, g_dist_, 1, "distortion"),
+                {grads.rgb != nullptr, grads.feature != nullptr, grads.depth != nullptr, grads.alpha != nullptr,
+                 grads.distortion != nullptr});
 }
 
 void Renderer::backward_from(const DeviceBuffer& g_rgb, const DeviceBuffer& g_feat, const DeviceBuffer& g_depth,
-                             const DeviceBuffer& g_alpha, const DeviceBuffer& g_dist) {
+                             const DeviceBuffer& g_alpha, const DeviceBuffer& g_dist,
+                             const GradsPresent& present) {
   const DeviceGaussians& g = *gaussians_;
   const size_t M = stats_.n_intersections;
   isect_grads_.reserve(std::max<size_t>(M, 1) * kG2Size * 4);
@@ -309,8 +314,15 @@ void Renderer::backward_from(const DeviceBuffer& g_rgb, const DeviceBuffer& g_fe
   const bool staging = blend_staging_for(rt_);
   const int wg = staging ? 256 / rt_.vector_width() : 1;  // CPUs: one work-item per tile, see blend_bwd.cl
   const int batch = std::max(1, 512 / (256 / rt_.vector_width()));
+  auto flag = [](bool b) { return std::string(b ? "1" : "0"); };
   cl::Kernel blend = rt_.kernel("blend_bwd.cl", "blend_bwd",
-                                {{"BATCH", std::to_string(batch)}, {"NO_STAGING", staging ? "0" : "1"}});
+                                {{"BATCH", std::to_string(batch)},
+                                 {"NO_STAGING", staging ? "0" : "1"},
+                                 {"GRAD_RGB", flag(present.rgb)},
+                                 {"GRAD_FEAT", flag(present.feature)},
+                                 {"GRAD_DEPTH", flag(present.depth)},
+                                 {"GRAD_ALPHA", flag(present.alpha)},
+                                 {"GRAD_DIST", flag(present.distortion)}});
   set_kernel_args(blend, cam_.width, cam_.height, tiles_x_, cam_buf_, ranges_, *sorted_isect_vals_, isect_gid_,
                   records_, out_rgb_, out_feat_, out_depth_, out_aux_, out_last_, g_rgb, g_feat, g_depth, g_alpha,
                   g_dist, isect_grads_);

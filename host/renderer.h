@@ -111,9 +111,14 @@ class Renderer {
   void sort_pairs(DeviceBuffer*& keys, DeviceBuffer*& vals, DeviceBuffer*& keys_tmp, DeviceBuffer*& vals_tmp, size_t n,
                   int bits);
   void upload_plane(DeviceBuffer& buf, const std::vector<float>& host_hwc, int channels, const char* what);
+  // Which upstream gradients were given (the others are zero buffers): the
+  // CPU blend kernel leaves the terms of absent ones out.
+  struct GradsPresent {
+    bool rgb = true, feature = true, depth = true, alpha = true, distortion = true;
+  };
   // The backward pass proper, from planar device gradients.
   void backward_from(const DeviceBuffer& g_rgb, const DeviceBuffer& g_feat, const DeviceBuffer& g_depth,
-                     const DeviceBuffer& g_alpha, const DeviceBuffer& g_dist);
+                     const DeviceBuffer& g_alpha, const DeviceBuffer& g_dist, const GradsPresent& present);
 
   Runtime& rt_;
   std::unique_ptr<DeviceGaussians> owned_;  // for render()

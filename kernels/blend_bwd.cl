@@ -1,8 +1,9 @@
 // Blend backward: per tile, front to back, recomputing transmittance exactly
 // as the forward pass did (never recovering it by division). For every
 // (Gaussian, tile) intersection the tile's pixel contributions are summed in
-// a fixed order (lanes, then work-items) and written to that intersection's
-// own slot: no atomics, so the result is bit-identical run to run.
+// a fixed order (GPU layout: lanes, then work-items; CPU layout: rows per
+// lane, then lanes) and written to that intersection's own slot: no atomics,
+// so the result is bit-identical run to run on a device.
 //
 // Per blended Gaussian j of a pixel, with forward totals O, A_T, mu_T, M2_T,
 // T_final and prefix sums that include j (docs/rasterizer.md, "Backward"):
@@ -13,7 +14,10 @@
 //   distortion D = A M2: e_j = M2_T + A_T (m_j - mu_T)^2,
 //     dD/dalpha_j = T_j e_j - (M2_T (A_T - A_j) + A_T (M2_T - Q_j))/(1 - alpha_j),
 //     dD/dm_j = 2 w_j A_T (m_j - mu_T).
-// Defines: BATCH, NO_STAGING (CPU layout below).
+// Defines: BATCH, NO_STAGING (CPU layout below); GRAD_RGB, GRAD_FEAT,
+// GRAD_DEPTH, GRAD_ALPHA, GRAD_DIST: 0 when that upstream gradient is zero
+// everywhere (not given), so the CPU layout leaves its terms out (a zero
+// term adds nothing; float rules forbid the compiler to drop x * 0 itself).
 
 // Forward totals and upstream gradients of one work-item's pixels.
 typedef struct {
@@ -29,11 +33,15 @@ inline RowTotals load_totals(PixelRow pr, int width, size_t npix,
                              __global const float* v_feat, __global const float* v_depth,
                              __global const float* v_alpha, __global const float* v_dist) {
   RowTotals t;
-  t.gr = load_row(v_rgb, pr, width); t.gg = load_row(v_rgb + npix, pr, width);
-  t.gb = load_row(v_rgb + 2 * npix, pr, width);
-  t.gf0 = load_row(v_feat, pr, width); t.gf1 = load_row(v_feat + npix, pr, width);
-  t.gf2 = load_row(v_feat + 2 * npix, pr, width);
-  t.gd = load_row(v_depth, pr, width); t.ga = load_row(v_alpha, pr, width); t.gD = load_row(v_dist, pr, width);
+  t.gr = GRAD_RGB ? load_row(v_rgb, pr, width) : 0.f;
+  t.gg = GRAD_RGB ? load_row(v_rgb + npix, pr, width) : 0.f;
+  t.gb = GRAD_RGB ? load_row(v_rgb + 2 * npix, pr, width) : 0.f;
+  t.gf0 = GRAD_FEAT ? load_row(v_feat, pr, width) : 0.f;
+  t.gf1 = GRAD_FEAT ? load_row(v_feat + npix, pr, width) : 0.f;
+  t.gf2 = GRAD_FEAT ? load_row(v_feat + 2 * npix, pr, width) : 0.f;
+  t.gd = GRAD_DEPTH ? load_row(v_depth, pr, width) : 0.f;
+  t.ga = GRAD_ALPHA ? load_row(v_alpha, pr, width) : 0.f;
+  t.gD = GRAD_DIST ? load_row(v_dist, pr, width) : 0.f;
   t.G_O = t.gr * load_row(out_rgb, pr, width) + t.gg * load_row(out_rgb + npix, pr, width) +
           t.gb * load_row(out_rgb + 2 * npix, pr, width) + t.gf0 * load_row(out_feat, pr, width) +
           t.gf1 * load_row(out_feat + npix, pr, width) + t.gf2 * load_row(out_feat + 2 * npix, pr, width) +
@@ -137,15 +145,30 @@ void blend_bwd(int width, int height, int tiles_x,
         touched = 1;
         const vfloat T = Ts[row];
         const vfloat w = select((vfloat)0.f, alpha * T, ok);
-        const vfloat gc = t.gr * cr + t.gg * cg + t.gb * cb + t.gf0 * c0 + t.gf1 * c1 + t.gf2 * c2 + t.gd * z;
+        vfloat gc = 0.f;
+#if GRAD_RGB
+        gc = t.gr * cr + t.gg * cg + t.gb * cb;
+#endif
+#if GRAD_FEAT
+        gc += t.gf0 * c0 + t.gf1 * c1 + t.gf2 * c2;
+#endif
+#if GRAD_DEPTH
+        gc += t.gd * z;
+#endif
         const vfloat G_P = GPs[row] + w * gc;
+        const vfloat inv = 1.f / (1.f - alpha);
+        vfloat v_a = gc * T - (t.G_O - G_P) * inv;
+#if GRAD_ALPHA
+        v_a += t.ga * t.T_final * inv;
+#endif
+#if GRAD_DIST
         const vfloat dm = m - t.mu_T;
         const vfloat A = As[row] + w;
         const vfloat Q = Qs[row] + w * dm * dm;
         const vfloat e = t.M2_T + t.A_T * dm * dm;
         const vfloat S = t.M2_T * (t.A_T - A) + t.A_T * (t.M2_T - Q);
-        const vfloat inv = 1.f / (1.f - alpha);
-        const vfloat v_a = gc * T - (t.G_O - G_P) * inv + t.ga * t.T_final * inv + t.gD * (T * e - S * inv);
+        v_a += t.gD * (T * e - S * inv);
+#endif
         const vfloat v_oG = select((vfloat)0.f, v_a, ok && oG <= ALPHA_MAX);
         const vfloat v_sigma = -v_oG * oG;
         s_u += v_sigma * (cA * dx + cB * dy);
@@ -154,16 +177,25 @@ void blend_bwd(int width, int height, int tiles_x,
         s_cb += v_sigma * dx * dy;
         s_cc += 0.5f * v_sigma * dy * dy;
         s_op += v_oG * G;
+#if GRAD_RGB
         s_r += t.gr * w;
         s_g += t.gg * w;
         s_b += t.gb * w;
+#endif
+#if GRAD_FEAT
         s_f0 += t.gf0 * w;
         s_f1 += t.gf1 * w;
         s_f2 += t.gf2 * w;
-        s_z += t.gd * w + t.gD * 2.f * w * t.A_T * dm * zj;
-        GPs[row] = G_P;
+#endif
+#if GRAD_DEPTH
+        s_z += t.gd * w;
+#endif
+#if GRAD_DIST
+        s_z += t.gD * 2.f * w * t.A_T * dm * zj;
         As[row] = A;
         Qs[row] = Q;
+#endif
+        GPs[row] = G_P;
         Ts[row] = select(T, T * (1.f - alpha), ok);
       }
     }
