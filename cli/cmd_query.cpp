@@ -232,7 +232,9 @@ void cmd_query(const GlobalOptions& global, QueryArgs a) {
                   {"alpha", r.alpha},
                   {"depth", r.depth},
                   {"point", {r.point.x(), r.point.y(), r.point.z()}},
-                  {"seed_distance", r.seed_distance}};
+                  {"seed_distance", r.seed_distance},
+                  {"dominant_anchor", r.dominant_anchor},
+                  {"dominant_weight", r.dominant_weight}};
     j["seeds"] = {r.seed};
     spdlog::info("click ({}, {}) on {}: alpha {:.3f}, depth {:.4f}, seed anchor {} at {:.4f} from the point", cx, cy,
                  scene->views()[click_view].name, r.alpha, r.depth, r.seed, r.seed_distance);
@@ -312,6 +314,9 @@ void add_query_config_options(CLI::App* sub, QueryConfig& c) {
   sub->add_option("--click-candidates", c.click_candidates,
                   "Click seed: of this many anchors nearest the clicked point, the one whose feature is closest to "
                   "the pixel's rendered feature (default 8; 1 = the nearest anchor)");
+  sub->add_flag("--click-dominant,!--click-mean", c.click_dominant,
+                "Click depth and feature: of the feature group of anchors holding the most blending weight at the pixel (default), "
+                "or --click-mean: the ray's mean depth and rendered feature");
 }
 
 void register_query(CLI::App& app, GlobalOptions& global) {

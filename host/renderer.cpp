@@ -102,6 +102,41 @@ void Renderer::sort_pairs(DeviceBuffer*& keys, DeviceBuffer*& vals, DeviceBuffer
   }
 }
 
+std::vector<Renderer::PixelContribution> Renderer::pixel_contributions(int x, int y) const {
+  if (!have_frame_) throw std::logic_error("Renderer::pixel_contributions() before forward()");
+  if (x < 0 || y < 0 || x >= cam_.width || y >= cam_.height)
+    throw std::out_of_range("Renderer::pixel_contributions: pixel outside the image");
+  std::vector<PixelContribution> out;
+  const size_t M = stats_.n_intersections;
+  if (M == 0 || gaussians_->n == 0) return out;
+  const int tile = (y / kTile) * tiles_x_ + x / kTile;
+  std::vector<int32_t> ranges;
+  ranges_.download(ranges, static_cast<size_t>(tile + 1) * 2);
+  const int begin = ranges[2 * tile], end = ranges[2 * tile + 1];
+  if (end <= begin) return out;
+  std::vector<uint32_t> vals, gid;
+  std::vector<float> rec;
+  sorted_isect_vals_->download(vals, static_cast<size_t>(end));
+  isect_gid_.download(gid, M);
+  records_.download(rec, gaussians_->n * kRecSize);
+  // Record fields (kernels/common.cl): u v cA cB cC opacity z.
+  const float px = x + 0.5f, py = y + 0.5f;
+  float T = 1.f;
+  for (int j = begin; j < end; ++j) {
+    const uint32_t g = gid[vals[j]];
+    const float* q = &rec[static_cast<size_t>(g) * kRecSize];
+    const float dx = q[0] - px, dy = q[1] - py;
+    const float sigma = 0.5f * (q[2] * dx * dx + q[4] * dy * dy) + q[3] * dx * dy;
+    const float alpha = std::min(0.99f, q[5] * std::exp(-std::min(sigma, 40.f)));
+    if (!(sigma >= 0.f) || !(alpha >= 1.f / 255.f)) continue;
+    const float Tn = T * (1.f - alpha);
+    if (Tn < 1e-4f) break;
+    out.push_back({g, alpha * T, q[6]});
+    T = Tn;
+  }
+  return out;
+}
+
 void Renderer::forward(const DeviceGaussians& g, const Camera& cam, const RenderSettings& settings) {
   cam.validate();
   if (settings.sh_degree > 3) throw std::invalid_argument("render: SH degree must be 0..3");

@@ -104,6 +104,20 @@ class Renderer {
             &cam_buf_,  &ranges_,    sorted_isect_vals_, &isect_gid_, &records_};
   }
 
+  // The Gaussians blended at pixel (x, y) of the last forward(), front to
+  // back, with their blending weights w = alpha T and camera depths: the
+  // tile's list walked on the host in float with the kernels' rules (alpha
+  // >= 1/255, at most 0.99, stop below T = 1e-4). The weights agree with the
+  // rendered ones to float rounding (the host exp is not the device's), so
+  // a decision at a threshold may rarely differ. For picking what a pixel
+  // shows (QueryEngine::click). Throws std::logic_error before forward()
+  // and std::out_of_range outside the image.
+  struct PixelContribution {
+    uint32_t gaussian = 0;
+    float weight = 0, depth = 0;
+  };
+  std::vector<PixelContribution> pixel_contributions(int x, int y) const;
+
   const FrameStats& stats() const { return stats_; }
   Runtime& runtime() { return rt_; }
 

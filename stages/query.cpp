@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <unordered_map>
 #include <cmath>
 #include <deque>
 #include <limits>
@@ -311,12 +312,73 @@ ClickResult QueryEngine::click(const Camera& camera, double x, double y) {
         << r.alpha << " < " << config_.min_click_alpha << "; click on an object";
     throw std::runtime_error(msg.str());
   }
+  // What the pixel shows: the anchors blended there, grouped by feature with
+  // the region-growing rule (a group's first anchor and another join when
+  // their bilateral weight exceeds min_weight), and the group holding the
+  // most blending weight; its weighted mean depth, and the feature of its
+  // heaviest anchor. Not the ray's means, which on a thin or half-transparent
+  // object (a pole in front of a wall) fall between the object and what lies
+  // behind it; and by group, since such an object's weight is spread over
+  // several anchors, none of which alone outweighs the wall.
   r.depth = out.depth[p] / r.alpha;
+  r.pixel_feature = {out.feature[3 * p] / static_cast<float>(r.alpha), out.feature[3 * p + 1] / static_cast<float>(r.alpha),
+                     out.feature[3 * p + 2] / static_cast<float>(r.alpha)};
+  if (config_.click_dominant) {
+    const std::vector<Renderer::PixelContribution> contrib = renderer_.pixel_contributions(r.pixel_x, r.pixel_y);
+    const uint32_t K = static_cast<uint32_t>(model_.children());
+    struct AnchorSum {
+      uint32_t anchor;
+      double weight = 0, weighted_depth = 0;
+    };
+    std::vector<AnchorSum> anchors;  // in order of first appearance along the ray
+    std::unordered_map<uint32_t, size_t> index;
+    for (const auto& c : contrib) {
+      const uint32_t a = c.gaussian / K;
+      auto [it, fresh] = index.emplace(a, anchors.size());
+      if (fresh) anchors.push_back({a});
+      anchors[it->second].weight += c.weight;
+      anchors[it->second].weighted_depth += static_cast<double>(c.weight) * c.depth;
+    }
+    struct Group {
+      const float* feature;  // the first anchor's
+      double weight = 0, weighted_depth = 0;
+      const AnchorSum* heaviest = nullptr;
+    };
+    std::vector<Group> groups;
+    const double inv_2tau2 = 1.0 / (2.0 * double(config_.tau) * config_.tau);
+    for (const AnchorSum& e : anchors) {
+      const float* f = &model_.feature()[3 * static_cast<size_t>(e.anchor)];
+      Group* home = nullptr;
+      for (Group& g : groups) {
+        double d2 = 0;
+        for (int c = 0; c < 3; ++c) d2 += (double(f[c]) - g.feature[c]) * (double(f[c]) - g.feature[c]);
+        if (std::exp(-d2 * inv_2tau2) > config_.min_weight) {
+          home = &g;
+          break;
+        }
+      }
+      if (!home) {
+        groups.push_back({f});
+        home = &groups.back();
+      }
+      home->weight += e.weight;
+      home->weighted_depth += e.weighted_depth;
+      if (!home->heaviest || e.weight > home->heaviest->weight) home->heaviest = &e;
+    }
+    const Group* top = nullptr;  // ties: the nearer along the ray
+    for (const Group& g : groups)
+      if (!top || g.weight > top->weight) top = &g;
+    if (top && top->weight > 0) {
+      const size_t a = top->heaviest->anchor;
+      r.dominant_anchor = static_cast<int32_t>(a);
+      r.dominant_weight = top->weight;
+      r.depth = top->weighted_depth / top->weight;
+      for (int c = 0; c < 3; ++c) r.pixel_feature[c] = model_.feature()[3 * a + c];
+    }
+  }
   const double u = r.pixel_x + 0.5, v = r.pixel_y + 0.5;
   const Eigen::Vector3d xc((u - camera.cx) / camera.fx * r.depth, (v - camera.cy) / camera.fy * r.depth, r.depth);
   r.point = camera.R.transpose() * (xc - camera.t);
-  r.pixel_feature = {out.feature[3 * p] / static_cast<float>(r.alpha), out.feature[3 * p + 1] / static_cast<float>(r.alpha),
-                     out.feature[3 * p + 2] / static_cast<float>(r.alpha)};
   const std::vector<int> candidates = tree_.nearest_k(r.point, config_.click_candidates);
   if (candidates.empty()) throw std::runtime_error("the model has no anchors to select");
   double best = std::numeric_limits<double>::infinity();

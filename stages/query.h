@@ -16,14 +16,18 @@
 // in the subgraph of passing edges, whatever the order, and the result is
 // returned sorted.
 //
-// Click: render the model at the clicked view, read alpha and the expected
-// depth sum at the pixel, mean depth z = depth / alpha, unproject the pixel
-// centre (x + 0.5, y + 0.5) to X_cam = ((u - cx) z / fx, (v - cy) z / fy, z)
-// and to the world; of the click_candidates anchor centres nearest to it
-// (k-d tree), the seed is the one whose feature is closest to the rendered
-// feature F / alpha at the pixel (ties to the nearer): at the touching face
-// of two objects the nearest centre may belong to the other object, the
-// pixel's own feature says which one was clicked.
+// Click: render the model at the clicked view, read alpha at the pixel;
+// group the anchors blended there by feature (the growing rule: bilateral
+// weight > min_weight with the group's first anchor) and take the weighted
+// mean depth z of the group holding the most blending weight and the
+// feature of its heaviest anchor (click_dominant; otherwise the ray's mean
+// depth and F / alpha),
+// unproject the pixel centre (x + 0.5, y + 0.5) to
+// X_cam = ((u - cx) z / fx, (v - cy) z / fy, z) and to the world; of the
+// click_candidates anchor centres nearest to it (k-d tree), the seed is the
+// one whose feature is closest to that feature (ties to the nearer): at the
+// touching face of two objects the nearest centre may belong to the other
+// object, the pixel's own feature says which one was clicked.
 // A pixel with alpha < min_click_alpha is background: an error naming the
 // pixel and its alpha.
 //
@@ -68,6 +72,11 @@ struct QueryConfig {
   // point, the one whose feature is closest to the rendered feature at the
   // pixel (F / alpha); 1 = the nearest anchor alone.
   int click_candidates = 8;
+  // true: the click's depth and feature come from the anchors blended at the
+  // pixel, grouped by feature (tau, min_weight), the group with the most
+  // blending weight (what the pixel shows); false: the ray's mean depth and
+  // F / alpha (blends of a thin object and what lies behind it).
+  bool click_dominant = true;
   // false: the ablation without graph region growing. The selection is then
   // every anchor whose feature lies within equivalent_distance() of a seed
   // feature (click: the seed anchor's; text: each seed cluster's mean),
@@ -131,10 +140,12 @@ Eigen::Vector2d full_size_click(const Camera& full, const Camera& camera, double
 
 struct ClickResult {
   int pixel_x = 0, pixel_y = 0;
-  double alpha = 0, depth = 0;   // at the pixel (depth = mean depth along the ray)
+  double alpha = 0, depth = 0;   // at the pixel (depth: of the dominant feature group, else the ray's mean)
   Eigen::Vector3d point = Eigen::Vector3d::Zero();  // unprojected world point
   int seed = -1;                 // seed anchor
-  std::vector<float> pixel_feature;  // [3] rendered F / alpha at the pixel
+  int32_t dominant_anchor = -1;  // heaviest anchor of the feature group holding the most weight at the pixel
+  double dominant_weight = 0;    // that group's weight
+  std::vector<float> pixel_feature;  // [3] the dominant anchor's feature, else rendered F / alpha
   double seed_distance = 0;      // |point - anchor centre|
   std::vector<int32_t> selected;
   double ms = 0;                 // render + unproject + nearest + grow
@@ -165,6 +176,8 @@ class QueryEngine {
   // centre is at +0.5). Throws std::invalid_argument for a pixel outside the
   // image and std::runtime_error for background (alpha < min_click_alpha).
   ClickResult click(const Camera& camera, double x, double y);
+  // The renderer of the last click or mask (its frame: Renderer::pixel_contributions).
+  const Renderer& renderer() const { return renderer_; }
   // Throws std::logic_error without set_language, std::invalid_argument for
   // an embedding of the wrong dimension or when no cluster has a feature.
   TextResult text(const std::vector<float>& embedding);

@@ -443,6 +443,61 @@ TEST(Query, DeterministicAcrossRunsAndEngines) {
   EXPECT_EQ(a.selected, e1.click(cam, px.x(), px.y()).selected);
 }
 
+// A half-transparent pole (one column of anchors, children at opacity 0.35)
+// in front of a wall: on the pole's pixels the ray's mean depth and mean
+// feature fall between pole and wall, and no single pole anchor outweighs
+// the wall's heaviest. The click groups the blended anchors by feature and
+// takes the heaviest group instead, and selects the pole wherever the pole
+// holds most of the pixel's weight; the mean variant is printed beside it.
+TEST(Query, ClickOnAThinHalfTransparentObjectSelectsIt) {
+  const Eigen::Vector3d origin(0, 0, 0);
+  const double voxel = 0.1;
+  const std::vector<Box> boxes = {
+      {{-12, -8, 36}, {12, 8, 37}, {0.f, 0.3f, 0.f}},  // wall
+      {{0, -6, 30}, {0, 6, 30}, {0.3f, 0.f, 0.3f}},     // pole, one voxel wide
+  };
+  Built built = build_boxes(boxes, origin, voxel);
+  for (int32_t a : built.anchors[1])
+    for (int i = 0; i < kChildren; ++i) built.model.opacity_logit()[static_cast<size_t>(a) * kChildren + i] = std::log(0.35f / 0.65f);
+  const Camera cam = World::front();
+  const std::vector<uint8_t> pole = gt_mask(boxes, origin, voxel, cam, 1);
+  QueryConfig mean_cfg;
+  mean_cfg.click_dominant = false;
+  QueryEngine dominant(test::runtime(), built.model), mean(test::runtime(), built.model, mean_cfg);
+  // Pixels where the pole holds more than half of the rendered weight: the
+  // click must select the pole there. At its fuzzy edges the wall shows more.
+  int tried = 0, clear = 0, right_clear = 0, right_dominant = 0, right_mean = 0;
+  double weight_sum_err = 0;
+  for (int y = 0; y < cam.height; y += 3)
+    for (int x = 0; x < cam.width; ++x) {
+      if (!pole[static_cast<size_t>(y) * cam.width + x]) continue;
+      ++tried;
+      const ClickResult r = dominant.click(cam, x + 0.5, y + 0.5);
+      const bool right = r.selected == built.anchors[1];
+      right_dominant += right;
+      double sum = 0, pole_weight = 0;
+      for (const auto& c : dominant.renderer().pixel_contributions(x, y)) {
+        sum += c.weight;
+        if (std::binary_search(built.anchors[1].begin(), built.anchors[1].end(),
+                               static_cast<int32_t>(c.gaussian / kChildren)))
+          pole_weight += c.weight;
+      }
+      // The weights of the pixel's list add up to its rendered alpha.
+      weight_sum_err = std::max(weight_sum_err, std::abs(sum - r.alpha));
+      if (pole_weight > 0.5 * sum) {
+        ++clear;
+        right_clear += right;
+        EXPECT_TRUE(right) << "pixel " << x << "," << y << ": pole weight " << pole_weight << " of " << sum;
+      }
+      right_mean += mean.click(cam, x + 0.5, y + 0.5).selected == built.anchors[1];
+    }
+  std::printf("pole pixels clicked: %d (%d where the pole holds most of the weight), pole selected with the "
+              "dominant group %d (%d of those), with the ray means %d; max |sum of weights - alpha| %.2e\n",
+              tried, clear, right_dominant, right_clear, right_mean, weight_sum_err);
+  ASSERT_GT(clear, 20);
+  EXPECT_LT(weight_sum_err, 1e-4);
+}
+
 TEST(Query, ClickErrors) {
   const World& w = world();
   QueryEngine engine(test::runtime(), w.built.model);
