@@ -70,6 +70,17 @@ inline std::string read_bytes(const std::string& path) {
   return ss.str();
 }
 
+// Expects model.ag2gs, point_cloud.ply and checkpoint.ag2gs of two model
+// folders to be byte-identical (and present); `what` names the two runs.
+inline void expect_same_model_files(const std::string& dir_a, const std::string& dir_b, const std::string& what) {
+  for (const char* f : {"model.ag2gs", "point_cloud.ply", "checkpoint.ag2gs"}) {
+    const std::string a = read_bytes(dir_a + "/" + f);
+    const std::string b = read_bytes(dir_b + "/" + f);
+    ASSERT_FALSE(a.empty()) << dir_a << "/" << f;
+    EXPECT_TRUE(a == b) << f << " differs between " << what;
+  }
+}
+
 // Runs fn and expects an exception of type E whose message holds every needle.
 template <class E>
 void expect_error_with(const std::function<void()>& fn, const std::vector<std::string>& needles) {

@@ -139,12 +139,7 @@ TEST(TrainCoarse, ResumeAcrossALevelChangeGivesTheBytesOfTheStraightRun) {
     for (int it = second.iteration(); it < cfg.iterations; ++it) second.step();
     second.save(dir.file("split"));
   }
-  for (const char* f : {"model.ag2gs", "point_cloud.ply", "checkpoint.ag2gs"}) {
-    const std::string a = test::read_bytes(dir.file(std::string("straight/") + f));
-    const std::string b = test::read_bytes(dir.file(std::string("split/") + f));
-    ASSERT_FALSE(a.empty()) << f;
-    EXPECT_TRUE(a == b) << f << " differs between the straight and the resumed run";
-  }
+  test::expect_same_model_files(dir.file("straight"), dir.file("split"), "the straight and the resumed run");
 }
 
 TEST(TrainCoarse, ConfigRoundTripsAndOldFilesMeanFullResolution) {

@@ -158,12 +158,8 @@ TEST(TrainStages, ResumeIsBitExactAcrossTheStageBoundaryAndInsideStage2) {
       for (int it = cut; it < cfg.total_iterations(); ++it) second.step();
       second.save(dir.file(name));
     }
-    for (const char* f : {"model.ag2gs", "point_cloud.ply", "checkpoint.ag2gs"}) {
-      const std::string a = test::read_bytes(dir.file(std::string("straight/") + f));
-      const std::string b = test::read_bytes(dir.file(name + "/" + f));
-      ASSERT_FALSE(a.empty()) << f;
-      EXPECT_TRUE(a == b) << f << " differs between the straight run and the one resumed at " << cut;
-    }
+    test::expect_same_model_files(dir.file("straight"), dir.file(name),
+                                  "the straight run and the one resumed at " + std::to_string(cut));
   }
 }
 

@@ -179,12 +179,7 @@ TEST(TrainState, ResumedRunGivesTheBytesOfTheStraightRun) {
     for (int it = second.iteration(); it < cfg.iterations; ++it) second.step();
     second.save(dir.file("split"));
   }
-  for (const char* f : {"model.ag2gs", "point_cloud.ply", "checkpoint.ag2gs"}) {
-    const std::string a = test::read_bytes(dir.file(std::string("straight/") + f));
-    const std::string b = test::read_bytes(dir.file(std::string("split/") + f));
-    ASSERT_FALSE(a.empty()) << f;
-    EXPECT_TRUE(a == b) << f << " differs between the straight and the resumed run";
-  }
+  test::expect_same_model_files(dir.file("straight"), dir.file("split"), "the straight and the resumed run");
 }
 
 TEST(TrainState, ResumeRefusesAnotherConfigOrScene) {
@@ -293,12 +288,8 @@ TEST(TrainState, CtrlCSavesACheckpointThatResumesToTheSameBytes) {
   const test::CliResult resumed = test::run_cli("train " + scene + " -o " + dir.file("cut") + " --resume --log-every 0");
   ASSERT_EQ(resumed.code, 0) << resumed.output;
   EXPECT_NE(resumed.output.find("resuming"), std::string::npos) << resumed.output;
-  for (const char* f : {"model.ag2gs", "point_cloud.ply", "checkpoint.ag2gs"}) {
-    const std::string a = test::read_bytes(dir.file(std::string("straight/") + f));
-    const std::string b = test::read_bytes(dir.file(std::string("cut/") + f));
-    ASSERT_FALSE(a.empty()) << f;
-    EXPECT_TRUE(a == b) << f << " differs between the uninterrupted and the interrupted + resumed run";
-  }
+  test::expect_same_model_files(dir.file("straight"), dir.file("cut"),
+                                "the uninterrupted and the interrupted + resumed run");
 }
 
 }  // namespace
