@@ -264,7 +264,9 @@ void Renderer::forward(const DeviceGaussians& g, const Camera& cam, const Render
   // CPUs: no local-memory staging (records come from cache), see blend_fwd.cl.
   cl::Kernel blend =
       rt_.kernel("blend_fwd.cl", "blend_fwd",
-                 {{"BATCH", std::to_string(std::max(64, wg))}, {"NO_STAGING", blend_staging_for(rt_) ? "0" : "1"}});
+                 {{"BATCH", std::to_string(std::max(64, wg))},
+                  {"NO_STAGING", blend_staging_for(rt_) ? "0" : "1"},
+                  {"WITH_FEAT", settings.features ? "1" : "0"}});
   set_kernel_args(blend, cam.width, cam.height, tiles_x_, cam_buf_, ranges_, *sorted_isect_vals_, isect_gid_, records_,
                   out_rgb_, out_feat_, out_depth_, out_alpha_, out_dist_, out_aux_, out_last_, out_count_);
   rt_.launch("blend_fwd", blend, cl::NDRange(static_cast<size_t>(ntiles) * wg), cl::NDRange(wg));

@@ -1,7 +1,8 @@
 // Blend forward: one work-group per 16x16 tile, VW pixels per work-item,
 // Gaussians staged through local memory in depth order (docs/rasterizer.md,
 // "Blending"). Outputs are planar [C,H,W].
-// Defines: BATCH (records staged per round).
+// Defines: BATCH (records staged per round); WITH_FEAT (0: the feature
+// planes are not blended and come out zero).
 
 __kernel __attribute__((reqd_work_group_size(WG_SIZE, 1, 1)))
 void blend_fwd(int width, int height, int tiles_x,
@@ -72,7 +73,9 @@ void blend_fwd(int width, int height, int tiles_x,
       ok = ok && !stop;
       vfloat w = select((vfloat)0.f, alpha * T, ok);
       r += w * q[REC_RGB]; g += w * q[REC_RGB + 1]; b += w * q[REC_RGB + 2];
+#if WITH_FEAT
       f0 += w * q[REC_FEAT]; f1 += w * q[REC_FEAT + 1]; f2 += w * q[REC_FEAT + 2];
+#endif
       dsum += w * q[REC_Z];
       // Weighted Welford update of the distortion depth m (stable variance).
       float m = q[REC_M];

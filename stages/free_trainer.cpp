@@ -471,6 +471,7 @@ FreeStepStats FreeTrainer::step() {
   RenderSettings settings;
   const float bg = config_.white_background ? 1.f : 0.f;
   settings.background = {bg, bg, bg};
+  settings.features = false;  // free Gaussians carry no semantic feature
   renderer_.forward(gaussians_, view.camera, settings);
 
   target_planar_.resize(npix * 3);

@@ -429,6 +429,7 @@ StepStats Trainer::step(bool compute_offset_loss, const std::function<void()>& b
   RenderSettings settings;
   const float bg = config_.white_background ? 1.f : 0.f;
   settings.background = {bg, bg, bg};
+  settings.features = mask_step;  // only the mask losses read the rendered features
 
   expander_.forward(anchors_, gaussians_, st.sh_degree);
   renderer_.forward(gaussians_, camera, settings);

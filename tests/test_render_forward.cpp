@@ -1,5 +1,7 @@
 // Device forward pass against the double-precision reference
 // (tests/reference), element-wise, on random scenes and odd image sizes.
+#include <algorithm>
+
 #include "reference/reference_renderer.h"
 #include "test_util.h"
 
@@ -75,6 +77,32 @@ TEST(RenderForward, LowerActiveShDegree) {
   RenderSettings s;
   s.sh_degree = 1;
   check_forward({40, 30, 30, 3, 7}, s);
+}
+
+}  // namespace
+}  // namespace ag2gs
+
+namespace ag2gs {
+namespace {
+
+// Without features the other outputs keep their bits and the feature planes
+// come out zero (RenderSettings::features, a training-speed switch).
+TEST(RenderForward, WithoutFeaturesSameImageZeroFeatures) {
+  test::SceneSpec spec;
+  spec.n = 2000;
+  GaussianSet g = test::random_scene(spec, 21);
+  Camera cam = test::look_at_origin(97, 61);
+  Renderer r(test::runtime());
+  RenderSettings with, without;
+  without.features = false;
+  const RenderOutput a = r.render(g, cam, with);
+  const RenderOutput b = r.render(g, cam, without);
+  EXPECT_TRUE(a.rgb == b.rgb);
+  EXPECT_TRUE(a.alpha == b.alpha);
+  EXPECT_TRUE(a.depth == b.depth);
+  EXPECT_TRUE(a.distortion == b.distortion);
+  EXPECT_TRUE(std::any_of(a.feature.begin(), a.feature.end(), [](float x) { return x != 0.f; }));
+  EXPECT_TRUE(std::all_of(b.feature.begin(), b.feature.end(), [](float x) { return x == 0.f; }));
 }
 
 }  // namespace
