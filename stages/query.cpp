@@ -2,13 +2,13 @@
 
 #include <algorithm>
 #include <chrono>
-#include <unordered_map>
 #include <cmath>
 #include <deque>
 #include <limits>
 #include <numeric>
 #include <sstream>
 #include <stdexcept>
+#include <unordered_map>
 
 namespace ag2gs {
 
@@ -284,6 +284,69 @@ Eigen::Vector2d full_size_click(const Camera& full, const Camera& camera, double
   return {(std::floor(x) + 0.5) * camera.width / full.width, (std::floor(y) + 0.5) * camera.height / full.height};
 }
 
+namespace {
+
+// The feature group of anchors that holds the most of a pixel's blending
+// weight (see QueryEngine::click): anchors in order of first appearance
+// along the ray, each joining the first group whose first anchor passes the
+// growing rule with it. Ties go to the nearer group.
+struct DominantGroup {
+  int32_t anchor = -1;  // the group's heaviest anchor, -1 when nothing blends
+  double weight = 0;    // the group's blending weight
+  double depth = 0;     // its weighted mean depth
+};
+
+DominantGroup dominant_group(const std::vector<Renderer::PixelContribution>& contrib, const AnchorModel& model,
+                             float tau, float min_weight) {
+  const uint32_t K = static_cast<uint32_t>(model.children());
+  struct AnchorSum {
+    uint32_t anchor;
+    double weight = 0, weighted_depth = 0;
+  };
+  std::vector<AnchorSum> anchors;
+  std::unordered_map<uint32_t, size_t> index;
+  for (const auto& c : contrib) {
+    const uint32_t a = c.gaussian / K;
+    auto [it, fresh] = index.emplace(a, anchors.size());
+    if (fresh) anchors.push_back({a});
+    anchors[it->second].weight += c.weight;
+    anchors[it->second].weighted_depth += static_cast<double>(c.weight) * c.depth;
+  }
+  struct Group {
+    const float* feature;  // the first anchor's
+    double weight = 0, weighted_depth = 0;
+    const AnchorSum* heaviest = nullptr;
+  };
+  std::vector<Group> groups;
+  const double inv_2tau2 = 1.0 / (2.0 * double(tau) * tau);
+  for (const AnchorSum& e : anchors) {
+    const float* f = &model.feature()[3 * static_cast<size_t>(e.anchor)];
+    size_t home = 0;
+    for (; home < groups.size(); ++home) {
+      double d2 = 0;
+      for (int c = 0; c < 3; ++c) d2 += (double(f[c]) - groups[home].feature[c]) * (double(f[c]) - groups[home].feature[c]);
+      if (std::exp(-d2 * inv_2tau2) > min_weight) break;
+    }
+    if (home == groups.size()) groups.push_back({f});
+    Group& g = groups[home];
+    g.weight += e.weight;
+    g.weighted_depth += e.weighted_depth;
+    if (!g.heaviest || e.weight > g.heaviest->weight) g.heaviest = &e;
+  }
+  DominantGroup out;
+  const Group* top = nullptr;
+  for (const Group& g : groups)
+    if (!top || g.weight > top->weight) top = &g;
+  if (top && top->weight > 0) {
+    out.anchor = static_cast<int32_t>(top->heaviest->anchor);
+    out.weight = top->weight;
+    out.depth = top->weighted_depth / top->weight;
+  }
+  return out;
+}
+
+}  // namespace
+
 ClickResult QueryEngine::click(const Camera& camera, double x, double y) {
   const auto t0 = std::chrono::steady_clock::now();
   camera.validate();
@@ -324,56 +387,13 @@ ClickResult QueryEngine::click(const Camera& camera, double x, double y) {
   r.pixel_feature = {out.feature[3 * p] / static_cast<float>(r.alpha), out.feature[3 * p + 1] / static_cast<float>(r.alpha),
                      out.feature[3 * p + 2] / static_cast<float>(r.alpha)};
   if (config_.click_dominant) {
-    const std::vector<Renderer::PixelContribution> contrib = renderer_.pixel_contributions(r.pixel_x, r.pixel_y);
-    const uint32_t K = static_cast<uint32_t>(model_.children());
-    struct AnchorSum {
-      uint32_t anchor;
-      double weight = 0, weighted_depth = 0;
-    };
-    std::vector<AnchorSum> anchors;  // in order of first appearance along the ray
-    std::unordered_map<uint32_t, size_t> index;
-    for (const auto& c : contrib) {
-      const uint32_t a = c.gaussian / K;
-      auto [it, fresh] = index.emplace(a, anchors.size());
-      if (fresh) anchors.push_back({a});
-      anchors[it->second].weight += c.weight;
-      anchors[it->second].weighted_depth += static_cast<double>(c.weight) * c.depth;
-    }
-    struct Group {
-      const float* feature;  // the first anchor's
-      double weight = 0, weighted_depth = 0;
-      const AnchorSum* heaviest = nullptr;
-    };
-    std::vector<Group> groups;
-    const double inv_2tau2 = 1.0 / (2.0 * double(config_.tau) * config_.tau);
-    for (const AnchorSum& e : anchors) {
-      const float* f = &model_.feature()[3 * static_cast<size_t>(e.anchor)];
-      Group* home = nullptr;
-      for (Group& g : groups) {
-        double d2 = 0;
-        for (int c = 0; c < 3; ++c) d2 += (double(f[c]) - g.feature[c]) * (double(f[c]) - g.feature[c]);
-        if (std::exp(-d2 * inv_2tau2) > config_.min_weight) {
-          home = &g;
-          break;
-        }
-      }
-      if (!home) {
-        groups.push_back({f});
-        home = &groups.back();
-      }
-      home->weight += e.weight;
-      home->weighted_depth += e.weighted_depth;
-      if (!home->heaviest || e.weight > home->heaviest->weight) home->heaviest = &e;
-    }
-    const Group* top = nullptr;  // ties: the nearer along the ray
-    for (const Group& g : groups)
-      if (!top || g.weight > top->weight) top = &g;
-    if (top && top->weight > 0) {
-      const size_t a = top->heaviest->anchor;
-      r.dominant_anchor = static_cast<int32_t>(a);
-      r.dominant_weight = top->weight;
-      r.depth = top->weighted_depth / top->weight;
-      for (int c = 0; c < 3; ++c) r.pixel_feature[c] = model_.feature()[3 * a + c];
+    const DominantGroup top =
+        dominant_group(renderer_.pixel_contributions(r.pixel_x, r.pixel_y), model_, config_.tau, config_.min_weight);
+    if (top.anchor >= 0) {
+      r.dominant_anchor = top.anchor;
+      r.dominant_weight = top.weight;
+      r.depth = top.depth;
+      for (int c = 0; c < 3; ++c) r.pixel_feature[c] = model_.feature()[3 * static_cast<size_t>(top.anchor) + c];
     }
   }
   const double u = r.pixel_x + 0.5, v = r.pixel_y + 0.5;
