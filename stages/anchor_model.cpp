@@ -242,7 +242,7 @@ void AnchorModel::append_anchor(int layer, const Eigen::Vector3i& cell, uint64_t
     }
     if (parent_child >= 0) {
       quat_.insert(quat_.end(), parent_quat, parent_quat + 4);
-      opacity_logit_.push_back(parent_opacity);
+      opacity_logit_.push_back(std::min(parent_opacity, opacity_logit));
       sh_.insert(sh_.end(), parent_sh, parent_sh + kAnchorShCoeffs * 3);
       continue;
     }

@@ -114,8 +114,10 @@ class AnchorModel {
   // (random offsets keyed by seed and cell, scale init_scale * l), except
   // that with parent_child >= 0 (a child row, anchor = parent_child / K) the
   // new anchor takes the parent anchor's feature and every new child the
-  // parent child's SH, opacity logit and rotation: the growing step's "a
-  // finer anchor where this child needs detail". parent_child = -1 gives
+  // parent child's SH and rotation, and its opacity capped at init_opacity
+  // (five full copies of an opaque parent would stack up where it already
+  // covers the surface): the growing step's "a finer anchor where this child
+  // needs detail". parent_child = -1 gives
   // grey children with init_opacity and a random feature. Throws
   // std::out_of_range for a bad layer or parent_child.
   int add_anchor(int layer, const Eigen::Vector3i& cell, int64_t parent_child, uint64_t seed);

@@ -333,7 +333,8 @@ TEST(AnchorModel, AddFindRemoveCompact) {
   }
   for (size_t i = 0; i < K; ++i) {
     const size_t row = id * K + i;
-    EXPECT_EQ(m.opacity_logit()[row], m.opacity_logit()[7]);
+    const double o0 = c.init_opacity;
+    EXPECT_EQ(m.opacity_logit()[row], std::min(m.opacity_logit()[7], static_cast<float>(std::log(o0 / (1 - o0)))));
     for (int k = 0; k < 4; ++k) EXPECT_EQ(m.quat()[row * 4 + k], m.quat()[7 * 4 + k]);
     for (int k = 0; k < 48; ++k) EXPECT_EQ(m.sh()[row * 48 + k], m.sh()[7 * 48 + k]);
     for (int k = 0; k < 3; ++k) {

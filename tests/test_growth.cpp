@@ -286,10 +286,13 @@ TEST(GrowthDecision, GrowsOneFinerAnchorPerRequestedVoxel) {
   EXPECT_EQ(m.voxel()[6], 1.f / 16);
   for (int k = 0; k < 3; ++k) EXPECT_EQ(m.pos()[3 * 4 + k], static_cast<float>(m.grid().centre(1, {3, 2, 2})[k]));
   // Two children asked for voxel (3,2,2): one anchor, parent the lower row (2).
+  // New children: the parent child's SH, opacity at most the initial one.
+  const double o0 = m.config().init_opacity;
+  const float init_logit = static_cast<float>(std::log(o0 / (1 - o0)));
   for (int i = 0; i < 5; ++i) {
-    EXPECT_EQ(m.opacity_logit()[4 * 5 + i], x.before.opacity_logit()[2]);
+    EXPECT_EQ(m.opacity_logit()[4 * 5 + i], std::min(x.before.opacity_logit()[2], init_logit));
     EXPECT_EQ(m.sh()[(4 * 5 + i) * 48], x.before.sh()[2 * 48]);
-    EXPECT_EQ(m.opacity_logit()[6 * 5 + i], x.before.opacity_logit()[26]);
+    EXPECT_EQ(m.opacity_logit()[6 * 5 + i], std::min(x.before.opacity_logit()[26], init_logit));
   }
   // The occupied voxel (10,2,2) (row 5), the finest layer (row 10), the row
   // below the threshold (6), below 2x on layer 1 (25), seen too rarely (7).
