@@ -67,7 +67,8 @@ struct RenderSettings {
   float dist_far = 100.0f;
   // false: the semantic feature planes are not blended (written as zeros),
   // ~15% less blend_fwd work on CPUs; for frames whose features nobody reads
-  // (training steps without mask losses).
+  // (training steps without mask losses). The renderer's backward pass
+  // then refuses a feature gradient (std::logic_error).
   bool features = true;
 };
 

@@ -271,6 +271,7 @@ void Renderer::forward(const DeviceGaussians& g, const Camera& cam, const Render
                   out_rgb_, out_feat_, out_depth_, out_alpha_, out_dist_, out_aux_, out_last_, out_count_);
   rt_.launch("blend_fwd", blend, cl::NDRange(static_cast<size_t>(ntiles) * wg), cl::NDRange(wg));
   have_frame_ = true;
+  frame_features_ = settings.features;
 }
 
 RenderOutput Renderer::download_output() {
@@ -344,6 +345,9 @@ void Renderer::backward(const DeviceOutputGrads& grads) {
 void Renderer::backward_from(const DeviceBuffer& g_rgb, const DeviceBuffer& g_feat, const DeviceBuffer& g_depth,
                              const DeviceBuffer& g_alpha, const DeviceBuffer& g_dist,
                              const GradsPresent& present) {
+  if (present.feature && !frame_features_)
+    throw std::logic_error("render backward: a feature gradient for a frame rendered without features "
+                           "(RenderSettings::features false)");
   const DeviceGaussians& g = *gaussians_;
   const size_t M = stats_.n_intersections;
   isect_grads_.reserve(std::max<size_t>(M, 1) * kG2Size * 4);

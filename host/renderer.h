@@ -143,6 +143,7 @@ class Renderer {
   int tiles_x_ = 0, tiles_y_ = 0;
   FrameStats stats_;
   bool have_frame_ = false;
+  bool frame_features_ = true;  // the last forward() blended the feature planes
 
   DeviceBuffer cam_buf_, records_, rects_, tile_counts_, depth_keys_, radii_;
   DeviceBuffer order_keys_tmp_, order_vals_, order_vals_tmp_, counts_sorted_, offsets_, block_sums_;

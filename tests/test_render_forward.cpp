@@ -103,6 +103,10 @@ TEST(RenderForward, WithoutFeaturesSameImageZeroFeatures) {
   EXPECT_TRUE(a.distortion == b.distortion);
   EXPECT_TRUE(std::any_of(a.feature.begin(), a.feature.end(), [](float x) { return x != 0.f; }));
   EXPECT_TRUE(std::all_of(b.feature.begin(), b.feature.end(), [](float x) { return x == 0.f; }));
+  // Such a frame takes no feature gradient.
+  OutputGrads og;
+  og.feature.assign(b.feature.size(), 1.f);
+  EXPECT_THROW(r.render_backward(og), std::logic_error);
 }
 
 }  // namespace
