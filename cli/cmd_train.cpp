@@ -449,9 +449,10 @@ void register_train(CLI::App& app, GlobalOptions& global) {
   sub->add_flag("!--no-mask-alpha-norm", c.mask_alpha_normalise,
                 "Mask losses on the raw rendered feature instead of the feature divided by alpha (default: divided, "
                 "pixels with alpha < 0.1 left out)");
-  sub->add_flag("--mask-geometry", c.mask_geometry,
-                "Let the mask losses' gradient reach every Gaussian parameter (joint), not only the semantic "
-                "features");
+  sub->add_flag("--mask-geometry,!--mask-features-only", c.mask_geometry,
+                "--mask-geometry (default): the mask losses' gradient reaches every Gaussian parameter (the "
+                "paper's joint loss); --mask-features-only: it trains the semantic features alone, so appearance "
+                "and geometry train as without masks");
   sub->add_flag("!--no-unmasked-group", c.mask_unmasked_group,
                 "Leave pixels without a SAM mask out of the mask losses (default: they form one more mask, so "
                 "object features are pushed away from the unmasked surroundings)");
