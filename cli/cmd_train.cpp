@@ -476,6 +476,10 @@ void register_train(CLI::App& app, GlobalOptions& global) {
   sub->add_option("--top-cells", c.anchors.top_cells, "Top-layer voxels along the longest extent (default 200)")
       ->check(CLI::PositiveNumber);
   sub->add_option("--children", c.anchors.children, "Gaussians per anchor (default 5)")->check(CLI::Range(1, 64));
+  sub->add_option("--init-layer", c.anchors.init_layer,
+                  "Voxel layer the SfM points initialise anchors on (default 0 = the top layer, as the official "
+                  "code; -1 = every layer, as the paper says)")
+      ->check(CLI::Range(-1, 15));
   sub->add_option("--grow-from", c.grow_from, "First iteration of anchor growing (default 500)")
       ->check(CLI::NonNegativeNumber);
   sub->add_option("--grow-until", c.grow_until, "Last iteration of anchor growing (default 0 = 2/3 of --iters)")

@@ -137,3 +137,36 @@ TEST(Cli, RenderModelFolderWithViewSetsAndOutputs) {
   EXPECT_NE(r.output.find("not both"), std::string::npos) << r.output;
   fs::remove_all(dir);
 }
+
+// --init-layer picks the voxel layer the SfM points seed: the top layer by
+// default, every layer with -1 (the log line "per layer a/b/c"); a layer the
+// grid does not have is refused before training.
+TEST(Cli, TrainInitLayerSeedsTheChosenLayers) {
+  const std::string scene = src() + "/data_samples/synth_small";
+  const fs::path dir = temp("init_layer");
+  auto per_layer = [](const std::string& log) {
+    const auto at = log.find("(per layer ");
+    if (at == std::string::npos) return std::array<long, 3>{-1, -1, -1};
+    std::array<long, 3> n{};
+    std::sscanf(log.c_str() + at, "(per layer %ld/%ld/%ld", &n[0], &n[1], &n[2]);
+    return n;
+  };
+  const std::string common = "train " + scene + " -r 2 --iters 1 --stages 1 --top-cells 50 --log-every 0 -o ";
+  Result top = run(common + (dir / "top").string());
+  ASSERT_EQ(top.code, 0) << top.output;
+  const auto t = per_layer(top.output);
+  EXPECT_GT(t[0], 0) << top.output;
+  EXPECT_EQ(t[1], 0);
+  EXPECT_EQ(t[2], 0);
+  Result all = run(common + (dir / "all").string() + " --init-layer -1");
+  ASSERT_EQ(all.code, 0) << all.output;
+  const auto a = per_layer(all.output);
+  EXPECT_EQ(a[0], t[0]) << all.output;
+  EXPECT_GT(a[1], a[0]);  // 4x finer voxels: more of them are occupied
+  EXPECT_GT(a[2], a[1]);
+  Result bad = run(common + (dir / "bad").string() + " --init-layer 3");
+  EXPECT_NE(bad.code, 0);
+  EXPECT_NE(bad.output.find("init_layer"), std::string::npos) << bad.output;
+  EXPECT_FALSE(fs::exists(dir / "bad" / "model.ag2gs"));
+  fs::remove_all(dir);
+}
