@@ -26,7 +26,8 @@
 // w_is L_is + w_ic L_ic; the gradient goes back through the renderer and the
 // expander to the anchors' semantic features, which Adam steps with
 // feature_lr on those iterations only; with mask_geometry (the default) the
-// same gradient also reaches every Gaussian parameter, as the RGB loss's does. Scenes without masks train appearance only.
+// same gradient also reaches every Gaussian parameter, as the RGB loss's
+// does. Scenes without masks train appearance only.
 // Two additions to the method as published, both measured (see the README):
 // the pixels no mask covers form one more mask (mask_unmasked_group), so the
 // objects' features are pushed away from their unmasked surroundings; and
