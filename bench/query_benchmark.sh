@@ -10,13 +10,15 @@
 #   region growing only  = no L_prop, region growing
 #   neither
 #
-#   bench/query_benchmark.sh SCENE_DIR OUT_DIR [--iters N] [--generate SEED] [--eval-flags "..."]
-#                            [-- extra train flags]
+#   bench/query_benchmark.sh SCENE_DIR OUT_DIR [--iters N] [--generate SEED] [--background-masks]
+#                            [--eval-flags "..."] [-- extra train flags]
 #
 # --generate SEED writes a fresh hard scene (`ag2gs synth --hard`: touching
 # objects, similar colours, a thin pole, occlusion) to SCENE_DIR first, with
 # full-size masks as SAM gives them (at half size the thin pole's masks are
-# about a pixel wide and stage 3 cannot match it).
+# about a pixel wide and stage 3 cannot match it); with --background-masks
+# the floor, wall and ceiling get SAM-like masks too, cut differently in
+# each view (`ag2gs synth --background-masks`).
 # Example (~6 minutes on 2 CPU cores):
 #   bench/query_benchmark.sh out/synth_hard_7 out/bench_query --generate 7 --iters 3000 -- --top-cells 50
 set -euo pipefail
@@ -24,11 +26,12 @@ here="$(cd "$(dirname "$0")/.." && pwd)"
 bin="${AG2GS_BIN:-$here/build/ag2gs}"
 [ $# -ge 2 ] || { sed -n 2,20p "$0" | sed 's/^# \{0,1\}//'; exit 2; }
 scene="$1"; out="$2"; shift 2
-iters=3000; generate=""; eval_flags=""; extra=()
+iters=3000; generate=""; eval_flags=""; extra=(); synth_flags=()
 while [ $# -gt 0 ]; do
   case "$1" in
     --iters) iters="$2"; shift 2 ;;
     --generate) generate="$2"; shift 2 ;;
+    --background-masks) synth_flags+=(--background-masks); shift ;;
     --eval-flags) eval_flags="$2"; shift 2 ;;
     --) shift; extra=("$@"); break ;;
     *) echo "query_benchmark: unknown argument '$1'" >&2; exit 2 ;;
@@ -36,7 +39,7 @@ while [ $# -gt 0 ]; do
 done
 [ -x "$bin" ] || { echo "query_benchmark: $bin not built; run scripts/build.sh first" >&2; exit 2; }
 if [ -n "$generate" ]; then
-  "$bin" synth "$scene" --hard --seed "$generate" --views 16 --points 3000
+  "$bin" synth "$scene" --hard --seed "$generate" --views 16 --points 3000 "${synth_flags[@]}"
 fi
 for f in label vocab.json clicks.json; do
   [ -e "$scene/$f" ] || { echo "query_benchmark: $scene/$f missing (a scene from \`ag2gs synth\` has it)" >&2; exit 2; }

@@ -82,6 +82,9 @@ void register_synth(CLI::App& app, GlobalOptions& /*global*/) {
   sub->add_option("--feature-dim", o.feature_dim, "CLIP-like feature dimension (default 512)")
       ->check(CLI::Range(1, 4096));
   sub->add_flag("--hard", o.hard, "Hard cases: two objects touching, two of similar colour, a thin pole, occlusion");
+  sub->add_flag("--background-masks", o.background_masks,
+                "SAM-like masks on the background too (floor quarters cut differently in each view, wall halves, "
+                "ceiling), as SAM's automatic mode gives them on real photos");
   sub->add_flag("--text-model", o.text_model, "Write the COLMAP model as .txt instead of .bin");
   sub->add_flag_callback(
       "--no-backdrop", [a] { a->options.backdrop = false; },

@@ -115,6 +115,7 @@ enum Stream : uint64_t {
   kStreamTextNoise,
   kStreamAtom,
   kStreamDistractor,
+  kStreamBackground,
 };
 
 struct Rng {
@@ -1028,7 +1029,33 @@ struct ViewMasksOut {
   std::array<int, kLevels> per_level{};
 };
 
-ViewMasksOut make_masks(const Scene& scene, const Camera& cam, int view, int factor, const Rng& rng) {
+// The background region of a hit on object 0 (a Surface) in `view`, as SAM's
+// automatic mode segments floors and walls: the ground disc in four quarters
+// about a centre and angle drawn per view (so the cuts move from view to view,
+// as SAM's do), the floor ring, the wall in two halves split at that angle,
+// the ceiling. In 0..7: the `part` of object 0's masks.
+int background_region(const Hit& h, int view, const Rng& rng) {
+  const double angle = 2.0 * kPi * rng.uniform(kStreamBackground, view, 0);
+  const double cx = kPlaceRadius * (2.0 * rng.uniform(kStreamBackground, view, 1) - 1.0) / 3.0;
+  const double cy = kPlaceRadius * (2.0 * rng.uniform(kStreamBackground, view, 2) - 1.0) / 3.0;
+  const double c = std::cos(angle), s = std::sin(angle);
+  const Vec3& p = h.local;  // world point for object 0
+  switch (h.face) {
+    case kSurfaceGround: {
+      double u = c * (p.x() - cx) + s * (p.y() - cy), v = -s * (p.x() - cx) + c * (p.y() - cy);
+      return (u >= 0 ? 0 : 1) + (v >= 0 ? 0 : 2);
+    }
+    case kSurfaceFloor:
+      return 4;
+    case kSurfaceWall:
+      return c * p.x() + s * p.y() >= 0 ? 5 : 6;
+    default:
+      return 7;
+  }
+}
+
+ViewMasksOut make_masks(const Scene& scene, const Camera& cam, int view, int factor, const Rng& rng,
+                        bool background_masks) {
   ViewMasksOut m;
   const int Wm = cam.width / factor, Hm = cam.height / factor;
   m.width = Wm;
@@ -1045,6 +1072,10 @@ ViewMasksOut make_masks(const Scene& scene, const Camera& cam, int view, int fac
       obj[p] = std::max(h.object, 0);
       if (obj[p] > 0)
         for (int l = 0; l < kLevels; ++l) part[p][l] = part_of(scene.objects[obj[p] - 1], h, l);
+      else if (h.object == 0 && background_masks)
+        part[p].fill(background_region(h, view, rng));
+      else
+        part[p].fill(-1);  // sky, or background without masks
     }
   m.ids.assign(kLevels * n, -1.f);
   int next_id = 0;
@@ -1061,7 +1092,7 @@ ViewMasksOut make_masks(const Scene& scene, const Camera& cam, int view, int fac
         int dy = static_cast<int>(std::lround(kMaskJitterPx * (2.0 * value_noise(ky, q) - 1.0)));
         int sx = std::clamp(x + dx, 0, Wm - 1), sy = std::clamp(y + dy, 0, Hm - 1);
         size_t src = static_cast<size_t>(sy) * Wm + sx;
-        if (obj[src] == 0) continue;
+        if (part[src][level] < 0) continue;
         int c = obj[src] * 8 + part[src][level];
         code[static_cast<size_t>(y) * Wm + x] = c;
         ++count[c];
@@ -1088,8 +1119,16 @@ ViewMasksOut make_masks(const Scene& scene, const Camera& cam, int view, int fac
 // part direction below level 2) plus per-view noise, unit length.
 Feature mask_feature(const EmbeddingModel& model, const std::vector<Feature>& category_vec, const MaskKey& k, int view,
                      const Rng& rng) {
-  const Feature& cat = category_vec[k.object - 1];
   uint64_t c = static_cast<uint64_t>(k.object * 8 + k.part);
+  if (k.object == 0) {
+    // Background (floor, wall, ceiling): a direction per surface kind, unrelated to every category.
+    const uint64_t kind = k.part < 4 ? 0 : static_cast<uint64_t>(k.part);
+    Feature v(model.dim());
+    for (int i = 0; i < model.dim(); ++i) v[i] = rng.normal(kStreamBackground, 100 + kind, 0, static_cast<uint64_t>(i));
+    normalise(v);
+    return noisy(v, kMaskNoise, rng, kStreamMaskNoise, view, k.level, c);
+  }
+  const Feature& cat = category_vec[k.object - 1];
   if (k.level >= 2) return noisy(cat, kMaskNoise, rng, kStreamMaskNoise, view, k.level, c);
   Feature part(model.dim());
   for (int i = 0; i < model.dim(); ++i) part[i] = rng.normal(kStreamPartVec, k.level, c, static_cast<uint64_t>(i));
@@ -1231,7 +1270,7 @@ void write_synth_scene(const std::string& out_dir, const SynthOptions& opt) {
     files.push_back("gt/" + stem + ".png");
 
     // SAM-like masks, CLIP-like features, and the level-3 PNG at full size.
-    ViewMasksOut vm = make_masks(scene, cam, i, f, rng);
+    ViewMasksOut vm = make_masks(scene, cam, i, f, rng, opt.background_masks);
     write_npy((lf / (stem + "_s.npy")).string(), vm.ids, {kLevels, vm.height, vm.width});
     std::vector<float> feats(vm.masks.size() * static_cast<size_t>(opt.feature_dim));
     for (size_t m = 0; m < vm.masks.size(); ++m) {
@@ -1432,7 +1471,8 @@ void write_synth_scene(const std::string& out_dir, const SynthOptions& opt) {
                {"mask_factor", opt.mask_factor},
                {"hard", opt.hard},
                {"text_model", opt.text_model},
-               {"backdrop", opt.backdrop}}},
+               {"backdrop", opt.backdrop},
+               {"background_masks", opt.background_masks}}},
              {"world",
               {{"up", "+z"},
                {"ground", {{"shape", "disc"}, {"z", 0.0}, {"radius", kGroundRadius}}},

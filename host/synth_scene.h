@@ -54,6 +54,10 @@ struct SynthOptions {
   // ceiling closing the wall, so no camera ray sees the (untextured, point-
   // less) sky. Off: rays that miss the objects and the ground see the sky.
   bool backdrop = true;
+  // SAM-like masks on the background too (floor quarters cut differently in
+  // each view, the floor ring, wall halves, the ceiling), as SAM's automatic
+  // mode gives them on real photos. Off: no masks on the background.
+  bool background_masks = false;
 };
 
 // Writes the scene into `out_dir` (created if missing; existing files of the
