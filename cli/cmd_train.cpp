@@ -459,6 +459,10 @@ void register_train(CLI::App& app, GlobalOptions& global) {
   sub->add_flag("!--no-grow-same-layer", c.grow_same_layer,
                 "Grow only finer anchors (default: also anchors of a child's own layer where its mean left its "
                 "voxel, so the model spreads into regions without SfM points)");
+  sub->add_option("--recycle-opacity", c.recycle_opacity,
+                  "In growing rounds, children of a kept anchor below this opacity become copies of its most opaque "
+                  "child, the two sharing its opacity (default 0 = off)")
+      ->check(CLI::Range(0.0, 0.999));
   sub->add_flag("!--no-feature-ball", c.feature_ball,
                 "Let the semantic features grow without bound (default: projected into the unit ball after each "
                 "step, so the graph stages' absolute thresholds keep their meaning)");
@@ -480,6 +484,18 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                   "Voxel layer the SfM points initialise anchors on (default 0 = the top layer, as the official "
                   "code; -1 = every layer, as the paper says)")
       ->check(CLI::Range(-1, 15));
+  sub->add_option("--init-scale", c.anchors.init_scale,
+                  "Scale of a fresh child as a fraction of its voxel edge (default 0.5; below --scale-cap)")
+      ->check(CLI::Range(1e-4, 1023.0));
+  sub->add_option("--scale-cap", c.anchors.scale_cap,
+                  "A child's scale is at most this many voxel edges (default 1, the paper's: a child never "
+                  "outgrows its voxel)")
+      ->check(CLI::Range(1.0, 1024.0));
+  sub->add_option("--init-opacity", c.anchors.init_opacity, "Opacity of a fresh child (default 0.1)")
+      ->check(CLI::Range(1e-4, 0.9999));
+  sub->add_flag("--init-children-at-points,!--init-children-random", c.anchors.init_children_at_points,
+                "Seeded anchors put their children on the SfM points of their voxel, with those points' colours "
+                "(default: random offsets and the voxel's mean colour, as the official code)");
   sub->add_option("--grow-from", c.grow_from, "First iteration of anchor growing (default 500)")
       ->check(CLI::NonNegativeNumber);
   sub->add_option("--grow-until", c.grow_until, "Last iteration of anchor growing (default 0 = 2/3 of --iters)")

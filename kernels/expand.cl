@@ -6,6 +6,9 @@
 // optimiser can step them with different learning rates.
 
 #define SH_REST 15
+#ifndef SCALE_CAP
+#define SCALE_CAP 1.0f
+#endif
 
 // s = sigmoid(x) = 1 / (1 + e^-x).
 inline float sigmoid(float x) { return 1.f / (1.f + exp(-x)); }
@@ -39,7 +42,7 @@ __kernel void expand_fwd(
   const float l = voxel[a];
   vstore3(vload3(a, pos) + vload3(g, offset) * l, g, means);
   const float3 sl = vload3(g, scale_logit);
-  vstore3((float3)(sigmoid(sl.x), sigmoid(sl.y), sigmoid(sl.z)) * l, g, scales);
+  vstore3((float3)(sigmoid(sl.x), sigmoid(sl.y), sigmoid(sl.z)) * (l * SCALE_CAP), g, scales);
   vstore4(vload4(g, quat), g, quats);
   opacities[g] = sigmoid(opacity_logit[g]);
   vstore3(vload3(g, sh_dc), (size_t)g * sh_out, sh);
@@ -71,7 +74,7 @@ __kernel void expand_bwd(
   if (g >= n) return;
   const float l = voxel[g / CHILDREN];
   vstore3(vload3(g, v_means) * l, g, v_offset);
-  const float3 sl = vload3(g, scale_logit), vs = vload3(g, v_scales) * l;
+  const float3 sl = vload3(g, scale_logit), vs = vload3(g, v_scales) * (l * SCALE_CAP);
   vstore3((float3)(sigmoid_vjp(sl.x, vs.x), sigmoid_vjp(sl.y, vs.y), sigmoid_vjp(sl.z, vs.z)), g, v_scale_logit);
   vstore4(vload4(g, v_quats), g, v_quat);
   v_opacity_logit[g] = sigmoid_vjp(opacity_logit[g], v_opacities[g]);

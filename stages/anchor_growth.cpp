@@ -24,6 +24,24 @@ double sigmoid(double x) {
   return 1.0 / (1.0 + std::exp(-x));
 }
 
+double logit(double p) {
+  return std::log(p / (1.0 - p));
+}
+
+// A counter-based uniform in [0, 1): the same bits for the same arguments.
+double hash_uniform(uint64_t seed, uint64_t a, uint64_t b) {
+  uint64_t x = seed ^ (a * 0x9e3779b97f4a7c15ull) ^ (b * 0xc2b2ae3d27d4eb4full);
+  for (int i = 0; i < 2; ++i) {
+    x += 0x9e3779b97f4a7c15ull;
+    x = (x ^ (x >> 30)) * 0xbf58476d1ce4e5b9ull;
+    x = (x ^ (x >> 27)) * 0x94d049bb133111ebull;
+    x ^= x >> 31;
+  }
+  return static_cast<double>(x >> 11) * 0x1.0p-53;
+}
+
+constexpr double kRecycleJitter = 0.1;  // voxel units, each axis +-
+
 }  // namespace
 
 // ---------------------------------------------------------------- GrowthConfig
@@ -36,6 +54,7 @@ void GrowthConfig::validate() const {
   if (!(min_seen_fraction >= 0 && min_seen_fraction <= 1)) bad("min_seen_fraction must be in [0, 1]");
   if (!(prune_opacity >= 0 && prune_opacity < 1)) bad("prune_opacity must be in [0, 1)");
   if (unseen_window < 0) bad("unseen_window must be >= 0");
+  if (!(recycle_opacity >= 0 && recycle_opacity < 1)) bad("recycle_opacity must be in [0, 1)");
 }
 
 GrowthConfig GrowthConfig::scale_to(int iterations, int reference, int min_every) const {
@@ -231,6 +250,7 @@ GrowthResult AnchorGrowth::step(AnchorModel& model, uint64_t seed) {
   r.anchor_rows.resize(kept.size());
   for (size_t i = 0; i < kept.size(); ++i) r.anchor_rows[i] = kept[i] < static_cast<int>(A0) ? kept[i] : -1;
   r.child_rows = AnchorModel::child_rows(r.anchor_rows, K);
+  if (config_.recycle_opacity > 0) r.recycled = recycle(model, r, seed);
   r.anchors_after = model.size();
   r.gaussians_after = model.gaussians();
   if (r.anchors_after == 0 && r.anchors_before > 0)
@@ -243,6 +263,43 @@ GrowthResult AnchorGrowth::step(AnchorModel& model, uint64_t seed) {
   reset(r.gaussians_after);
   last_seen_.upload(last);
   return r;
+}
+
+int AnchorGrowth::recycle(AnchorModel& model, GrowthResult& r, uint64_t seed) const {
+  const size_t K = static_cast<size_t>(model.children());
+  const double below = config_.recycle_opacity;
+  auto& opacity = model.opacity_logit();
+  auto& offset = model.offset();
+  auto& scale = model.scale_logit();
+  auto& quat = model.quat();
+  auto& sh = model.sh();
+  constexpr size_t kSh = kAnchorShCoeffs * 3;
+  int recycled = 0;
+  for (size_t a = 0; a < r.anchor_rows.size(); ++a) {
+    if (r.anchor_rows[a] < 0) continue;  // grown this round: its children are fresh anyway
+    // Donor: the most opaque child (the lowest index on ties).
+    size_t donor = a * K;
+    for (size_t g = a * K + 1; g < (a + 1) * K; ++g)
+      if (opacity[g] > opacity[donor]) donor = g;
+    if (!(sigmoid(opacity[donor]) >= 2 * below)) continue;  // nothing worth copying
+    for (size_t g = a * K; g < (a + 1) * K; ++g) {
+      if (g == donor || !(sigmoid(opacity[g]) < below)) continue;
+      // The pair together is as opaque as the donor was: 1 - (1 - o')^2 = o.
+      const double o = sigmoid(opacity[donor]);
+      const float shared = static_cast<float>(logit(1.0 - std::sqrt(1.0 - o)));
+      opacity[donor] = shared;
+      opacity[g] = shared;
+      for (int k = 0; k < 3; ++k)
+        offset[3 * g + k] = offset[3 * donor + k] +
+                            static_cast<float>(kRecycleJitter * (2.0 * hash_uniform(seed, step_, 3 * g + k) - 1.0));
+      std::copy_n(&scale[3 * donor], 3, &scale[3 * g]);
+      std::copy_n(&quat[4 * donor], 4, &quat[4 * g]);
+      std::copy_n(&sh[kSh * donor], kSh, &sh[kSh * g]);
+      r.child_rows[g] = -1;  // fresh moments
+      ++recycled;
+    }
+  }
+  return recycled;
 }
 
 }  // namespace ag2gs

@@ -106,6 +106,13 @@ struct GrowthConfig {
   // layer, the finest too). Lets the model spread into regions without SfM
   // points (textureless walls) instead of only refining where points were.
   bool same_layer = false;
+  // Children of a kept anchor whose opacity is below this are recycled: each
+  // becomes a copy of the anchor's most opaque child, moved by a little
+  // jitter, and the two share that child's opacity (1 - sqrt(1 - o) each, so
+  // the pair covers as much as the one did); fresh optimiser moments. A
+  // transparent child costs as much to render as an opaque one; this puts it
+  // where its anchor has something to show. 0 = off.
+  float recycle_opacity = 0.f;
 
   // Throws std::invalid_argument naming the first field out of range.
   void validate() const;
@@ -128,6 +135,7 @@ struct GrowthResult {
   int pruned = 0;          // anchors removed (pruned_opacity + pruned_unseen)
   int pruned_opacity = 0;  // ... for low mean opacity
   int pruned_unseen = 0;   // ... for not being seen in the window (and not low opacity)
+  int recycled = 0;        // transparent children made copies of an opaque sibling
   int requests = 0;        // children above the threshold asking for a finer anchor
   size_t anchors_before = 0, anchors_after = 0;
   size_t gaussians_before = 0, gaussians_after = 0;
@@ -138,7 +146,7 @@ struct GrowthResult {
   std::vector<int> anchor_rows;
   std::vector<int> child_rows;
 
-  bool changed() const { return added > 0 || pruned > 0; }
+  bool changed() const { return added > 0 || pruned > 0 || recycled > 0; }
 };
 
 // Host copy of the statistics (tests, logs).
@@ -187,6 +195,10 @@ class AnchorGrowth {
   void restore(const GrowthStatsHost& stats);
 
  private:
+  // GrowthConfig::recycle_opacity on the anchors kept by this step; marks the
+  // recycled rows -1 in r.child_rows. Returns how many.
+  int recycle(AnchorModel& model, GrowthResult& r, uint64_t seed) const;
+
   Runtime& rt_;
   GrowthConfig config_;
   size_t n_ = 0;

@@ -93,7 +93,9 @@ void AnchorConfig::validate() const {
   if (init_layer < -1 || init_layer >= layers)
     bad("init_layer is " + std::to_string(init_layer) + "; use -1 (every layer) or 0.." + std::to_string(layers - 1));
   if (!(init_opacity > 0.f && init_opacity < 1.f)) bad("init_opacity must lie in (0, 1)");
-  if (!(init_scale > 0.f && init_scale < 1.f)) bad("init_scale must lie in (0, 1) (a fraction of the voxel edge)");
+  if (!(scale_cap >= 1.f && scale_cap <= 1024.f)) bad("scale_cap must lie in [1, 1024] (voxel edges)");
+  if (!(init_scale > 0.f && init_scale < scale_cap))
+    bad("init_scale must lie in (0, scale_cap) (a fraction of the voxel edge below the cap)");
   if (!(init_feature >= 0.f) || !std::isfinite(init_feature)) bad("init_feature must be finite and >= 0");
   if (sh_degree < 0 || sh_degree > 3) bad("sh_degree is " + std::to_string(sh_degree) + "; use 0..3");
 }
@@ -198,6 +200,21 @@ AnchorInitStats AnchorModel::initialise_from_points(const std::vector<Eigen::Vec
       const Eigen::Vector3d mean =
           colors.empty() ? Eigen::Vector3d(Eigen::Vector3d::Constant(0.5)) : Eigen::Vector3d(sum / double(e - b));
       append_anchor(layer, grid.cell_of(layer, points[keyed[b].second]), seed, mean, -1);
+      if (config.init_children_at_points) {
+        // Children on the voxel's points (evenly spaced through them), each
+        // with its point's colour; children beyond the points keep theirs.
+        const size_t a = size() - 1, n = e - b, K = static_cast<size_t>(config.children);
+        const double l = voxel_[a];
+        for (size_t i = 0; i < std::min(n, K); ++i) {
+          const uint32_t pt = keyed[b + i * n / std::min(n, K)].second;
+          for (int k = 0; k < 3; ++k) {
+            offset_[(a * K + i) * 3 + k] = static_cast<float>((points[pt][k] - pos_[3 * a + k]) / l);
+            if (!colors.empty())
+              sh_[(a * K + i) * kAnchorShCoeffs * 3 + k] =
+                  static_cast<float>((colors[pt][k] / 255.0 - 0.5) / kShC0);
+          }
+        }
+      }
       ++stats.anchors_per_layer[layer];
       b = e;
     }
@@ -233,7 +250,7 @@ void AnchorModel::append_anchor(int layer, const Eigen::Vector3i& cell, uint64_t
   layer_.push_back(layer);
   voxel_.push_back(static_cast<float>(grid_.voxel(layer)));
 
-  const float scale_logit = static_cast<float>(logit(config_.init_scale));
+  const float scale_logit = static_cast<float>(logit(double(config_.init_scale) / config_.scale_cap));
   const float opacity_logit = static_cast<float>(logit(config_.init_opacity));
   for (int i = 0; i < K; ++i) {
     for (int k = 0; k < 3; ++k) {
@@ -373,8 +390,10 @@ void AnchorModel::to_archive(ModelArchive& archive) const {
                                {"top_cells", c.top_cells},
                                {"layer_ratio", c.layer_ratio},
                                {"init_layer", c.init_layer},
+                               {"init_children_at_points", c.init_children_at_points},
                                {"init_opacity", c.init_opacity},
                                {"init_scale", c.init_scale},
+                               {"scale_cap", c.scale_cap},
                                {"init_feature", c.init_feature},
                                {"sh_degree", c.sh_degree}}},
                              {"grid",
@@ -398,8 +417,10 @@ AnchorModel AnchorModel::from_archive(const ModelArchive& archive) {
     c.top_cells = jc.at("top_cells").get<int>();
     c.layer_ratio = jc.at("layer_ratio").get<int>();
     c.init_layer = jc.at("init_layer").get<int>();
+    c.init_children_at_points = jc.value("init_children_at_points", false);
     c.init_opacity = jc.at("init_opacity").get<float>();
     c.init_scale = jc.at("init_scale").get<float>();
+    c.scale_cap = jc.value("scale_cap", 1.f);
     c.init_feature = jc.at("init_feature").get<float>();
     c.sh_degree = jc.at("sh_degree").get<int>();
     const nlohmann::json& jg = m.at("grid");
@@ -479,7 +500,7 @@ ExpandedGaussians expand_reference_double(const AnchorModel& model, int active_s
     const double l = model.voxel()[a];
     for (int k = 0; k < 3; ++k) {
       e.means[3 * g + k] = double(model.pos()[3 * a + k]) + double(model.offset()[3 * g + k]) * l;
-      e.scales[3 * g + k] = sigmoid(model.scale_logit()[3 * g + k]) * l;
+      e.scales[3 * g + k] = sigmoid(model.scale_logit()[3 * g + k]) * (l * model.config().scale_cap);
       e.features[3 * g + k] = model.feature()[3 * a + k];
     }
     for (int k = 0; k < 4; ++k) e.quats[4 * g + k] = model.quat()[4 * g + k];

@@ -3,7 +3,7 @@
 // parameters are stored raw (logits, offsets in voxel units) so that
 //
 //   mean    = pos + offset * l            (l = the anchor's voxel edge)
-//   scale   = sigmoid(scale_logit) * l    (a child never outgrows its voxel)
+//   scale   = sigmoid(scale_logit) * scale_cap * l    (scale_cap 1, the paper's: a child never outgrows its voxel)
 //   opacity = sigmoid(opacity_logit)
 //   quat    = quat as stored (w x y z; the renderer normalises)
 //   sh      = the first (d+1)^2 coefficients, d = the active SH degree
@@ -38,11 +38,19 @@ struct AnchorConfig {
   int layer_ratio = 4;         // each layer is this much finer than the one above
   int init_layer = 0;          // layer initialised from the SfM points; -1 = every layer
   float init_opacity = 0.1f;   // opacity of a fresh child, in (0, 1)
-  float init_scale = 0.5f;     // scale of a fresh child as a fraction of its voxel edge, in (0, 1)
+  float init_scale = 0.5f;     // scale of a fresh child as a fraction of its voxel edge, in (0, scale_cap)
+  // scale = sigmoid(logit) * scale_cap * l: 1 (the paper) keeps a child
+  // inside its voxel; larger lets it cover what its voxel's neighbours
+  // hold no anchors for (measured in the README, train section).
+  float scale_cap = 1.f;
   float init_feature = 0.05f;  // semantic features start uniform in [-init_feature, init_feature]
                                // (small and random: identical features would give the
                                // mask losses no direction to separate masks in); 0 = zero
   int sh_degree = 3;           // the highest SH degree training will use (0..3)
+  // Children of the anchors seeded from SfM points sit on (up to K of) the
+  // points of their voxel with those points' colours; false: random offsets
+  // in the voxel and the voxel's mean colour for all.
+  bool init_children_at_points = false;
 
   // Throws std::invalid_argument naming the first field out of range.
   void validate() const;

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cstdint>
+#include <cstdio>
 #include <map>
 #include <stdexcept>
 #include <string>
@@ -11,6 +12,14 @@ namespace ag2gs {
 namespace {
 
 constexpr int kWorkGroup = 64;
+
+// The expansion kernels' defines: the child count and the scale cap (as a
+// float literal that reads back as the same float).
+std::map<std::string, std::string> expand_defines(const DeviceAnchors& anchors) {
+  char cap[32];
+  std::snprintf(cap, sizeof cap, "%.9ef", static_cast<double>(anchors.scale_cap));
+  return {{"CHILDREN", std::to_string(anchors.children)}, {"SCALE_CAP", cap}};
+}
 
 // Throws unless `b` holds at least `floats` floats.
 void need_floats(const DeviceBuffer* b, size_t floats, const char* what) {
@@ -64,6 +73,7 @@ void DeviceAnchors::upload(const AnchorModel& model) {
   anchors = model.size();
   children = model.children();
   sh_degree = model.config().sh_degree;
+  scale_cap = model.config().scale_cap;
   pos.upload(model.pos());
   voxel.upload(model.voxel());
   feature.upload(model.feature());
@@ -135,7 +145,7 @@ void Expander::forward(const DeviceAnchors& anchors, DeviceGaussians& out, int a
   reserve_floats(out.sh, n * sh_out * 3);
   reserve_floats(out.features, n * 3);
   if (n == 0) return;
-  cl::Kernel k = rt_.kernel("expand.cl", "expand_fwd", {{"CHILDREN", std::to_string(anchors.children)}});
+  cl::Kernel k = rt_.kernel("expand.cl", "expand_fwd", expand_defines(anchors));
   set_kernel_args(k, static_cast<int>(n), anchors.pos, anchors.voxel, anchors.feature, anchors.offset,
                   anchors.scale_logit, anchors.quat, anchors.opacity_logit, anchors.sh_dc, anchors.sh_rest, sh_out,
                   out.means, out.scales, out.quats, out.opacities, out.sh, out.features);
@@ -167,7 +177,7 @@ void Expander::backward(const DeviceAnchors& anchors, const DeviceGaussianGrads&
   reserve_floats(out.sh_dc, n * 3);
   reserve_floats(out.sh_rest, n * kShRestCoeffs * 3);
   if (n == 0) return;
-  const std::map<std::string, std::string> defines{{"CHILDREN", std::to_string(anchors.children)}};
+  const std::map<std::string, std::string> defines = expand_defines(anchors);
   cl::Kernel k = rt_.kernel("expand.cl", "expand_bwd", defines);
   set_kernel_args(k, static_cast<int>(n), anchors.voxel, anchors.scale_logit, anchors.opacity_logit, *grads.means,
                   *grads.scales, *grads.quats, *grads.opacities, *grads.sh, sh_in, out.offset, out.scale_logit,

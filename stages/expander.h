@@ -54,6 +54,7 @@ struct DeviceAnchors {
   size_t anchors = 0;  // A
   int children = 0;    // K
   int sh_degree = 3;   // the model's highest degree (config().sh_degree)
+  float scale_cap = 1.f;  // config().scale_cap
   size_t gaussians() const { return anchors * static_cast<size_t>(children); }
 
   DeviceBuffer pos;            // [A,3] voxel centres (fixed)

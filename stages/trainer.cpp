@@ -64,6 +64,7 @@ void TrainConfig::validate() const {
   for (const auto& [name, v] : rates)
     if (!(v >= 0) || !std::isfinite(v)) bad(std::string(name) + " must be finite and >= 0");
   if (!(prune_opacity >= 0 && prune_opacity < 1)) bad("prune_opacity must be in [0, 1)");
+  if (!(recycle_opacity >= 0 && recycle_opacity < 1)) bad("recycle_opacity must be in [0, 1)");
   if (downscales < 0 || downscales > 6) bad("downscales is " + std::to_string(downscales) + "; use 0 (off) to 6");
   if (res_schedule < 1) bad("res_schedule must be at least 1 iteration");
   if (grow_every < 0 || grow_from < 0 || grow_until < 0 || !(grow_min_seen >= 0 && grow_min_seen <= 1))
@@ -104,6 +105,7 @@ GrowthConfig TrainConfig::growth_config(size_t train_views) const {
   g.unseen_window = prune_unseen_window > 0 ? prune_unseen_window : static_cast<int>(two_epochs);
   g.ndc = true;
   g.same_layer = grow_same_layer;
+  g.recycle_opacity = static_cast<float>(recycle_opacity);
   return g;
 }
 
@@ -111,7 +113,9 @@ nlohmann::json TrainConfig::to_json() const {
   nlohmann::json a = {{"children", anchors.children},     {"layers", anchors.layers},
                       {"top_cells", anchors.top_cells},   {"layer_ratio", anchors.layer_ratio},
                       {"init_layer", anchors.init_layer}, {"init_opacity", anchors.init_opacity},
+                      {"init_children_at_points", anchors.init_children_at_points},
                       {"init_scale", anchors.init_scale}, {"init_feature", anchors.init_feature},
+                      {"scale_cap", anchors.scale_cap},
                       {"sh_degree", anchors.sh_degree}};
   return {{"iterations", iterations},
           {"seed", seed},
@@ -129,6 +133,7 @@ nlohmann::json TrainConfig::to_json() const {
           {"mask_unmasked_group", mask_unmasked_group},
           {"feature_ball", feature_ball},
           {"grow_same_layer", grow_same_layer},
+          {"recycle_opacity", recycle_opacity},
           {"prop_iters", effective_prop_iters()},
           {"w_prop", w_prop},
           {"prop_tau", prop_tau},
@@ -196,8 +201,10 @@ TrainConfig TrainConfig::from_json(const nlohmann::json& j) {
     c.anchors.top_cells = a.at("top_cells").get<int>();
     c.anchors.layer_ratio = a.at("layer_ratio").get<int>();
     c.anchors.init_layer = a.at("init_layer").get<int>();
+    c.anchors.init_children_at_points = a.value("init_children_at_points", false);
     c.anchors.init_opacity = a.at("init_opacity").get<float>();
     c.anchors.init_scale = a.at("init_scale").get<float>();
+    c.anchors.scale_cap = a.value("scale_cap", 1.f);
     c.anchors.init_feature = a.at("init_feature").get<float>();
     c.anchors.sh_degree = a.at("sh_degree").get<int>();
     c.iterations = j.at("iterations").get<int>();
@@ -215,6 +222,7 @@ TrainConfig TrainConfig::from_json(const nlohmann::json& j) {
     c.mask_unmasked_group = j.value("mask_unmasked_group", false);  // written before the option
     c.feature_ball = j.value("feature_ball", false);
     c.grow_same_layer = j.value("grow_same_layer", false);
+    c.recycle_opacity = j.value("recycle_opacity", 0.0);
     // Written before stage 2 existed: stage 1 only.
     c.prop_iters = j.value("prop_iters", 0);
     c.w_prop = j.value("w_prop", 0.01f);  // the default of that time
@@ -579,7 +587,7 @@ StepStats Trainer::step(bool compute_offset_loss, const std::function<void()>& b
     if (every > 0 && st.iteration > every) {
       const int last_reset = (st.iteration - 1) / every * every;  // strictly before this iteration
       if (opacity_reset_due(last_reset) && st.iteration - last_reset <= config_.opacity_reset_pause)
-        gc.prune_opacity = 0;
+        gc.prune_opacity = gc.recycle_opacity = 0;
     }
     growth_.set_config(gc);
     const GrowthResult r = growth_.step(model_, config_.seed);

@@ -159,6 +159,9 @@ struct TrainConfig {
   // Growing also adds anchors of a child's own layer where its mean left its
   // voxel (GrowthConfig::same_layer).
   bool grow_same_layer = true;
+  // In the same rounds: children below this opacity become copies of their
+  // anchor's most opaque child (GrowthConfig::recycle_opacity); 0 = off.
+  double recycle_opacity = 0;
   // A child grows only when visible in at least this fraction of the
   // iterations since the last round (official: 0.4 = 40 of 100).
   double grow_min_seen = 0.4;

@@ -81,8 +81,9 @@ void randomise(AnchorModel& m, uint32_t seed, bool wild) {
 }
 
 // A model of about `target` anchors (random points, init layer 0) with random parameters.
-AnchorModel random_model(size_t points, uint32_t seed, bool wild) {
+AnchorModel random_model(size_t points, uint32_t seed, bool wild, float scale_cap = 1.f) {
   AnchorConfig c;
+  c.scale_cap = scale_cap;
   VoxelGrid g = unit_grid(c);
   g.top_voxel = 0.25;
   g.origin = Eigen::Vector3d(-1.05, -0.95, -1.01);
@@ -545,12 +546,12 @@ RefAnchorGrads expand_backward_reference(const AnchorModel& m, const ref::RefGra
   r.sh.assign(N * 48, 0.0);
   for (size_t g = 0; g < N; ++g) {
     const size_t a = g / K;
-    const double l = m.voxel()[a];
+    const double l = m.voxel()[a], cap = m.config().scale_cap;
     for (int k = 0; k < 3; ++k) {
       r.offset[3 * g + k] = v.means[3 * g + k] * l;
       // s (1 - s) as sigmoid(x) sigmoid(-x): 1 - s cancels catastrophically for large x.
       const double x = m.scale_logit()[3 * g + k];
-      r.scale_logit[3 * g + k] = v.scales[3 * g + k] * l * sigmoid(x) * sigmoid(-x);
+      r.scale_logit[3 * g + k] = v.scales[3 * g + k] * l * cap * sigmoid(x) * sigmoid(-x);
       r.feature[3 * a + k] += v.features[3 * g + k];
     }
     for (int k = 0; k < 4; ++k) r.quat[4 * g + k] = v.quats[4 * g + k];
@@ -703,6 +704,66 @@ TEST(Expander, BackwardMatchesReferenceAndFiniteDifferences) {
   DeviceGaussianGrads missing = v.view();
   missing.sh = nullptr;
   EXPECT_THROW(ex.backward(dev, missing, grads), std::invalid_argument);
+}
+
+// --scale-cap: scale = sigmoid(logit) * cap * l, forward and backward against
+// the double reference, the reference against central differences, and a
+// fresh child still starts at init_scale voxel edges.
+TEST(Expander, ScaleCapMatchesReferenceAndFiniteDifferences) {
+  Runtime& rt = test::runtime();
+  const float cap = 8.f;
+  AnchorModel m = random_model(800, 91, true, cap);
+  DeviceAnchors dev(rt);
+  dev.upload(m);
+  Expander ex(rt);
+  DeviceGaussians out(rt);
+  ex.forward(dev, out, 1);
+  const ExpandedGaussians ref = expand_reference_double(m, 1);
+  std::vector<float> scales;
+  out.scales.download(scales, out.n * 3);
+  test::expect_close("scales", test::compare(scales, ref.scales, 1e-30, kActivationRelTol));
+  for (size_t g = 0; g < m.gaussians(); ++g)
+    for (int k = 0; k < 3; ++k) {
+      const double x = m.scale_logit()[3 * g + k], l = m.voxel()[g / m.children()];
+      ASSERT_NEAR(ref.scales[3 * g + k], cap * l / (1.0 + std::exp(-x)), 1e-12 * cap * l);
+    }
+  DeviceAnchorGrads grads(rt);
+  GaussianGradBuffers v(rt);
+  fill_random_grads(v, m.gaussians(), 1, 17);
+  ex.backward(dev, v.view(), grads);
+  const RefAnchorGrads analytic = expand_backward_reference(m, v.host, 1);
+  check_backward_against(grads.download(), analytic);
+  // d<v, scales>/d logit by central differences on a few children.
+  for (size_t i = 0; i < 60; i += 7) {
+    std::vector<float>& x = m.scale_logit();
+    const float x0 = x[i], h = 1e-3f * std::max(1.f, std::abs(x0));
+    auto F = [&] {
+      const ExpandedGaussians e = expand_reference_double(m, 1);
+      double sum = 0;
+      for (size_t j = 0; j < e.scales.size(); ++j) sum += v.host.scales[j] * e.scales[j];
+      return sum;
+    };
+    x[i] = x0 + h;
+    const double xp = x[i], fp = F();
+    x[i] = x0 - h;
+    const double xm = x[i], fm = F();
+    x[i] = x0;
+    const double fd = (fp - fm) / (xp - xm);
+    EXPECT_NEAR(fd, analytic.scale_logit[i], 1e-5 * std::max(1e-3, std::abs(analytic.scale_logit[i]))) << i;
+  }
+  // A fresh child starts at init_scale voxel edges whatever the cap.
+  AnchorModel fresh;
+  fresh.reset(m.grid(), m.config());
+  fresh.add_anchor(1, Eigen::Vector3i(3, 4, 5), -1, 9);
+  const ExpandedGaussians e = expand_reference_double(fresh, 0);
+  for (double sc : e.scales) EXPECT_NEAR(sc, fresh.config().init_scale * fresh.voxel()[0], 1e-7);
+  // The config refuses a cap below 1 and an initial scale at or above the cap.
+  AnchorConfig c = m.config();
+  c.scale_cap = 0.5f;
+  EXPECT_THROW(c.validate(), std::invalid_argument);
+  c.scale_cap = 2.f;
+  c.init_scale = 2.f;
+  EXPECT_THROW(c.validate(), std::invalid_argument);
 }
 
 TEST(Expander, UploadDownloadRoundTripAndEmptyModel) {

@@ -363,6 +363,72 @@ TEST(GrowthDecision, PrunesLowOpacityAndUnseenButNotNewAnchors) {
   EXPECT_EQ(run_scenario(f).r.added, 4);
 }
 
+// recycle_opacity: the transparent children of a kept anchor become copies
+// of its most opaque child, the pair exactly as opaque as that child was,
+// with fresh moments; anchors without a worthy donor, anchors grown in the
+// same step and everything when it is off stay as they were.
+TEST(GrowthDecision, RecyclesTransparentChildrenAsCopiesOfTheMostOpaque) {
+  auto run = [](float recycle) {
+    Scenario s = scenario();
+    s.model.opacity_logit()[1] = -7.f;  // a0: rows 1 and 3 transparent, row 4 (logit 0.04) the donor
+    s.model.opacity_logit()[3] = -7.f;
+    for (int i = 0; i < 5; ++i) s.model.opacity_logit()[25 + i] = -5.f + i * 0.1f;  // a5: the best 0.0099,
+    s.model.opacity_logit()[27] = -7.f;  // below 2 x 0.005: no donor for this transparent one
+    GrowthConfig c;
+    c.recycle_opacity = recycle;
+    c.prune_opacity = 0;  // keep a3 (all at 0.0025) and a5 to show they are left alone
+    AnchorGrowth growth(runtime(), c);
+    growth.reset(s.model.gaussians());
+    feed(growth, s.v_px, s.radii, 10, kW, kH, s.seen);
+    Ran out;
+    out.before = s.model;
+    out.r = growth.step(s.model, 5);
+    out.after = s.model;
+    return out;
+  };
+  const Ran off = run(0.f), on = run(0.005f), again = run(0.005f);
+  EXPECT_EQ(off.r.recycled, 0);
+  EXPECT_EQ(on.r.recycled, 2);
+  // Same decisions otherwise, and the same bytes twice.
+  EXPECT_EQ(on.r.anchor_rows, off.r.anchor_rows);
+  EXPECT_EQ(on.after.offset(), again.after.offset());
+  EXPECT_EQ(on.after.opacity_logit(), again.after.opacity_logit());
+
+  const AnchorModel &b = on.before, &m = on.after;
+  auto sig = [](double x) { return 1.0 / (1.0 + std::exp(-x)); };
+  const double donor_before = sig(b.opacity_logit()[4]);
+  // 1 - (1 - o1)(1 - o3)(1 - o4) over the three rows is the donor's opacity.
+  const double cover = 1.0 - (1.0 - sig(m.opacity_logit()[1])) * (1.0 - sig(m.opacity_logit()[3])) *
+                                 (1.0 - sig(m.opacity_logit()[4]));
+  EXPECT_NEAR(cover, donor_before, 1e-6);
+  for (int g : {1, 3}) {
+    EXPECT_EQ(on.r.child_rows[g], -1) << g;  // fresh moments
+    for (int k = 0; k < 3; ++k) {
+      EXPECT_EQ(m.scale_logit()[3 * g + k], b.scale_logit()[3 * 4 + k]);
+      EXPECT_LE(std::abs(m.offset()[3 * g + k] - b.offset()[3 * 4 + k]), 0.1f + 1e-6f);
+    }
+    for (int k = 0; k < 4; ++k) EXPECT_EQ(m.quat()[4 * g + k], b.quat()[4 * 4 + k]);
+    for (int k = 0; k < 48; ++k) EXPECT_EQ(m.sh()[48 * g + k], b.sh()[48 * 4 + k]);
+  }
+  EXPECT_NE(m.offset()[3], m.offset()[9]);  // the two copies are jittered apart
+  EXPECT_EQ(on.r.anchor_rows, (std::vector<int>{0, 1, 2, 3, 5, -1, -1, -1}));  // a4 unseen
+  for (int g = 0; g < 25; ++g) {
+    if (g == 1 || g == 3 || g == 4) continue;  // the copies and the donor (its opacity checked above)
+    // Everything else keeps its row, moments and values: a0's rows 0 and 2,
+    // a3 (all at 0.0025, no donor) and a5 (no donor either).
+    const int o = on.r.child_rows[g];
+    EXPECT_EQ(o, off.r.child_rows[g]) << g;
+    if (o < 0) continue;  // grown this step
+    EXPECT_EQ(m.opacity_logit()[g], b.opacity_logit()[o]) << g;
+  }
+  EXPECT_EQ(on.r.child_rows[22], 27);
+  // The grown anchors (children at a3's 0.0025, born this step) are left alone.
+  const int fresh = m.find(1, {18, 2, 2});
+  ASSERT_GE(fresh, 0);
+  for (int i = 0; i < 5; ++i) EXPECT_EQ(m.opacity_logit()[fresh * 5 + i], -6.f);
+  m.check();
+}
+
 TEST(GrowthDecision, MinSeenFractionIsInclusive) {
   // Row 7 (large gradient, free voxel) visible in exactly 4 of 10 views:
   // 0.4 of the round is enough, although 0.4f * 10 in double is 4.00000006.
