@@ -242,6 +242,61 @@ TEST(AnchorInit, OneAnchorPerOccupiedVoxelWithMeanColour) {
   EXPECT_THROW(m.initialise_from_points(pts, {col[0]}, g, c, 42), std::invalid_argument);
 }
 
+// --init-children-at-points: children sit on their voxel's points with the
+// points' colours; children beyond the points keep the random offset and the
+// mean colour of the default.
+TEST(AnchorInit, ChildrenAtPointsTakeThePointsPlacesAndColours) {
+  AnchorConfig c;
+  const VoxelGrid g = unit_grid(c);
+  // Voxel (0,0,0): 7 points (more than K = 5); voxel (1,0,0): 2 points.
+  std::vector<Eigen::Vector3d> pts;
+  std::vector<Eigen::Vector3<uint8_t>> col;
+  for (int i = 0; i < 7; ++i) {
+    pts.emplace_back(0.1 + 0.11 * i, 0.9 - 0.1 * i, 0.05 + 0.13 * i);
+    col.emplace_back(static_cast<uint8_t>(30 * i), 100, static_cast<uint8_t>(255 - 30 * i));
+  }
+  pts.emplace_back(1.2, 0.3, 0.4);
+  col.emplace_back(200, 10, 10);
+  pts.emplace_back(1.8, 0.6, 0.5);
+  col.emplace_back(10, 200, 10);
+  AnchorModel plain, at;
+  plain.initialise_from_points(pts, col, g, c, 5);
+  c.init_children_at_points = true;
+  at.initialise_from_points(pts, col, g, c, 5);
+  ASSERT_EQ(at.size(), 2u);
+  at.check();
+  auto child_on_point = [&](size_t gi) {
+    const size_t a = gi / 5;
+    for (size_t p = 0; p < pts.size(); ++p) {
+      bool same = true;
+      for (int k = 0; k < 3; ++k)
+        same = same && std::abs(at.pos()[3 * a + k] + at.offset()[3 * gi + k] * at.voxel()[a] - pts[p][k]) < 1e-6;
+      if (same) return static_cast<int>(p);
+    }
+    return -1;
+  };
+  std::set<int> used;
+  for (size_t gi = 0; gi < 5; ++gi) {  // anchor 0: five distinct points of its seven
+    const int p = child_on_point(gi);
+    ASSERT_GE(p, 0) << gi;
+    ASSERT_LT(p, 7) << gi;
+    used.insert(p);
+    for (int k = 0; k < 3; ++k) EXPECT_NEAR(at.sh()[gi * 48 + k], (col[p][k] / 255.0 - 0.5) / kC0, 1e-6);
+  }
+  EXPECT_EQ(used.size(), 5u);
+  for (size_t gi = 5; gi < 7; ++gi) EXPECT_EQ(child_on_point(gi), static_cast<int>(gi + 2));  // anchor 1: its two
+  for (size_t gi = 7; gi < 10; ++gi) {  // ... and three children as without the option
+    for (int k = 0; k < 3; ++k) {
+      EXPECT_EQ(at.offset()[gi * 3 + k], plain.offset()[gi * 3 + k]);
+      EXPECT_EQ(at.sh()[gi * 48 + k], plain.sh()[gi * 48 + k]);
+    }
+  }
+  // Everything else as without the option.
+  EXPECT_EQ(at.scale_logit(), plain.scale_logit());
+  EXPECT_EQ(at.opacity_logit(), plain.opacity_logit());
+  EXPECT_EQ(at.quat(), plain.quat());
+}
+
 TEST(AnchorInit, EveryLayerWhenInitLayerIsMinusOne) {
   AnchorConfig c;
   c.init_layer = -1;
