@@ -595,6 +595,7 @@ StepStats Trainer::step(bool compute_offset_loss, const std::function<void()>& b
                   st.iteration, r.requests, r.added, r.pruned, r.pruned_opacity, r.pruned_unseen);
     st.grown = r.added;
     st.pruned = r.pruned;
+    st.recycled = r.recycled;
     if (r.changed()) {
       if (model_.size() == 0)
         throw std::runtime_error("iteration " + std::to_string(st.iteration) + ": pruning removed every anchor (" +

@@ -235,6 +235,7 @@ struct StepStats {
   int grown = 0;   // anchors added after this step
   bool opacity_reset = false;  // opacities reset after this step
   int pruned = 0;  // anchors removed after this step
+  int recycled = 0;  // children recycled after this step (TrainConfig::recycle_opacity)
 };
 
 struct EvalStats {

@@ -141,19 +141,21 @@ TrainConfig split_config() {
   return cfg;
 }
 
-TEST(TrainState, ResumedRunGivesTheBytesOfTheStraightRun) {
+// Trains cfg straight and split in two at iteration 40 (checkpoint, resume)
+// and expects the same model files; returns the children recycled.
+int expect_resume_gives_straight_bytes(const TrainConfig& cfg, const std::string& name) {
   SceneOptions so;
   so.resolution = 2;
   auto scene = Scene::open(sample_scene(), so);
-  const TrainConfig cfg = split_config();
-  test::ScratchDir dir("train_resume");
-  int grown = 0, resets = 0;
+  test::ScratchDir dir(name);
+  int grown = 0, resets = 0, recycled = 0;
   {
     Trainer straight(test::runtime(), *scene, cfg);
     for (int it = 0; it < cfg.iterations; ++it) {
       const StepStats st = straight.step();
       grown += st.grown;
       resets += st.opacity_reset;
+      recycled += st.recycled;
     }
     straight.save(dir.file("straight"));
   }
@@ -180,6 +182,21 @@ TEST(TrainState, ResumedRunGivesTheBytesOfTheStraightRun) {
     second.save(dir.file("split"));
   }
   test::expect_same_model_files(dir.file("straight"), dir.file("split"), "the straight and the resumed run");
+  return recycled;
+}
+
+TEST(TrainState, ResumedRunGivesTheBytesOfTheStraightRun) {
+  EXPECT_EQ(expect_resume_gives_straight_bytes(split_config(), "train_resume"), 0);
+}
+
+// The same with the switches against the gap to free Gaussians: recycling in
+// the growing rounds, a scale cap, children on the SfM points.
+TEST(TrainState, ResumeIsBitExactWithRecyclingAndAScaleCap) {
+  TrainConfig cfg = split_config();
+  cfg.recycle_opacity = 0.05;
+  cfg.anchors.scale_cap = 8.f;
+  cfg.anchors.init_children_at_points = true;
+  EXPECT_GT(expect_resume_gives_straight_bytes(cfg, "train_resume_switches"), 0);
 }
 
 TEST(TrainState, ResumeRefusesAnotherConfigOrScene) {
