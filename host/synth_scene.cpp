@@ -1471,8 +1471,7 @@ void write_synth_scene(const std::string& out_dir, const SynthOptions& opt) {
                {"mask_factor", opt.mask_factor},
                {"hard", opt.hard},
                {"text_model", opt.text_model},
-               {"backdrop", opt.backdrop},
-               {"background_masks", opt.background_masks}}},
+               {"backdrop", opt.backdrop}}},
              {"world",
               {{"up", "+z"},
                {"ground", {{"shape", "disc"}, {"z", 0.0}, {"radius", kGroundRadius}}},
@@ -1527,6 +1526,8 @@ void write_synth_scene(const std::string& out_dir, const SynthOptions& opt) {
              {"occlusion_pairs", occ_pairs},
              {"views", views_json},
              {"files", files}};
+  // Written only when on, so scenes generated without it keep their bytes.
+  if (opt.background_masks) synth["options"]["background_masks"] = true;
   write_text_atomic(root / "synth.json", synth.dump(1) + "\n");
   spdlog::info("synth: wrote {} views, {} objects, {} points to {}", opt.views, scene.objects.size(), points.size(),
                out_dir);
