@@ -1,7 +1,8 @@
 // Anchor -> Gaussian expansion (DESIGN.md section 2) and its backward pass.
 // Gaussian g = a * CHILDREN + i is child i of anchor a.
-// Defines: CHILDREN (K). The SH coefficient counts are arguments, so one
-// program serves every degree.
+// Defines: CHILDREN (K), SCALE_CAP (M, default 1: a child's scale is at most
+// M voxel edges; AnchorConfig::scale_cap). The SH coefficient counts are
+// arguments, so one program serves every degree.
 // The SH of a child are stored split, DC [N,3] and rest [N,15,3], so the
 // optimiser can step them with different learning rates.
 
@@ -15,7 +16,7 @@ inline float sigmoid(float x) { return 1.f / (1.f + exp(-x)); }
 // ds/dx = s (1 - s) = sigmoid(x) sigmoid(-x): no cancellation in 1 - s when s -> 1.
 inline float sigmoid_vjp(float x, float v_s) { return v_s * (sigmoid(x) * sigmoid(-x)); }
 
-// mean = pos + offset * l, scale = sigmoid(scale_logit) * l, quat as stored,
+// mean = pos + offset * l, scale = sigmoid(scale_logit) * M * l, quat as stored,
 // opacity = sigmoid(opacity_logit), sh = (dc, rest[0 .. sh_out-2]),
 // feature = the anchor's feature.
 __kernel void expand_fwd(
@@ -50,7 +51,7 @@ __kernel void expand_fwd(
   vstore3(vload3(a, feature), g, features);
 }
 
-// Per Gaussian: v_offset = v_mean l, v_scale_logit = v_scale l s (1 - s),
+// Per Gaussian: v_offset = v_mean l, v_scale_logit = v_scale M l s (1 - s),
 // v_quat = v_quat, v_opacity_logit = v_opacity o (1 - o), SH gradients copied
 // for the sh_in coefficients the renderer had, zero above.
 __kernel void expand_bwd(
