@@ -317,6 +317,10 @@ void add_query_config_options(CLI::App* sub, QueryConfig& c) {
   sub->add_flag("--click-dominant,!--click-mean", c.click_dominant,
                 "Click depth and feature: of the feature group of anchors holding the most blending weight at the pixel (default), "
                 "or --click-mean: the ray's mean depth and rendered feature");
+  sub->add_option("--click-front-weight", c.click_front_weight,
+                  "With --click-dominant: the nearest feature group along the ray holding at least this much of the "
+                  "pixel's blending weight instead of the heaviest (default 0.3; 0 = the heaviest)")
+      ->check(CLI::Range(0.0, 0.999));
 }
 
 void register_query(CLI::App& app, GlobalOptions& global) {

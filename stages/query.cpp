@@ -31,6 +31,7 @@ void QueryConfig::validate() const {
   if (!(min_click_alpha >= 0 && min_click_alpha <= 1)) bad("min_click_alpha must lie in [0, 1]");
   if (!(mask_threshold >= 0 && mask_threshold < 1)) bad("mask_threshold must lie in [0, 1)");
   if (click_candidates < 1 || click_candidates > 4096) bad("click_candidates must lie in 1..4096");
+  if (!(click_front_weight >= 0.f && click_front_weight < 1.f)) bad("click_front_weight must lie in [0, 1)");
 }
 
 double QueryConfig::equivalent_distance() const {
@@ -297,7 +298,7 @@ struct DominantGroup {
 };
 
 DominantGroup dominant_group(const std::vector<Renderer::PixelContribution>& contrib, const AnchorModel& model,
-                             float tau, float min_weight) {
+                             float tau, float min_weight, float front_weight) {
   const uint32_t K = static_cast<uint32_t>(model.children());
   struct AnchorSum {
     uint32_t anchor;
@@ -335,8 +336,11 @@ DominantGroup dominant_group(const std::vector<Renderer::PixelContribution>& con
   }
   DominantGroup out;
   const Group* top = nullptr;
-  for (const Group& g : groups)
-    if (!top || g.weight > top->weight) top = &g;
+  for (const Group& g : groups)  // groups in order of first appearance along the ray
+    if (front_weight > 0 ? !top && g.weight >= front_weight : !top || g.weight > top->weight) top = &g;
+  if (!top)  // no group reaches front_weight: the heaviest
+    for (const Group& g : groups)
+      if (!top || g.weight > top->weight) top = &g;
   if (top && top->weight > 0) {
     out.anchor = static_cast<int32_t>(top->heaviest->anchor);
     out.weight = top->weight;
@@ -388,7 +392,8 @@ ClickResult QueryEngine::click(const Camera& camera, double x, double y) {
                      out.feature[3 * p + 2] / static_cast<float>(r.alpha)};
   if (config_.click_dominant) {
     const DominantGroup top =
-        dominant_group(renderer_.pixel_contributions(r.pixel_x, r.pixel_y), model_, config_.tau, config_.min_weight);
+        dominant_group(renderer_.pixel_contributions(r.pixel_x, r.pixel_y), model_, config_.tau, config_.min_weight,
+                       config_.click_front_weight);
     if (top.anchor >= 0) {
       r.dominant_anchor = top.anchor;
       r.dominant_weight = top.weight;

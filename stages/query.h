@@ -77,6 +77,11 @@ struct QueryConfig {
   // blending weight (what the pixel shows); false: the ray's mean depth and
   // F / alpha (blends of a thin object and what lies behind it).
   bool click_dominant = true;
+  // With click_dominant: > 0 takes the nearest group along the ray holding at
+  // least this much of the pixel's blending weight instead of the heaviest
+  // group (a thin pole half covering a wall); 0 = the heaviest. Measured in
+  // the README (query section).
+  float click_front_weight = 0.3f;
   // false: the ablation without graph region growing. The selection is then
   // every anchor whose feature lies within equivalent_distance() of a seed
   // feature (click: the seed anchor's; text: each seed cluster's mean),

@@ -464,9 +464,13 @@ TEST(Query, ClickOnAThinHalfTransparentObjectSelectsIt) {
         built.model.opacity_logit()[static_cast<size_t>(a) * kChildren + i] = std::log(0.35f / 0.65f);
   const Camera cam = World::front();
   const std::vector<uint8_t> pole = gt_mask(boxes, origin, voxel, cam, 1);
-  QueryConfig mean_cfg;
+  QueryConfig mean_cfg, heaviest_cfg, front_cfg;
   mean_cfg.click_dominant = false;
-  QueryEngine dominant(test::runtime(), built.model), mean(test::runtime(), built.model, mean_cfg);
+  heaviest_cfg.click_front_weight = 0.f;
+  front_cfg.click_front_weight = 0.3f;
+  QueryEngine dominant(test::runtime(), built.model, heaviest_cfg), mean(test::runtime(), built.model, mean_cfg);
+  QueryEngine front(test::runtime(), built.model, front_cfg);
+  int front_only = 0, right_front = 0, right_heaviest_front = 0;  // pixels where the pole holds 0.3 .. half
   // Pixels where the pole holds more than half of the rendered weight: the
   // click must select the pole there. At its fuzzy edges the wall shows more.
   int tried = 0, clear = 0, right_clear = 0, right_dominant = 0, right_mean = 0, right_mean_clear = 0;
@@ -489,6 +493,12 @@ TEST(Query, ClickOnAThinHalfTransparentObjectSelectsIt) {
       weight_sum_err = std::max(weight_sum_err, std::abs(sum - r.alpha));
       const bool right_by_mean = mean.click(cam, x + 0.5, y + 0.5).selected == built.anchors[1];
       right_mean += right_by_mean;
+      // The front rule: the pole (nearest along the ray) wherever it holds at least 0.3.
+      if (pole_weight >= 0.3) {
+        const bool right_by_front = front.click(cam, x + 0.5, y + 0.5).selected == built.anchors[1];
+        EXPECT_TRUE(right_by_front) << "pixel " << x << "," << y << ": pole weight " << pole_weight;
+        if (pole_weight <= 0.5 * sum) ++front_only, right_front += right_by_front, right_heaviest_front += right;
+      }
       if (pole_weight > 0.5 * sum) {
         ++clear;
         right_clear += right;
@@ -505,6 +515,13 @@ TEST(Query, ClickOnAThinHalfTransparentObjectSelectsIt) {
   // depth past the thin wall, whose anchors then seed the query.
   EXPECT_LT(right_mean_clear, clear / 2);
   EXPECT_LT(weight_sum_err, 1e-4);
+  // Where the pole holds 0.3 to half of the weight, the heaviest group is
+  // mostly the wall; the front rule still takes the pole.
+  std::printf("pole holds 0.3 .. half of the weight: %d pixels, pole selected by the front rule %d, by the heaviest "
+              "group %d\n",
+              front_only, right_front, right_heaviest_front);
+  EXPECT_GT(front_only, 0);
+  EXPECT_EQ(right_front, front_only);
 }
 
 TEST(Query, ClickErrors) {
