@@ -113,6 +113,9 @@ void cmd_eval(const GlobalOptions& global, EvalArgs a) {
                  {"graph_cell_scale", a.config.graph_cell_scale},
                  {"text_margin", a.config.text_margin},
                  {"mask_threshold", a.config.mask_threshold},
+                 {"click_candidates", a.config.click_candidates},
+                 {"click_dominant", a.config.click_dominant},
+                 {"click_front_weight", a.config.click_front_weight},
                  {"boundary_ratio", a.boundary_ratio}};
   j["timing_ms"] = {{"load_and_prepare", load_ms}, {"prepare", engine.prepare_ms()}, {"evaluation", eval_ms}};
   write_json_atomic(a.out, j);

@@ -202,6 +202,9 @@ void cmd_query(const GlobalOptions& global, QueryArgs a) {
                      {"graph_cell_scale", a.config.graph_cell_scale},
                      {"text_margin", a.config.text_margin},
                      {"min_click_alpha", a.config.min_click_alpha},
+                     {"click_candidates", a.config.click_candidates},
+                     {"click_dominant", a.config.click_dominant},
+                     {"click_front_weight", a.config.click_front_weight},
                      {"mask_threshold", a.config.mask_threshold}};
   std::vector<int32_t> selected;
   double query_ms = 0;
