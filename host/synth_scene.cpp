@@ -1029,30 +1029,39 @@ struct ViewMasksOut {
   std::array<int, kLevels> per_level{};
 };
 
-// The background region of a hit on object 0 (a Surface) in `view`, as SAM's
-// automatic mode segments floors and walls: the ground disc in four quarters
-// about a centre and angle drawn per view (so the cuts move from view to view,
-// as SAM's do), the floor ring, the wall in two halves split at that angle,
-// the ceiling. In 0..7: the `part` of object 0's masks.
-int background_region(const Hit& h, int view, const Rng& rng) {
-  const double angle = 2.0 * kPi * rng.uniform(kStreamBackground, view, 0);
-  const double cx = kPlaceRadius * (2.0 * rng.uniform(kStreamBackground, view, 1) - 1.0) / 3.0;
-  const double cy = kPlaceRadius * (2.0 * rng.uniform(kStreamBackground, view, 2) - 1.0) / 3.0;
-  const double c = std::cos(angle), s = std::sin(angle);
-  const Vec3& p = h.local;  // world point for object 0
-  switch (h.face) {
-    case kSurfaceGround: {
-      double u = c * (p.x() - cx) + s * (p.y() - cy), v = -s * (p.x() - cx) + c * (p.y() - cy);
-      return (u >= 0 ? 0 : 1) + (v >= 0 ? 0 : 2);
-    }
-    case kSurfaceFloor:
-      return 4;
-    case kSurfaceWall:
-      return c * p.x() + s * p.y() >= 0 ? 5 : 6;
-    default:
-      return 7;
+// How SAM's automatic mode cuts the background of one view: the ground disc
+// in four quarters about a centre and angle drawn per view (so the cuts move
+// from view to view, as SAM's do), the floor ring, the wall in two halves
+// split at that angle, the ceiling.
+struct BackgroundCut {
+  double c = 1, s = 0, cx = 0, cy = 0;  // cos and sin of the angle, the centre
+
+  BackgroundCut(int view, const Rng& rng) {
+    const double angle = 2.0 * kPi * rng.uniform(kStreamBackground, view, 0);
+    c = std::cos(angle);
+    s = std::sin(angle);
+    cx = kPlaceRadius * (2.0 * rng.uniform(kStreamBackground, view, 1) - 1.0) / 3.0;
+    cy = kPlaceRadius * (2.0 * rng.uniform(kStreamBackground, view, 2) - 1.0) / 3.0;
   }
-}
+
+  // The region of a hit on object 0 (a Surface), in 0..7: the `part` of
+  // object 0's masks.
+  int region(const Hit& h) const {
+    const Vec3& p = h.local;  // world point for object 0
+    switch (h.face) {
+      case kSurfaceGround: {
+        const double u = c * (p.x() - cx) + s * (p.y() - cy), v = -s * (p.x() - cx) + c * (p.y() - cy);
+        return (u >= 0 ? 0 : 1) + (v >= 0 ? 0 : 2);
+      }
+      case kSurfaceFloor:
+        return 4;
+      case kSurfaceWall:
+        return c * p.x() + s * p.y() >= 0 ? 5 : 6;
+      default:
+        return 7;
+    }
+  }
+};
 
 ViewMasksOut make_masks(const Scene& scene, const Camera& cam, int view, int factor, const Rng& rng,
                         bool background_masks) {
@@ -1064,6 +1073,7 @@ ViewMasksOut make_masks(const Scene& scene, const Camera& cam, int view, int fac
   // Exact (object, part) per mask pixel from its centre ray.
   std::vector<int> obj(n, 0);
   std::vector<std::array<int, kLevels>> part(n);
+  const BackgroundCut cut(view, rng);
   for (int y = 0; y < Hm; ++y)
     for (int x = 0; x < Wm; ++x) {
       Ray r = camera_ray(cam, (x + 0.5) * factor, (y + 0.5) * factor);
@@ -1073,7 +1083,7 @@ ViewMasksOut make_masks(const Scene& scene, const Camera& cam, int view, int fac
       if (obj[p] > 0)
         for (int l = 0; l < kLevels; ++l) part[p][l] = part_of(scene.objects[obj[p] - 1], h, l);
       else if (h.object == 0 && background_masks)
-        part[p].fill(background_region(h, view, rng));
+        part[p].fill(cut.region(h));
       else
         part[p].fill(-1);  // sky, or background without masks
     }

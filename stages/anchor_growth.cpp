@@ -24,23 +24,8 @@ double sigmoid(double x) {
   return 1.0 / (1.0 + std::exp(-x));
 }
 
-double logit(double p) {
-  return std::log(p / (1.0 - p));
-}
-
-// A counter-based uniform in [0, 1): the same bits for the same arguments.
-double hash_uniform(uint64_t seed, uint64_t a, uint64_t b) {
-  uint64_t x = seed ^ (a * 0x9e3779b97f4a7c15ull) ^ (b * 0xc2b2ae3d27d4eb4full);
-  for (int i = 0; i < 2; ++i) {
-    x += 0x9e3779b97f4a7c15ull;
-    x = (x ^ (x >> 30)) * 0xbf58476d1ce4e5b9ull;
-    x = (x ^ (x >> 27)) * 0x94d049bb133111ebull;
-    x ^= x >> 31;
-  }
-  return static_cast<double>(x >> 11) * 0x1.0p-53;
-}
-
 constexpr double kRecycleJitter = 0.1;  // voxel units, each axis +-
+constexpr int kRecycleStream = 16;      // anchor_uniform01 streams 16..18 (x, y, z)
 
 }  // namespace
 
@@ -282,16 +267,22 @@ int AnchorGrowth::recycle(AnchorModel& model, GrowthResult& r, uint64_t seed) co
     for (size_t g = a * K + 1; g < (a + 1) * K; ++g)
       if (opacity[g] > opacity[donor]) donor = g;
     if (!(sigmoid(opacity[donor]) >= 2 * below)) continue;  // nothing worth copying
+    // The jitter is keyed by the anchor's voxel, the child and the
+    // accumulation step, so a child recycled again later moves elsewhere.
+    const int32_t* cell = &model.cell()[3 * a];
+    const uint64_t key = anchor_voxel_key(model.layer()[a], Eigen::Vector3i(cell[0], cell[1], cell[2]));
     for (size_t g = a * K; g < (a + 1) * K; ++g) {
       if (g == donor || !(sigmoid(opacity[g]) < below)) continue;
       // The pair together is as opaque as the donor was: 1 - (1 - o')^2 = o.
-      const double o = sigmoid(opacity[donor]);
-      const float shared = static_cast<float>(logit(1.0 - std::sqrt(1.0 - o)));
+      const double shared_o = 1.0 - std::sqrt(1.0 - sigmoid(opacity[donor]));
+      const float shared = static_cast<float>(std::log(shared_o / (1.0 - shared_o)));
       opacity[donor] = shared;
       opacity[g] = shared;
-      for (int k = 0; k < 3; ++k)
-        offset[3 * g + k] = offset[3 * donor + k] +
-                            static_cast<float>(kRecycleJitter * (2.0 * hash_uniform(seed, step_, 3 * g + k) - 1.0));
+      const int child = static_cast<int>(g - a * K);
+      for (int k = 0; k < 3; ++k) {
+        const double u = anchor_uniform01(seed + static_cast<uint64_t>(step_), key, child, kRecycleStream + k);
+        offset[3 * g + k] = offset[3 * donor + k] + static_cast<float>(kRecycleJitter * (2.0 * u - 1.0));
+      }
       std::copy_n(&scale[3 * donor], 3, &scale[3 * g]);
       std::copy_n(&quat[4 * donor], 4, &quat[4 * g]);
       std::copy_n(&sh[kSh * donor], kSh, &sh[kSh * g]);

@@ -27,15 +27,6 @@ uint64_t mix64(uint64_t x) {
   return x ^ (x >> 31);
 }
 
-// A uniform number in [0, 1) that is a pure function of its counter
-// (seed, voxel key, child, stream): no generator state, no call order.
-double uniform01(uint64_t seed, uint64_t voxel_key, int child, int stream) {
-  uint64_t h = mix64(seed);
-  h = mix64(h ^ voxel_key);
-  h = mix64(h ^ (static_cast<uint64_t>(child + 1) << 8) ^ static_cast<uint64_t>(stream));
-  return static_cast<double>(h >> 11) * (1.0 / 9007199254740992.0);  // 53 bits
-}
-
 double logit(double p) {
   return std::log(p / (1.0 - p));
 }
@@ -66,6 +57,13 @@ int floor_div(int64_t a, int64_t b) {
 }
 
 }  // namespace
+
+double anchor_uniform01(uint64_t seed, uint64_t voxel_key, int child, int stream) {
+  uint64_t h = mix64(seed);
+  h = mix64(h ^ voxel_key);
+  h = mix64(h ^ (static_cast<uint64_t>(child + 1) << 8) ^ static_cast<uint64_t>(stream));
+  return static_cast<double>(h >> 11) * (1.0 / 9007199254740992.0);  // 53 bits
+}
 
 uint64_t anchor_voxel_key(int layer, const Eigen::Vector3i& cell) {
   if (layer < 0 || layer >= kMaxLayers) throw std::out_of_range("anchor layer " + std::to_string(layer));
@@ -204,9 +202,10 @@ AnchorInitStats AnchorModel::initialise_from_points(const std::vector<Eigen::Vec
         // Children on the voxel's points (evenly spaced through them), each
         // with its point's colour; children beyond the points keep theirs.
         const size_t a = size() - 1, n = e - b, K = static_cast<size_t>(config.children);
+        const size_t placed = std::min(n, K);
         const double l = voxel_[a];
-        for (size_t i = 0; i < std::min(n, K); ++i) {
-          const uint32_t pt = keyed[b + i * n / std::min(n, K)].second;
+        for (size_t i = 0; i < placed; ++i) {
+          const uint32_t pt = keyed[b + i * n / placed].second;
           for (int k = 0; k < 3; ++k) {
             offset_[(a * K + i) * 3 + k] = static_cast<float>((points[pt][k] - pos_[3 * a + k]) / l);
             if (!colors.empty())
@@ -245,7 +244,7 @@ void AnchorModel::append_anchor(int layer, const Eigen::Vector3i& cell, uint64_t
     cell_.push_back(cell[k]);
     feature_.push_back(parent_child >= 0 ? parent_feature[k]
                                          : static_cast<float>(config_.init_feature *
-                                                              (2.0 * uniform01(seed, key, -1, kFeatureX + k) - 1.0)));
+                                                              (2.0 * anchor_uniform01(seed, key, -1, kFeatureX + k) - 1.0)));
   }
   layer_.push_back(layer);
   voxel_.push_back(static_cast<float>(grid_.voxel(layer)));
@@ -254,7 +253,7 @@ void AnchorModel::append_anchor(int layer, const Eigen::Vector3i& cell, uint64_t
   const float opacity_logit = static_cast<float>(logit(config_.init_opacity));
   for (int i = 0; i < K; ++i) {
     for (int k = 0; k < 3; ++k) {
-      offset_.push_back(static_cast<float>(uniform01(seed, key, i, kOffsetX + k) - 0.5));
+      offset_.push_back(static_cast<float>(anchor_uniform01(seed, key, i, kOffsetX + k) - 0.5));
       scale_logit_.push_back(scale_logit);
     }
     if (parent_child >= 0) {
@@ -264,7 +263,7 @@ void AnchorModel::append_anchor(int layer, const Eigen::Vector3i& cell, uint64_t
       continue;
     }
     Eigen::Vector4d q(1, 0, 0, 0);
-    for (int k = 0; k < 3; ++k) q[1 + k] = kQuatPerturbation * (2.0 * uniform01(seed, key, i, kQuatX + k) - 1.0);
+    for (int k = 0; k < 3; ++k) q[1 + k] = kQuatPerturbation * (2.0 * anchor_uniform01(seed, key, i, kQuatX + k) - 1.0);
     q.normalize();
     for (int k = 0; k < 4; ++k) quat_.push_back(static_cast<float>(q[k]));
     opacity_logit_.push_back(opacity_logit);

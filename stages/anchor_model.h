@@ -199,6 +199,11 @@ class AnchorModel {
   std::unordered_map<uint64_t, int, KeyHash> index_;  // voxel key -> anchor id
 };
 
+// A uniform number in [0, 1) that is a pure function of its counter (seed,
+// voxel key, child, stream): no generator state, no call order. The anchors'
+// random initial values use streams 0..8; growing's recycling uses 16..18.
+double anchor_uniform01(uint64_t seed, uint64_t voxel_key, int child, int stream);
+
 // The 64-bit voxel key of (layer, cell): layer in the top 4 bits, then each
 // coordinate + 2^19 in 20 bits. Injective on layer < 16, |cell| < 2^19; the
 // keys order like (layer, x, y, z) tuples.

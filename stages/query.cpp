@@ -336,9 +336,13 @@ DominantGroup dominant_group(const std::vector<Renderer::PixelContribution>& con
   }
   DominantGroup out;
   const Group* top = nullptr;
-  for (const Group& g : groups)  // groups in order of first appearance along the ray
-    if (front_weight > 0 ? !top && g.weight >= front_weight : !top || g.weight > top->weight) top = &g;
-  if (!top)  // no group reaches front_weight: the heaviest
+  if (front_weight > 0)
+    for (const Group& g : groups)  // in order of first appearance along the ray
+      if (g.weight >= front_weight) {
+        top = &g;
+        break;
+      }
+  if (!top)  // the heaviest (also when no group reaches front_weight)
     for (const Group& g : groups)
       if (!top || g.weight > top->weight) top = &g;
   if (top && top->weight > 0) {
