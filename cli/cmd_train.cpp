@@ -491,6 +491,10 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                   "A child's scale is at most this many voxel edges (default 1, the paper's: a child never "
                   "outgrows its voxel)")
       ->check(CLI::Range(1.0, 1024.0));
+  sub->add_option("--scale-cap-layers", c.anchors.scale_cap_layers,
+                  "--scale-cap holds on this many of the coarsest layers (1 = the top layer only); finer layers keep "
+                  "their children inside their voxels (default: every layer)")
+      ->check(CLI::Range(1, 16));
   sub->add_option("--init-opacity", c.anchors.init_opacity, "Opacity of a fresh child (default 0.1)")
       ->check(CLI::Range(1e-4, 0.9999));
   sub->add_flag("--init-children-at-points,!--init-children-random", c.anchors.init_children_at_points,

@@ -1,7 +1,9 @@
 // Anchor -> Gaussian expansion (DESIGN.md section 2) and its backward pass.
 // Gaussian g = a * CHILDREN + i is child i of anchor a.
 // Defines: CHILDREN (K), SCALE_CAP (M, default 1: a child's scale is at most
-// M voxel edges; AnchorConfig::scale_cap). The SH coefficient counts are
+// M voxel edges; AnchorConfig::scale_cap). The cap holds for anchors whose
+// voxel edge l is at least the argument cap_edge (the capped coarse layers,
+// AnchorConfig::scale_cap_layers); finer anchors keep M = 1. The SH coefficient counts are
 // arguments, so one program serves every degree.
 // The SH of a child are stored split, DC [N,3] and rest [N,15,3], so the
 // optimiser can step them with different learning rates.
@@ -15,6 +17,9 @@
 inline float sigmoid(float x) { return 1.f / (1.f + exp(-x)); }
 // ds/dx = s (1 - s) = sigmoid(x) sigmoid(-x): no cancellation in 1 - s when s -> 1.
 inline float sigmoid_vjp(float x, float v_s) { return v_s * (sigmoid(x) * sigmoid(-x)); }
+
+// M for voxel edge l: SCALE_CAP on the capped layers, 1 below them.
+inline float cap_of(float l, float cap_edge) { return l >= cap_edge ? SCALE_CAP : 1.f; }
 
 // mean = pos + offset * l, scale = sigmoid(scale_logit) * M * l, quat as stored,
 // opacity = sigmoid(opacity_logit), sh = (dc, rest[0 .. sh_out-2]),
@@ -31,6 +36,7 @@ __kernel void expand_fwd(
     __global const float* sh_dc,            // [N,3]
     __global const float* sh_rest,          // [N,15,3]
     int sh_out,                             // coefficients per channel written, (d+1)^2
+    float cap_edge,                         // anchors with l >= cap_edge have M = SCALE_CAP
     __global float* means,                  // [N,3]
     __global float* scales,                 // [N,3]
     __global float* quats,                  // [N,4]
@@ -43,7 +49,7 @@ __kernel void expand_fwd(
   const float l = voxel[a];
   vstore3(vload3(a, pos) + vload3(g, offset) * l, g, means);
   const float3 sl = vload3(g, scale_logit);
-  vstore3((float3)(sigmoid(sl.x), sigmoid(sl.y), sigmoid(sl.z)) * (l * SCALE_CAP), g, scales);
+  vstore3((float3)(sigmoid(sl.x), sigmoid(sl.y), sigmoid(sl.z)) * (l * cap_of(l, cap_edge)), g, scales);
   vstore4(vload4(g, quat), g, quats);
   opacities[g] = sigmoid(opacity_logit[g]);
   vstore3(vload3(g, sh_dc), (size_t)g * sh_out, sh);
@@ -65,6 +71,7 @@ __kernel void expand_bwd(
     __global const float* v_opacities,      // [N]
     __global const float* v_sh,             // [N,sh_in,3]
     int sh_in,                              // coefficients per channel of v_sh
+    float cap_edge,                         // as in expand_fwd
     __global float* v_offset,               // [N,3]
     __global float* v_scale_logit,          // [N,3]
     __global float* v_quat,                 // [N,4]
@@ -75,7 +82,7 @@ __kernel void expand_bwd(
   if (g >= n) return;
   const float l = voxel[g / CHILDREN];
   vstore3(vload3(g, v_means) * l, g, v_offset);
-  const float3 sl = vload3(g, scale_logit), vs = vload3(g, v_scales) * (l * SCALE_CAP);
+  const float3 sl = vload3(g, scale_logit), vs = vload3(g, v_scales) * (l * cap_of(l, cap_edge));
   vstore3((float3)(sigmoid_vjp(sl.x, vs.x), sigmoid_vjp(sl.y, vs.y), sigmoid_vjp(sl.z, vs.z)), g, v_scale_logit);
   vstore4(vload4(g, v_quats), g, v_quat);
   v_opacity_logit[g] = sigmoid_vjp(opacity_logit[g], v_opacities[g]);

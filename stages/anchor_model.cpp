@@ -13,7 +13,6 @@ namespace {
 constexpr double kShC0 = 0.28209479177387814;
 constexpr int kCellBits = 20;
 constexpr uint64_t kCellMask = (uint64_t(1) << kCellBits) - 1;
-constexpr int kMaxLayers = 16;              // 4 bits of the voxel key
 constexpr double kQuatPerturbation = 1e-2;  // half-width of the initial xyz perturbation
 
 // Random-number streams of one (anchor, child) counter.
@@ -92,8 +91,12 @@ void AnchorConfig::validate() const {
     bad("init_layer is " + std::to_string(init_layer) + "; use -1 (every layer) or 0.." + std::to_string(layers - 1));
   if (!(init_opacity > 0.f && init_opacity < 1.f)) bad("init_opacity must lie in (0, 1)");
   if (!(scale_cap >= 1.f && scale_cap <= 1024.f)) bad("scale_cap must lie in [1, 1024] (voxel edges)");
-  if (!(init_scale > 0.f && init_scale < scale_cap))
-    bad("init_scale must lie in (0, scale_cap) (a fraction of the voxel edge below the cap)");
+  if (scale_cap_layers < 1 || scale_cap_layers > kMaxLayers)
+    bad("scale_cap_layers is " + std::to_string(scale_cap_layers) + "; use 1..16");
+  const float min_cap = scale_cap_layers < layers ? 1.f : scale_cap;
+  if (!(init_scale > 0.f && init_scale < min_cap))
+    bad("init_scale must lie in (0, " + std::to_string(min_cap) +
+        ") (a fraction of the voxel edge below the cap of every layer)");
   if (!(init_feature >= 0.f) || !std::isfinite(init_feature)) bad("init_feature must be finite and >= 0");
   if (sh_degree < 0 || sh_degree > 3) bad("sh_degree is " + std::to_string(sh_degree) + "; use 0..3");
 }
@@ -249,7 +252,7 @@ void AnchorModel::append_anchor(int layer, const Eigen::Vector3i& cell, uint64_t
   layer_.push_back(layer);
   voxel_.push_back(static_cast<float>(grid_.voxel(layer)));
 
-  const float scale_logit = static_cast<float>(logit(double(config_.init_scale) / config_.scale_cap));
+  const float scale_logit = static_cast<float>(logit(double(config_.init_scale) / config_.cap(layer)));
   const float opacity_logit = static_cast<float>(logit(config_.init_opacity));
   for (int i = 0; i < K; ++i) {
     for (int k = 0; k < 3; ++k) {
@@ -393,6 +396,7 @@ void AnchorModel::to_archive(ModelArchive& archive) const {
                                {"init_opacity", c.init_opacity},
                                {"init_scale", c.init_scale},
                                {"scale_cap", c.scale_cap},
+                               {"scale_cap_layers", c.scale_cap_layers},
                                {"init_feature", c.init_feature},
                                {"sh_degree", c.sh_degree}}},
                              {"grid",
@@ -420,6 +424,7 @@ AnchorModel AnchorModel::from_archive(const ModelArchive& archive) {
     c.init_opacity = jc.at("init_opacity").get<float>();
     c.init_scale = jc.at("init_scale").get<float>();
     c.scale_cap = jc.value("scale_cap", 1.f);
+    c.scale_cap_layers = jc.value("scale_cap_layers", kMaxLayers);
     c.init_feature = jc.at("init_feature").get<float>();
     c.sh_degree = jc.at("sh_degree").get<int>();
     const nlohmann::json& jg = m.at("grid");
@@ -499,7 +504,7 @@ ExpandedGaussians expand_reference_double(const AnchorModel& model, int active_s
     const double l = model.voxel()[a];
     for (int k = 0; k < 3; ++k) {
       e.means[3 * g + k] = double(model.pos()[3 * a + k]) + double(model.offset()[3 * g + k]) * l;
-      e.scales[3 * g + k] = sigmoid(model.scale_logit()[3 * g + k]) * (l * model.config().scale_cap);
+      e.scales[3 * g + k] = sigmoid(model.scale_logit()[3 * g + k]) * (l * model.config().cap(model.layer()[a]));
       e.features[3 * g + k] = model.feature()[3 * a + k];
     }
     for (int k = 0; k < 4; ++k) e.quats[4 * g + k] = model.quat()[4 * g + k];

@@ -30,6 +30,8 @@ namespace ag2gs {
 
 // Coefficients per channel stored for every child: room for SH degree 3.
 constexpr int kAnchorShCoeffs = 16;
+// Voxel layers at most (4 bits of an anchor's voxel key).
+constexpr int kMaxLayers = 16;
 
 struct AnchorConfig {
   int children = 5;            // K child Gaussians per anchor
@@ -43,6 +45,9 @@ struct AnchorConfig {
   // inside its voxel; larger lets it cover what its voxel's neighbours
   // hold no anchors for (measured in the README, train section).
   float scale_cap = 1.f;
+  // The cap holds on the coarsest scale_cap_layers layers (0 = top); finer
+  // layers keep 1. Default: every layer.
+  int scale_cap_layers = kMaxLayers;
   float init_feature = 0.05f;  // semantic features start uniform in [-init_feature, init_feature]
                                // (small and random: identical features would give the
                                // mask losses no direction to separate masks in); 0 = zero
@@ -51,6 +56,9 @@ struct AnchorConfig {
   // points of their voxel with those points' colours; false: random offsets
   // in the voxel and the voxel's mean colour for all.
   bool init_children_at_points = false;
+
+  // The cap M of `layer`: scale_cap on the capped layers, 1 below them.
+  float cap(int layer) const { return layer < scale_cap_layers ? scale_cap : 1.f; }
 
   // Throws std::invalid_argument naming the first field out of range.
   void validate() const;

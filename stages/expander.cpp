@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cstdint>
 #include <cstdio>
+#include <cmath>
 #include <map>
 #include <stdexcept>
 #include <string>
@@ -74,6 +75,13 @@ void DeviceAnchors::upload(const AnchorModel& model) {
   children = model.children();
   sh_degree = model.config().sh_degree;
   scale_cap = model.config().scale_cap;
+  // Between the edges of the last capped layer and the next: layers differ by
+  // a factor >= 2 (layer_ratio), so the comparison in float is unambiguous.
+  const AnchorConfig& c = model.config();
+  cap_edge = c.scale_cap_layers >= model.grid().layers
+                 ? 0.f
+                 : static_cast<float>(std::sqrt(model.grid().voxel(c.scale_cap_layers - 1) *
+                                                model.grid().voxel(c.scale_cap_layers)));
   pos.upload(model.pos());
   voxel.upload(model.voxel());
   feature.upload(model.feature());
@@ -148,7 +156,7 @@ void Expander::forward(const DeviceAnchors& anchors, DeviceGaussians& out, int a
   cl::Kernel k = rt_.kernel("expand.cl", "expand_fwd", expand_defines(anchors));
   set_kernel_args(k, static_cast<int>(n), anchors.pos, anchors.voxel, anchors.feature, anchors.offset,
                   anchors.scale_logit, anchors.quat, anchors.opacity_logit, anchors.sh_dc, anchors.sh_rest, sh_out,
-                  out.means, out.scales, out.quats, out.opacities, out.sh, out.features);
+                  anchors.cap_edge, out.means, out.scales, out.quats, out.opacities, out.sh, out.features);
   rt_.launch("expand", k, cl::NDRange(n), cl::NDRange(kWorkGroup));
 }
 
@@ -180,7 +188,7 @@ void Expander::backward(const DeviceAnchors& anchors, const DeviceGaussianGrads&
   const std::map<std::string, std::string> defines = expand_defines(anchors);
   cl::Kernel k = rt_.kernel("expand.cl", "expand_bwd", defines);
   set_kernel_args(k, static_cast<int>(n), anchors.voxel, anchors.scale_logit, anchors.opacity_logit, *grads.means,
-                  *grads.scales, *grads.quats, *grads.opacities, *grads.sh, sh_in, out.offset, out.scale_logit,
+                  *grads.scales, *grads.quats, *grads.opacities, *grads.sh, sh_in, anchors.cap_edge, out.offset, out.scale_logit,
                   out.quat, out.opacity_logit, out.sh_dc, out.sh_rest);
   rt_.launch("expand_bwd", k, cl::NDRange(n), cl::NDRange(kWorkGroup));
   cl::Kernel kf = rt_.kernel("expand.cl", "expand_bwd_feature", defines);

@@ -55,6 +55,7 @@ struct DeviceAnchors {
   int children = 0;    // K
   int sh_degree = 3;   // the model's highest degree (config().sh_degree)
   float scale_cap = 1.f;  // config().scale_cap
+  float cap_edge = 0.f;   // anchors with voxel edge >= cap_edge are capped by scale_cap, finer ones by 1
   size_t gaussians() const { return anchors * static_cast<size_t>(children); }
 
   DeviceBuffer pos;            // [A,3] voxel centres (fixed)

@@ -116,6 +116,7 @@ nlohmann::json TrainConfig::to_json() const {
                       {"init_children_at_points", anchors.init_children_at_points},
                       {"init_scale", anchors.init_scale}, {"init_feature", anchors.init_feature},
                       {"scale_cap", anchors.scale_cap},
+                      {"scale_cap_layers", anchors.scale_cap_layers},
                       {"sh_degree", anchors.sh_degree}};
   return {{"iterations", iterations},
           {"seed", seed},
@@ -205,6 +206,7 @@ TrainConfig TrainConfig::from_json(const nlohmann::json& j) {
     c.anchors.init_opacity = a.at("init_opacity").get<float>();
     c.anchors.init_scale = a.at("init_scale").get<float>();
     c.anchors.scale_cap = a.value("scale_cap", 1.f);
+    c.anchors.scale_cap_layers = a.value("scale_cap_layers", kMaxLayers);
     c.anchors.init_feature = a.at("init_feature").get<float>();
     c.anchors.sh_degree = a.at("sh_degree").get<int>();
     c.iterations = j.at("iterations").get<int>();

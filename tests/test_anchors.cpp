@@ -601,7 +601,7 @@ RefAnchorGrads expand_backward_reference(const AnchorModel& m, const ref::RefGra
   r.sh.assign(N * 48, 0.0);
   for (size_t g = 0; g < N; ++g) {
     const size_t a = g / K;
-    const double l = m.voxel()[a], cap = m.config().scale_cap;
+    const double l = m.voxel()[a], cap = m.config().cap(m.layer()[a]);
     for (int k = 0; k < 3; ++k) {
       r.offset[3 * g + k] = v.means[3 * g + k] * l;
       // s (1 - s) as sigmoid(x) sigmoid(-x): 1 - s cancels catastrophically for large x.
@@ -818,6 +818,59 @@ TEST(Expander, ScaleCapMatchesReferenceAndFiniteDifferences) {
   EXPECT_THROW(c.validate(), std::invalid_argument);
   c.scale_cap = 2.f;
   c.init_scale = 2.f;
+  EXPECT_THROW(c.validate(), std::invalid_argument);
+}
+
+// --scale-cap-layers 1: the cap holds on the top layer only; children of the
+// finer layers stay inside their voxels. Forward against the closed form per
+// layer, backward against the double reference, fresh children at init_scale
+// voxel edges on every layer.
+TEST(Expander, ScaleCapOnTheTopLayerOnly) {
+  Runtime& rt = test::runtime();
+  AnchorConfig c;
+  c.scale_cap = 8.f;
+  c.scale_cap_layers = 1;
+  VoxelGrid grid = unit_grid(c);
+  grid.top_voxel = 0.25;
+  AnchorModel m;
+  m.reset(grid, c);
+  for (int layer = 0; layer < c.layers; ++layer)
+    for (int i = 0; i < 40; ++i) m.add_anchor(layer, Eigen::Vector3i(i % 5, i / 5, layer), -1, 7);
+  ASSERT_EQ(m.size(), 120u);
+  const double init = c.init_scale;
+  for (const double sc : expand_reference_double(m, 0).scales) {
+    const double ratio = sc / init;
+    EXPECT_TRUE(std::abs(ratio - 0.25) < 1e-6 || std::abs(ratio - 0.0625) < 1e-6 ||
+                std::abs(ratio - 0.015625) < 1e-6)
+        << "a fresh child's scale " << sc << " is not init_scale voxel edges";
+  }
+  randomise(m, 8, true);
+  DeviceAnchors dev(rt);
+  dev.upload(m);
+  Expander ex(rt);
+  DeviceGaussians out(rt);
+  ex.forward(dev, out, 1);
+  std::vector<float> scales;
+  out.scales.download(scales, out.n * 3);
+  for (size_t g = 0; g < m.gaussians(); ++g) {
+    const size_t a = g / m.children();
+    const double l = m.voxel()[a], cap = m.layer()[a] == 0 ? 8.0 : 1.0;
+    for (int k = 0; k < 3; ++k) {
+      const double want = cap * l / (1.0 + std::exp(-double(m.scale_logit()[3 * g + k])));
+      ASSERT_NEAR(scales[3 * g + k], want, kActivationRelTol * want) << "layer " << m.layer()[a];
+    }
+  }
+  DeviceAnchorGrads grads(rt);
+  GaussianGradBuffers v(rt);
+  fill_random_grads(v, m.gaussians(), 1, 19);
+  ex.backward(dev, v.view(), grads);
+  check_backward_against(grads.download(), expand_backward_reference(m, v.host, 1));
+  // With the finer layers uncapped, a fresh child must start below one voxel edge.
+  c.init_scale = 2.f;
+  EXPECT_THROW(c.validate(), std::invalid_argument);
+  c.scale_cap_layers = 3;
+  EXPECT_NO_THROW(c.validate());
+  c.scale_cap_layers = 0;
   EXPECT_THROW(c.validate(), std::invalid_argument);
 }
 

@@ -190,11 +190,12 @@ TEST(TrainState, ResumedRunGivesTheBytesOfTheStraightRun) {
 }
 
 // The same with the switches against the gap to free Gaussians: recycling in
-// the growing rounds, a scale cap, children on the SfM points.
+// the growing rounds, a scale cap on the top layer, children on the SfM points.
 TEST(TrainState, ResumeIsBitExactWithRecyclingAndAScaleCap) {
   TrainConfig cfg = split_config();
   cfg.recycle_opacity = 0.05;
   cfg.anchors.scale_cap = 8.f;
+  cfg.anchors.scale_cap_layers = 1;
   cfg.anchors.init_children_at_points = true;
   EXPECT_GT(expect_resume_gives_straight_bytes(cfg, "train_resume_switches"), 0);
 }
