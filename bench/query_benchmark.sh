@@ -10,27 +10,30 @@
 #   region growing only  = no L_prop, region growing
 #   neither
 #
-#   bench/query_benchmark.sh SCENE_DIR OUT_DIR [--iters N] [--generate SEED] [--background-masks]
-#                            [--eval-flags "..."] [-- extra train flags]
+#   bench/query_benchmark.sh SCENE_DIR OUT_DIR [--iters N] [--generate SEED] [--views N]
+#                            [--background-masks] [--eval-flags "..."] [-- extra train flags]
 #
 # --generate SEED writes a fresh hard scene (`ag2gs synth --hard`: touching
 # objects, similar colours, a thin pole, occlusion) to SCENE_DIR first, with
 # full-size masks as SAM gives them (at half size the thin pole's masks are
 # about a pixel wide and stage 3 cannot match it); with --background-masks
 # the floor, wall and ceiling get SAM-like masks too, cut differently in
-# each view (`ag2gs synth --background-masks`).
+# each view (`ag2gs synth --background-masks`). --views N: cameras of the
+# generated scene (default 16: 14 training views, label frames view_000 and
+# view_008; every 8th view is a test view and a label frame).
 # Example (~6 minutes on 2 CPU cores):
 #   bench/query_benchmark.sh out/synth_hard_7 out/bench_query --generate 7 --iters 3000 -- --top-cells 50
 set -euo pipefail
 here="$(cd "$(dirname "$0")/.." && pwd)"
 bin="${AG2GS_BIN:-$here/build/ag2gs}"
-[ $# -ge 2 ] || { sed -n 2,20p "$0" | sed 's/^# \{0,1\}//'; exit 2; }
+[ $# -ge 2 ] || { sed -n 2,25p "$0" | sed 's/^# \{0,1\}//'; exit 2; }
 scene="$1"; out="$2"; shift 2
-iters=3000; generate=""; eval_flags=""; extra=(); synth_flags=()
+iters=3000; views=16; generate=""; eval_flags=""; extra=(); synth_flags=()
 while [ $# -gt 0 ]; do
   case "$1" in
     --iters) iters="$2"; shift 2 ;;
     --generate) generate="$2"; shift 2 ;;
+    --views) views="$2"; shift 2 ;;
     --background-masks) synth_flags+=(--background-masks); shift ;;
     --eval-flags) eval_flags="$2"; shift 2 ;;
     --) shift; extra=("$@"); break ;;
@@ -39,7 +42,7 @@ while [ $# -gt 0 ]; do
 done
 [ -x "$bin" ] || { echo "query_benchmark: $bin not built; run scripts/build.sh first" >&2; exit 2; }
 if [ -n "$generate" ]; then
-  "$bin" synth "$scene" --hard --seed "$generate" --views 16 --points 3000 "${synth_flags[@]}"
+  "$bin" synth "$scene" --hard --seed "$generate" --views "$views" --points 3000 "${synth_flags[@]}"
 fi
 for f in label vocab.json clicks.json; do
   [ -e "$scene/$f" ] || { echo "query_benchmark: $scene/$f missing (a scene from \`ag2gs synth\` has it)" >&2; exit 2; }
