@@ -9,6 +9,7 @@
 #include <opencv2/imgcodecs.hpp>
 
 #include "cli_test_util.h"
+#include "host/model_io.h"
 
 namespace fs = std::filesystem;
 
@@ -141,6 +142,39 @@ TEST(Cli, RenderModelFolderWithViewSetsAndOutputs) {
 // --init-layer picks the voxel layer the SfM points seed: the top layer by
 // default, every layer with -1 (the log line "per layer a/b/c"); a layer the
 // grid does not have is refused before training.
+// --preset appearance sets its switches (they reach the saved model), and a
+// flag given explicitly wins over the preset.
+TEST(Cli, TrainPresetAppearanceSetsItsSwitchesAndExplicitFlagsWin) {
+  const std::string scene = src() + "/data_samples/synth_small";
+  const fs::path dir = temp("preset");
+  const std::string common = "train " + scene + " -r 2 --iters 2 --stages 1 --top-cells 50 --log-every 0 -o ";
+  auto config_of = [](const fs::path& model) {
+    const ag2gs::ModelArchive ar = ag2gs::read_model_archive((model / "model.ag2gs").string());
+    return ar.meta.at("anchors").at("config");
+  };
+  Result paper = run(common + (dir / "paper").string());
+  ASSERT_EQ(paper.code, 0) << paper.output;
+  EXPECT_EQ(paper.output.find("preset appearance"), std::string::npos);
+  EXPECT_EQ(config_of(dir / "paper").at("scale_cap").get<float>(), 1.f);
+  EXPECT_EQ(config_of(dir / "paper").at("children").get<int>(), 5);
+
+  Result app = run(common + (dir / "app").string() + " --preset appearance --children 4");
+  ASSERT_EQ(app.code, 0) << app.output;
+  EXPECT_NE(app.output.find("preset appearance: --scale-cap 64 --children 4 --init-children-at-points "
+                            "--recycle-opacity 0.02 --lr-offset 0.01 --lr-scaling 0.01"),
+            std::string::npos)
+      << app.output;
+  const auto c = config_of(dir / "app");
+  EXPECT_EQ(c.at("scale_cap").get<float>(), 64.f);
+  EXPECT_EQ(c.at("children").get<int>(), 4);
+  EXPECT_TRUE(c.at("init_children_at_points").get<bool>());
+
+  Result bad = run(common + (dir / "bad").string() + " --preset fast");
+  EXPECT_NE(bad.code, 0);
+  EXPECT_NE(bad.output.find("--preset"), std::string::npos) << bad.output;
+  fs::remove_all(dir);
+}
+
 TEST(Cli, TrainInitLayerSeedsTheChosenLayers) {
   const std::string scene = src() + "/data_samples/synth_small";
   const fs::path dir = temp("init_layer");
