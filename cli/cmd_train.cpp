@@ -72,6 +72,14 @@ void apply_preset(const CLI::App& sub, TrainArgs& a) {
                c.recycle_opacity, c.offset_lr_init, c.scaling_lr);
 }
 
+// The q-quantile (nearest rank) of `v`; NaN when empty.
+double percentile(std::vector<double> v, double q) {
+  if (v.empty()) return NAN;
+  const size_t k = std::min(v.size() - 1, static_cast<size_t>(q * static_cast<double>(v.size())));
+  std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(k), v.end());
+  return v[k];
+}
+
 bool has_stage(const TrainArgs& a, int s) { return std::find(a.stages.begin(), a.stages.end(), s) != a.stages.end(); }
 
 // The stage-3 summary line, after training or for --stages 3 alone.
@@ -292,6 +300,9 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   int count = 0, count_masks = 0;
   double stage1_end_s = -1, sum_prop = 0;
   int count_prop = 0;
+  // Wall time of each step without an evaluation in it; the steps after
+  // the last growing round run at the final Gaussian count.
+  std::vector<double> step_ms, step_ms_fixed;
   for (int it = it_start; it < it_end; ++it) {
     const bool log_now = a.log_every > 0 && ((it + 1) % a.log_every == 0 || it + 1 == it_end || it == it_start);
     if (it == c.iterations) {
@@ -304,7 +315,14 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
     const bool test_now = a.eval && iteration != it_end &&
                           ((a.test_every > 0 && iteration % a.test_every == 0) ||
                            std::find(a.test_at.begin(), a.test_at.end(), iteration) != a.test_at.end());
+    const auto t_step = std::chrono::steady_clock::now();
     StepStats st = test_now ? trainer.step(log_now, [&] { run_eval(iteration); }) : trainer.step(log_now);
+    if (!test_now) {
+      const double ms =
+          std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t_step).count();
+      step_ms.push_back(ms);
+      if (iteration > c.effective_grow_until() && iteration <= c.iterations) step_ms_fixed.push_back(ms);
+    }
     if (st.stage2 && it == c.iterations)
       spdlog::info("stage 2: anchor graph with {} edges (mean degree {:.2f})", trainer.graph().edges(),
                    trainer.anchors() ? 2.0 * trainer.graph().edges() / trainer.anchors() : 0.0);
@@ -373,6 +391,13 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   const int trained = std::max(1, it_end - it_start);
   spdlog::info("trained {} iterations in {:.1f} s ({:.2f} ms/iteration){}", std::max(0, it_end - it_start), seconds,
                1000 * seconds / trained, skipped ? fmt::format(", {} steps skipped", skipped) : "");
+  const double median_ms = percentile(step_ms, 0.5), p90_ms = percentile(step_ms, 0.9);
+  const double fixed_median_ms = percentile(step_ms_fixed, 0.5);
+  if (!step_ms.empty())
+    spdlog::info("step time: median {:.2f} ms, 90th percentile {:.2f} ms{}", median_ms, p90_ms,
+                 step_ms_fixed.empty() ? std::string()
+                                       : fmt::format("; after growing stopped: median {:.2f} ms at {} Gaussians",
+                                                     fixed_median_ms, trainer.gaussians()));
   if (a.profile) {
     auto timings = rt.take_timings();
     double total = 0;
@@ -387,6 +412,11 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
                trainer.active_sh_degree());
   metrics["train_seconds"] = seconds;
   metrics["ms_per_iteration"] = 1000 * seconds / trained;
+  if (!step_ms.empty()) {
+    metrics["ms_per_iteration_median"] = median_ms;
+    metrics["ms_per_iteration_p90"] = p90_ms;
+  }
+  if (!step_ms_fixed.empty()) metrics["ms_per_iteration_median_after_growing"] = fixed_median_ms;
   metrics["skipped_steps"] = skipped;
   metrics["anchors"] = trainer.anchors();
   metrics["gaussians"] = trainer.gaussians();

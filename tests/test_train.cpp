@@ -217,6 +217,13 @@ TEST(Train, EvalWritesTestMetrics) {
   EXPECT_EQ(m["final"]["iteration"].get<int>(), 30);
   EXPECT_GT(m["final"]["psnr"].get<double>(), 5.0);
   EXPECT_EQ(m["test_views"].get<int>(), 2);
+  // Step times: the median and 90th percentile of the steps without an
+  // evaluation, and the median after the last growing round (iteration 20).
+  EXPECT_NE(r.output.find("step time: median"), std::string::npos) << r.output;
+  const double median = m["ms_per_iteration_median"].get<double>(), p90 = m["ms_per_iteration_p90"].get<double>();
+  EXPECT_GT(median, 0.0);
+  EXPECT_LE(median, p90);
+  EXPECT_GT(m["ms_per_iteration_median_after_growing"].get<double>(), 0.0);
 }
 
 TEST(Train, UnwritableModelDirFailsBeforeTraining) {
