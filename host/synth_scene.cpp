@@ -40,6 +40,7 @@
 #include <vector>
 
 #include "host/colmap_writer.h"
+#include "host/counter_rng.h"
 #include "host/image_io.h"
 #include "host/npy_io.h"
 
@@ -95,12 +96,6 @@ constexpr double kPartOwn = 0.45;
 constexpr uint64_t kModelKey = 0x636c69702d6c696bull;  // fixed key of the CLIP-like "model"
 
 // ------------------------------------------------------------------ counter-based random numbers
-uint64_t splitmix64(uint64_t x) {
-  x += 0x9e3779b97f4a7c15ull;
-  x = (x ^ (x >> 30)) * 0xbf58476d1ce4e5b9ull;
-  x = (x ^ (x >> 27)) * 0x94d049bb133111ebull;
-  return x ^ (x >> 31);
-}
 
 enum Stream : uint64_t {
   kStreamCamera = 1,

@@ -6,6 +6,8 @@
 #include <string>
 #include <utility>
 
+#include "host/counter_rng.h"
+
 namespace ag2gs {
 
 namespace {
@@ -18,13 +20,6 @@ constexpr double kQuatPerturbation = 1e-2;  // half-width of the initial xyz per
 // Random-number streams of one (anchor, child) counter.
 enum Stream { kOffsetX = 0, kQuatX = 3, kFeatureX = 6 };
 
-// splitmix64's output function: a bijective 64-bit mixer.
-uint64_t mix64(uint64_t x) {
-  x += 0x9e3779b97f4a7c15ull;
-  x = (x ^ (x >> 30)) * 0xbf58476d1ce4e5b9ull;
-  x = (x ^ (x >> 27)) * 0x94d049bb133111ebull;
-  return x ^ (x >> 31);
-}
 
 double logit(double p) {
   return std::log(p / (1.0 - p));
@@ -58,9 +53,9 @@ int floor_div(int64_t a, int64_t b) {
 }  // namespace
 
 double anchor_uniform01(uint64_t seed, uint64_t voxel_key, int child, int stream) {
-  uint64_t h = mix64(seed);
-  h = mix64(h ^ voxel_key);
-  h = mix64(h ^ (static_cast<uint64_t>(child + 1) << 8) ^ static_cast<uint64_t>(stream));
+  uint64_t h = splitmix64(seed);
+  h = splitmix64(h ^ voxel_key);
+  h = splitmix64(h ^ (static_cast<uint64_t>(child + 1) << 8) ^ static_cast<uint64_t>(stream));
   return static_cast<double>(h >> 11) * (1.0 / 9007199254740992.0);  // 53 bits
 }
 
@@ -76,7 +71,7 @@ uint64_t anchor_voxel_key(int layer, const Eigen::Vector3i& cell) {
 }
 
 size_t AnchorModel::KeyHash::operator()(uint64_t key) const {
-  return static_cast<size_t>(mix64(key));
+  return static_cast<size_t>(splitmix64(key));
 }
 
 // ---------------------------------------------------------------- config, grid

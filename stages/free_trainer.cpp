@@ -10,6 +10,7 @@
 #include <numeric>
 #include <stdexcept>
 
+#include "host/counter_rng.h"
 #include "host/ply_io.h"
 
 namespace fs = std::filesystem;
@@ -22,18 +23,6 @@ constexpr int kRest = 15;  // SH rest coefficients per channel (degree 3)
 constexpr double kC0 = 0.28209479177387814;
 constexpr double kSplitScaleDivisor = 1.6;  // 3DGS: 0.8 x the number of samples (2)
 
-uint64_t splitmix64(uint64_t x) {
-  x += 0x9e3779b97f4a7c15ull;
-  x = (x ^ (x >> 30)) * 0xbf58476d1ce4e5b9ull;
-  x = (x ^ (x >> 27)) * 0x94d049bb133111ebull;
-  return x ^ (x >> 31);
-}
-
-// The anchor trainer's view-order hash (stages/trainer.cpp), so that both
-// trainers see the views in the same order for the same seed.
-uint64_t view_hash(uint64_t seed, uint64_t a, uint64_t b) {
-  return splitmix64(splitmix64(splitmix64(seed ^ 0x7261696e5f766965ull) ^ a) ^ b);
-}
 
 // A uniform double in (0, 1) from 53 bits of a hash.
 double unit_open(uint64_t h) {
@@ -378,15 +367,7 @@ double FreeTrainer::position_lr(int it) const {
 }
 
 int FreeTrainer::view_for_iteration(int it) const {
-  const size_t n = train_views_.size();
-  const uint64_t epoch = static_cast<uint64_t>(it) / n;
-  const size_t pos = static_cast<size_t>(it) % n;
-  std::vector<int> perm(train_views_);
-  for (size_t i = n; i > 1; --i) {
-    const size_t j = static_cast<size_t>(view_hash(config_.seed, epoch, i) % i);
-    std::swap(perm[i - 1], perm[j]);
-  }
-  return perm[pos];
+  return epoch_shuffled_view(train_views_, config_.seed, it);
 }
 
 void FreeTrainer::upload_params(const FreeGaussians& g) {

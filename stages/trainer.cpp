@@ -15,6 +15,7 @@
 #include <system_error>
 
 #include "host/atomic_file.h"
+#include "host/counter_rng.h"
 #include "host/model_io.h"
 #include "host/ply_io.h"
 
@@ -24,17 +25,6 @@ namespace ag2gs {
 
 namespace {
 
-uint64_t splitmix64(uint64_t x) {
-  x += 0x9e3779b97f4a7c15ull;
-  x = (x ^ (x >> 30)) * 0xbf58476d1ce4e5b9ull;
-  x = (x ^ (x >> 27)) * 0x94d049bb133111ebull;
-  return x ^ (x >> 31);
-}
-
-// Counter-based: a function of (seed, a, b) only.
-uint64_t hash3(uint64_t seed, uint64_t a, uint64_t b) {
-  return splitmix64(splitmix64(splitmix64(seed ^ 0x7261696e5f766965ull) ^ a) ^ b);
-}
 
 }  // namespace
 
@@ -381,16 +371,7 @@ double Trainer::offset_lr(int it) const {
 }
 
 int Trainer::view_for_iteration(int it) const {
-  const size_t n = train_views_.size();
-  const uint64_t epoch = static_cast<uint64_t>(it) / n;
-  const size_t pos = static_cast<size_t>(it) % n;
-  std::vector<int> perm(train_views_);
-  // Fisher-Yates with counter-based draws (unbiased enough for n << 2^64).
-  for (size_t i = n; i > 1; --i) {
-    const size_t j = static_cast<size_t>(hash3(config_.seed, epoch, i) % i);
-    std::swap(perm[i - 1], perm[j]);
-  }
-  return perm[pos];
+  return epoch_shuffled_view(train_views_, config_.seed, it);
 }
 
 bool Trainer::opacity_reset_due(int iteration) const {
