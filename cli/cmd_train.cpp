@@ -66,10 +66,11 @@ void apply_preset(const CLI::App& sub, TrainArgs& a) {
   unless_given("--recycle-opacity", c.recycle_opacity, 0.02);
   unless_given("--lr-offset", c.offset_lr_init, 1e-2);
   unless_given("--lr-scaling", c.scaling_lr, 0.01);
-  spdlog::info("preset appearance: --scale-cap {} --children {} --{} --recycle-opacity {} --lr-offset {} --lr-scaling {}",
-               c.anchors.scale_cap, c.anchors.children,
-               c.anchors.init_children_at_points ? "init-children-at-points" : "init-children-random",
-               c.recycle_opacity, c.offset_lr_init, c.scaling_lr);
+  spdlog::info(
+      "preset appearance: --scale-cap {} --children {} --{} --recycle-opacity {} --lr-offset {} --lr-scaling {}",
+      c.anchors.scale_cap, c.anchors.children,
+      c.anchors.init_children_at_points ? "init-children-at-points" : "init-children-random", c.recycle_opacity,
+      c.offset_lr_init, c.scaling_lr);
 }
 
 // The q-quantile (nearest rank) of `v`; NaN when empty.
@@ -318,8 +319,7 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
     const auto t_step = std::chrono::steady_clock::now();
     StepStats st = test_now ? trainer.step(log_now, [&] { run_eval(iteration); }) : trainer.step(log_now);
     if (!test_now) {
-      const double ms =
-          std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t_step).count();
+      const double ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t_step).count();
       step_ms.push_back(ms);
       if (iteration > c.effective_grow_until() && iteration <= c.iterations) step_ms_fixed.push_back(ms);
     }

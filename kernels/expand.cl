@@ -3,8 +3,8 @@
 // Defines: CHILDREN (K), SCALE_CAP (M, default 1: a child's scale is at most
 // M voxel edges; AnchorConfig::scale_cap). The cap holds for anchors whose
 // voxel edge l is at least the argument cap_edge (the capped coarse layers,
-// AnchorConfig::scale_cap_layers); finer anchors keep M = 1. The SH coefficient counts are
-// arguments, so one program serves every degree.
+// AnchorConfig::scale_cap_layers); finer anchors keep M = 1. The SH
+// coefficient counts are arguments, so one program serves every degree.
 // The SH of a child are stored split, DC [N,3] and rest [N,15,3], so the
 // optimiser can step them with different learning rates.
 

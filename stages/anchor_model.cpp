@@ -20,7 +20,6 @@ constexpr double kQuatPerturbation = 1e-2;  // half-width of the initial xyz per
 // Random-number streams of one (anchor, child) counter.
 enum Stream { kOffsetX = 0, kQuatX = 3, kFeatureX = 6 };
 
-
 double logit(double p) {
   return std::log(p / (1.0 - p));
 }

@@ -1,9 +1,9 @@
 #include "stages/expander.h"
 
 #include <algorithm>
+#include <cmath>
 #include <cstdint>
 #include <cstdio>
-#include <cmath>
 #include <map>
 #include <stdexcept>
 #include <string>
@@ -80,8 +80,8 @@ void DeviceAnchors::upload(const AnchorModel& model) {
   const AnchorConfig& c = model.config();
   cap_edge = c.scale_cap_layers >= model.grid().layers
                  ? 0.f
-                 : static_cast<float>(std::sqrt(model.grid().voxel(c.scale_cap_layers - 1) *
-                                                model.grid().voxel(c.scale_cap_layers)));
+                 : static_cast<float>(
+                       std::sqrt(model.grid().voxel(c.scale_cap_layers - 1) * model.grid().voxel(c.scale_cap_layers)));
   pos.upload(model.pos());
   voxel.upload(model.voxel());
   feature.upload(model.feature());
@@ -188,8 +188,8 @@ void Expander::backward(const DeviceAnchors& anchors, const DeviceGaussianGrads&
   const std::map<std::string, std::string> defines = expand_defines(anchors);
   cl::Kernel k = rt_.kernel("expand.cl", "expand_bwd", defines);
   set_kernel_args(k, static_cast<int>(n), anchors.voxel, anchors.scale_logit, anchors.opacity_logit, *grads.means,
-                  *grads.scales, *grads.quats, *grads.opacities, *grads.sh, sh_in, anchors.cap_edge, out.offset, out.scale_logit,
-                  out.quat, out.opacity_logit, out.sh_dc, out.sh_rest);
+                  *grads.scales, *grads.quats, *grads.opacities, *grads.sh, sh_in, anchors.cap_edge, out.offset,
+                  out.scale_logit, out.quat, out.opacity_logit, out.sh_dc, out.sh_rest);
   rt_.launch("expand_bwd", k, cl::NDRange(n), cl::NDRange(kWorkGroup));
   cl::Kernel kf = rt_.kernel("expand.cl", "expand_bwd_feature", defines);
   set_kernel_args(kf, static_cast<int>(anchors.anchors), *grads.features, out.feature);

@@ -840,8 +840,7 @@ TEST(Expander, ScaleCapOnTheTopLayerOnly) {
   const double init = c.init_scale;
   for (const double sc : expand_reference_double(m, 0).scales) {
     const double ratio = sc / init;
-    EXPECT_TRUE(std::abs(ratio - 0.25) < 1e-6 || std::abs(ratio - 0.0625) < 1e-6 ||
-                std::abs(ratio - 0.015625) < 1e-6)
+    EXPECT_TRUE(std::abs(ratio - 0.25) < 1e-6 || std::abs(ratio - 0.0625) < 1e-6 || std::abs(ratio - 0.015625) < 1e-6)
         << "a fresh child's scale " << sc << " is not init_scale voxel edges";
   }
   randomise(m, 8, true);
