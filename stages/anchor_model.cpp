@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <stdexcept>
 #include <string>
 #include <utility>
@@ -88,9 +89,12 @@ void AnchorConfig::validate() const {
   if (scale_cap_layers < 1 || scale_cap_layers > kMaxLayers)
     bad("scale_cap_layers is " + std::to_string(scale_cap_layers) + "; use 1..16");
   const float min_cap = scale_cap_layers < layers ? 1.f : scale_cap;
-  if (!(init_scale > 0.f && init_scale < min_cap))
-    bad("init_scale must lie in (0, " + std::to_string(min_cap) +
+  if (!(init_scale > 0.f && init_scale < min_cap)) {
+    char cap[32];
+    std::snprintf(cap, sizeof cap, "%g", static_cast<double>(min_cap));
+    bad(std::string("init_scale must lie in (0, ") + cap +
         ") (a fraction of the voxel edge below the cap of every layer)");
+  }
   if (!(init_feature >= 0.f) || !std::isfinite(init_feature)) bad("init_feature must be finite and >= 0");
   if (sh_degree < 0 || sh_degree > 3) bad("sh_degree is " + std::to_string(sh_degree) + "; use 0..3");
 }

@@ -23,11 +23,6 @@ namespace fs = std::filesystem;
 
 namespace ag2gs {
 
-namespace {
-
-
-}  // namespace
-
 // ------------------------------------------------------------------ config
 void TrainConfig::validate() const {
   auto bad = [](const std::string& what) { throw std::invalid_argument("TrainConfig: " + what); };
