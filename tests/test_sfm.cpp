@@ -41,14 +41,17 @@ TEST(Sfm, RecoversTheSyntheticCamerasUpToASimilarity) {
   so.seed = 3;
   so.width = 320;
   so.height = 240;
-  so.views = 24;  // 15 degrees apart: wider baselines leave too few SIFT matches at this size
+  // 11.25 degrees apart. Wider baselines leave too few SIFT matches at this
+  // size; with 24 views (15 degrees) COLMAP folded the ring in 3 of ~33 runs
+  // (all views registered, 0.77-0.88 of the rig radius, 16-23 degrees off).
+  so.views = 32;
   so.points = 500;
   write_synth_scene(dir.file("truth"), so);
   const ColmapModel truth = read_colmap_model(dir.file("truth/sparse/0"));
 
   SfmOptions o;
-  // One thread: COLMAP (random_seed 0) is then deterministic; with 2 threads a
-  // run under load once registered a mirrored ring (34 degrees off).
+  // One thread. COLMAP 3.8 is still not deterministic here: the point counts
+  // vary between runs of the same images.
   o.threads = 1;
   // Synthetic photos: exact pinhole cameras, few features per small image.
   o.camera_model = "SIMPLE_PINHOLE";  // one focal length: separate fx, fy drift apart on a ring of small views
@@ -57,8 +60,8 @@ TEST(Sfm, RecoversTheSyntheticCamerasUpToASimilarity) {
   std::vector<std::string> lines;
   o.progress = [&](const std::string& l) { lines.push_back(l); };
   const SfmResult r = run_sfm(dir.file("truth/images"), dir.file("scene"), o);
-  EXPECT_EQ(r.images_in, 24);
-  EXPECT_GE(r.images_registered, 22) << "COLMAP registered too few synthetic views";
+  EXPECT_EQ(r.images_in, so.views);
+  EXPECT_GE(r.images_registered, so.views - 2) << "COLMAP registered too few synthetic views";
   EXPECT_GT(r.points, 100);
   EXPECT_TRUE(fs::exists(dir.file("scene/sfm_log.txt")));
   EXPECT_FALSE(fs::exists(dir.file("scene.sfm_log.txt")));
@@ -101,8 +104,8 @@ TEST(Sfm, RecoversTheSyntheticCamerasUpToASimilarity) {
       "SfM: %d/%d registered, %d points, %.1f s; worst centre error %.4f of rig radius %.3f, worst "
       "rotation error %.3f deg\n",
       r.images_registered, r.images_in, r.points, r.seconds, worst / rig, rig, worst_deg);
-  // Measured with the textured backdrop: 0.8-1.0% of the rig radius and 0.43
-  // degrees at worst (3.5% and 1.9 degrees on the old empty-sky scenes). A
+  // Measured with 32 views: 0.5-0.84% of the rig radius and 0.25 degrees at
+  // worst over 16 runs (24 views: 0.6-1.2% and 0.51 degrees when not folded). A
   // convention error (R vs R^T, camera vs world centre, axis order) gives
   // errors of the order of the rig and tens of degrees.
   EXPECT_LT(worst / rig, 0.04);
