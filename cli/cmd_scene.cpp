@@ -106,7 +106,7 @@ void print_model(const std::string& path) {
 }
 
 struct InfoArgs {
-  std::string path;
+  std::string path, sparse;
   int resolution = 1;
   bool eval = false;
   std::vector<int> sam_levels{3};
@@ -114,24 +114,22 @@ struct InfoArgs {
 };
 
 void print_scene(const InfoArgs& a) {
-  const fs::path root(a.path);
   std::printf("scene: %s\n", a.path.c_str());
   // First a tolerant read, so distorted models are described before the verdict.
-  const fs::path sparse = fs::is_directory(root / "sparse" / "0") ? root / "sparse" / "0" : root / "sparse";
-  if (fs::is_directory(sparse)) {
-    try {
-      const ColmapModel m = read_colmap_model(sparse.string(), true);
-      std::map<std::string, int> models;
-      for (const std::string& s : m.camera_models) ++models[s];
-      std::printf("  COLMAP model: %s (%s)\n  camera models:", sparse.string().c_str(),
-                  fs::exists(sparse / "images.bin") ? "binary" : "text");
-      for (const auto& [name, n] : models) std::printf(" %s x%d", name.c_str(), n);
-      std::printf("\n");
-    } catch (const std::exception&) {
-      // Scene::open below reports it.
-    }
+  try {
+    const fs::path sparse = find_colmap_model(a.path, a.sparse);
+    const ColmapModel m = read_colmap_model(sparse.string(), true);
+    std::map<std::string, int> models;
+    for (const std::string& s : m.camera_models) ++models[s];
+    std::printf("  COLMAP model: %s (%s)\n  camera models:", sparse.string().c_str(),
+                fs::exists(sparse / "images.bin") ? "binary" : "text");
+    for (const auto& [name, n] : models) std::printf(" %s x%d", name.c_str(), n);
+    std::printf("\n");
+  } catch (const std::exception&) {
+    // Scene::open below reports it.
   }
   SceneOptions opt;
+  opt.sparse = a.sparse;
   opt.resolution = a.resolution;
   opt.eval = a.eval;
   opt.sam_levels = a.sam_levels;
@@ -211,9 +209,10 @@ void cmd_info(const InfoArgs& a) {
   const fs::path p(a.path);
   if (fs::is_directory(p)) {
     if (fs::exists(p / "model.ag2gs")) return print_model((p / "model.ag2gs").string());
-    if (fs::exists(p / "sparse") || fs::exists(p / "images")) return print_scene(a);
+    if (fs::exists(p / "sparse") || fs::exists(p / "images") || !a.sparse.empty()) return print_scene(a);
     if (fs::exists(p / "point_cloud.ply")) return print_ply((p / "point_cloud.ply").string());
-    throw std::runtime_error(a.path + ": neither a scene (images/, sparse/0/) nor a model folder (model.ag2gs)");
+    throw std::runtime_error(a.path +
+                             ": neither a scene (images/, sparse/0/ or sparse/) nor a model folder (model.ag2gs)");
   }
   if (!fs::exists(p)) throw std::runtime_error(a.path + ": no such file or folder");
   if (p.extension() == ".ply") return print_ply(a.path);
@@ -221,7 +220,7 @@ void cmd_info(const InfoArgs& a) {
 }
 
 struct SfmArgs {
-  std::string input, out, colmap = "colmap", camera_model = "OPENCV", matcher = "exhaustive";
+  std::string input, out, colmap = "colmap", camera_model = "OPENCV", matcher = "auto";
   bool per_image_camera = false, downscaled = false, force = false;
   int max_image_size = 1600;
   int init_min_inliers = 100, abs_pose_min_inliers = 30;
@@ -257,6 +256,8 @@ void register_scene_commands(CLI::App& app, GlobalOptions& global) {
   auto* info = app.add_subcommand("info", "Describe a scene directory, a model folder or a Gaussian .ply");
   info->add_option("path", ia->path, "Scene directory, model folder (model.ag2gs) or .ply file")->required();
   info->add_option("-r,--resolution", ia->resolution, "Resolution factor to check the images at (default 1)");
+  info->add_option("--sparse", ia->sparse,
+                   "COLMAP model folder inside the scene (default sparse/0/, else sparse/ when it holds the model)");
   info->add_flag("--eval", ia->eval, "Show the every-8th-image train/test split");
   info->add_option("--sam-level", ia->sam_levels, "SAM level(s) of language_features/ (0..3, default 3)");
   info->add_flag("--quick", ia->quick, "Do not decode every image and mask");
@@ -266,10 +267,15 @@ void register_scene_commands(CLI::App& app, GlobalOptions& global) {
   auto* sfm = app.add_subcommand("sfm", "Structure from motion with COLMAP: photos in, a trainable scene out");
   sfm->add_option("images", sa->input, "Folder of photos (jpg, png, ...)")->required();
   sfm->add_option("-o,--out", sa->out, "Scene directory to create (images/ + sparse/0/)")->required();
-  sfm->add_option("--matcher", sa->matcher, "exhaustive (default) or sequential (video frames)");
+  sfm->add_option("--matcher", sa->matcher,
+                  "auto (default: sequential for more than 40 photos whose names number an ordered sequence, as "
+                  "video frames do; else exhaustive), exhaustive (every pair) or sequential (neighbours in name "
+                  "order)")
+      ->check(CLI::IsMember({"auto", "exhaustive", "sequential"}));
   sfm->add_option("--camera-model", sa->camera_model, "COLMAP camera model before undistortion (default OPENCV)");
   sfm->add_flag("--per-image-camera", sa->per_image_camera, "Intrinsics per photo (mixed cameras or zoom)");
-  sfm->add_option("--max-image-size", sa->max_image_size, "Longest side SIFT works on (default 1600)");
+  sfm->add_option("--max-image-size", sa->max_image_size,
+                  "Longest side SIFT works on; larger photos are reduced to it (default 1600)");
   sfm->add_option("--init-min-inliers", sa->init_min_inliers,
                   "Inliers the initial image pair needs (default 100; lower for small or low-texture photos)");
   sfm->add_option("--abs-pose-min-inliers", sa->abs_pose_min_inliers,
@@ -281,7 +287,7 @@ void register_scene_commands(CLI::App& app, GlobalOptions& global) {
 
   auto ua = std::make_shared<SfmArgs>();
   auto* und = app.add_subcommand("undistort", "Undistort a scene with a distorted COLMAP camera model");
-  und->add_option("scene", ua->input, "Scene directory (images/ + sparse/0/)")->required();
+  und->add_option("scene", ua->input, "Scene directory (images/ + sparse/0/, or sparse/ itself)")->required();
   und->add_option("-o,--out", ua->out, "New scene directory with PINHOLE cameras")->required();
   und->add_flag("--downscaled", ua->downscaled, "Also write images_2/4/8 for -r 2/4/8");
   und->add_flag("--force", ua->force, "Replace an existing output folder (only once complete)");

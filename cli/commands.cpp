@@ -8,6 +8,7 @@
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
+#include <fstream>
 #include <map>
 #include <memory>
 #include <sstream>
@@ -15,10 +16,11 @@
 #include "host/cl_runtime.h"
 #include "host/colmap_reader.h"
 #include "host/image_io.h"
+#include "host/model_io.h"
 #include "host/npy_io.h"
 #include "host/ply_io.h"
 #include "host/renderer.h"
-#include "host/model_io.h"
+#include "host/scene.h"
 #include "stages/anchor_model.h"
 #include "stages/clustering.h"
 #include "stages/instance_map.h"
@@ -71,8 +73,8 @@ void cmd_devices(const GlobalOptions& global) {
 
 // ------------------------------------------------------------------ render
 struct RenderArgs {
-  std::string model, ply, scene, out, views, outputs = "rgb", bg = "0,0,0", sparse = "sparse/0";
-  int resolution = 1;
+  std::string model, ply, scene, out, views, outputs = "rgb", bg = "0,0,0", sparse;
+  int resolution = 0;  // 0 = the resolution the model was trained at (1 for a bare .ply)
   bool extras = false;
 };
 
@@ -149,8 +151,40 @@ std::vector<float> feature_colours(const std::vector<float>& feature, const std:
   return rgb;
 }
 
+// The -r to render at and why: an explicit -r, else the one the model was
+// trained at (model.ag2gs meta "train"/"resolution", or metrics.json of a
+// baseline trained with --eval) in `model_dir`, else 1.
+std::pair<int, std::string> render_resolution(int given, const std::string& model_dir) {
+  if (given > 0) return {given, "-r " + std::to_string(given) + " given"};
+  const fs::path mf = fs::path(model_dir) / "model.ag2gs", metrics = fs::path(model_dir) / "metrics.json";
+  if (!model_dir.empty() && fs::exists(mf)) {
+    try {
+      const nlohmann::json train = read_model_meta(mf.string()).value("train", nlohmann::json::object());
+      if (train.contains("resolution")) {
+        const int r = train.at("resolution").get<int>();
+        return {r, "the model was trained at -r " + std::to_string(r) + " (" + mf.string() + "); -r overrides"};
+      }
+    } catch (const std::exception& e) {
+      spdlog::warn("{}; its training -r is unknown", e.what());
+    }
+  }
+  if (!model_dir.empty() && fs::exists(metrics)) {
+    try {
+      std::ifstream in(metrics);
+      const nlohmann::json j = nlohmann::json::parse(in);
+      if (j.contains("resolution")) {
+        const int r = j.at("resolution").get<int>();
+        return {r, "the model was trained at -r " + std::to_string(r) + " (" + metrics.string() + "); -r overrides"};
+      }
+    } catch (const std::exception& e) {
+      spdlog::warn("{}: not readable ({}); rendering at full resolution", metrics.string(), e.what());
+    }
+  }
+  return {1, "no record of the training -r beside the Gaussians (-r R divides the cameras by R)"};
+}
+
 void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
-  if (a.resolution < 1) throw std::invalid_argument("-r must be >= 1 (it divides the camera resolution)");
+  if (a.resolution < 0) throw std::invalid_argument("-r must be >= 1 (it divides the camera resolution)");
   std::vector<std::string> outputs = split_list(a.outputs);
   if (a.extras) {
     for (const char* o : {"depth", "alpha"}) {
@@ -195,7 +229,8 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
     if (!fs::exists(mf)) throw std::runtime_error(a.model + ": no model.ag2gs, which --outputs instance needs");
     const ModelArchive archive = read_model_archive(mf);
     if (!archive.meta.contains("clusters"))
-      throw std::runtime_error(mf + " has no clusters, which --outputs instance needs: run stage 3 "
+      throw std::runtime_error(mf +
+                               " has no clusters, which --outputs instance needs: run stage 3 "
                                "(`ag2gs train SCENE_DIR -o MODEL_DIR --stages 3`)");
     const AnchorModel am = AnchorModel::from_archive(archive);
     const nlohmann::json tr = archive.meta.value("train", nlohmann::json::object());
@@ -206,13 +241,18 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
   } else {
     set = read_ply(ply);
   }
-  fs::path sparse = fs::path(a.scene) / a.sparse;
-  if (!fs::is_directory(sparse))
-    throw std::runtime_error(sparse.string() + " is not a directory; --scene must hold a COLMAP model in " + a.sparse +
-                             "/ (cameras, images, points3D as .bin or .txt)");
-  ColmapModel model = read_colmap_model(sparse.string());
+  if (!fs::is_directory(a.scene))
+    throw std::runtime_error(a.scene +
+                             ": no such scene directory; --scene names the folder holding the COLMAP model "
+                             "(sparse/0/ or sparse/)");
+  const std::string sparse = find_colmap_model(a.scene, a.sparse);
+  ColmapModel model = read_colmap_model(sparse);
   std::vector<Camera> cams = pick_views(model.cameras_for_images, a.views);
-  if (cams.empty()) throw std::runtime_error(sparse.string() + " has no views to render for --views '" + a.views + "'");
+  if (cams.empty()) throw std::runtime_error(sparse + " has no views to render for --views '" + a.views + "'");
+  // A model folder: the one given, or the folder of a --ply written by `ag2gs train`.
+  const auto [resolution, why] =
+      render_resolution(a.resolution, !a.model.empty() ? a.model : fs::path(ply).parent_path().string());
+  spdlog::info("cameras from {}; rendering at 1/{} resolution: {}", sparse, resolution, why);
 
   Runtime rt(global.device);
   spdlog::info("device [{}] {}; {} Gaussians (SH degree {}), {} views", rt.info().index, rt.info().name, set.size(),
@@ -226,7 +266,7 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
   for (const std::string& o : outputs) fs::create_directories(out_dir / o);
   auto t0 = std::chrono::steady_clock::now();
   for (size_t i = 0; i < cams.size(); ++i) {
-    Camera cam = scale_camera(cams[i], a.resolution);
+    Camera cam = scale_camera(cams[i], resolution);
     renderer.forward(dg, cam, settings);
     RenderOutput out = renderer.download_output();
     const std::string stem = fs::path(cam.name).stem().string();
@@ -276,15 +316,20 @@ void register_commands(CLI::App& app, GlobalOptions& global) {
   auto* render = app.add_subcommand("render", "Render a trained model (or a 3DGS .ply) from a scene's COLMAP cameras");
   render->add_option("model", ra->model, "Model folder written by `ag2gs train` (uses MODEL_DIR/point_cloud.ply)");
   render->add_option("--ply", ra->ply, "Instead of MODEL_DIR: Gaussians in the standard 3DGS point_cloud.ply layout");
-  render->add_option("--scene", ra->scene, "Scene directory holding sparse/0/ (COLMAP model)")->required();
+  render->add_option("--scene", ra->scene, "Scene directory holding the COLMAP model (sparse/0/, or sparse/ itself)")
+      ->required();
   render->add_option("-o,--out", ra->out, "Output directory: OUT/<output>/<image stem>.png (+ .npy for floats)")
       ->required();
   render->add_option("--views", ra->views,
                      "train, test (every 8th image, as --eval), all (default), or comma-separated names/stems");
-  render->add_option("--outputs", ra->outputs, "Comma-separated: rgb (default), depth, alpha, feature, instance (cluster ids; needs stage 3)");
+  render->add_option("--outputs", ra->outputs,
+                     "Comma-separated: rgb (default), depth, alpha, feature, instance (cluster ids; needs stage 3)");
   render->add_option("--bg", ra->bg, "Background colour R,G,B in [0,1] (default 0,0,0)");
-  render->add_option("-r,--resolution", ra->resolution, "Divide the camera resolution by R (default 1)");
-  render->add_option("--sparse", ra->sparse, "COLMAP model folder inside the scene (default sparse/0)");
+  render->add_option("-r,--resolution", ra->resolution,
+                     "Divide the camera resolution by R (default: the model's training -r, from model.ag2gs or "
+                     "metrics.json; 1 for a .ply with neither beside it)");
+  render->add_option("--sparse", ra->sparse,
+                     "COLMAP model folder inside the scene (default sparse/0/, else sparse/ when it holds the model)");
   render->add_flag("--extras", ra->extras, "Same as adding depth,alpha to --outputs");
   set_action(render, [&global, ra] { cmd_render(global, *ra); });
 

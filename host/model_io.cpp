@@ -231,8 +231,13 @@ void write_model_archive(const std::string& path, const ModelArchive& archive) {
   out.commit();
 }
 
-ModelArchive read_model_archive(const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
+namespace {
+
+// Opens `path`, checks magic, version and the header checksum, and returns
+// the header text; `in` is left at the end of the header, `size` and
+// `header_len` describe the file.
+std::string read_header_text(const std::string& path, std::ifstream& in, uint64_t* size_out, uint64_t* header_len_out) {
+  in.open(path, std::ios::binary);
   if (!in) fail(path, std::string("cannot open: ") + std::strerror(errno));
   in.seekg(0, std::ios::end);
   const std::streamoff size_off = in.tellg();
@@ -266,6 +271,28 @@ ModelArchive read_model_archive(const std::string& path) {
   if (get_le(sum, 8) != fnv1a64(text.data(), text.size())) {
     fail(path, "corrupt: the header checksum does not match; the file was damaged after it was written");
   }
+  *size_out = size;
+  *header_len_out = header_len;
+  return text;
+}
+
+}  // namespace
+
+nlohmann::json read_model_meta(const std::string& path) {
+  std::ifstream in;
+  uint64_t size = 0, header_len = 0;
+  const std::string text = read_header_text(path, in, &size, &header_len);
+  try {
+    return nlohmann::json::parse(text).at("meta");
+  } catch (const std::exception& e) {
+    fail(path, std::string("corrupt header: ") + e.what());
+  }
+}
+
+ModelArchive read_model_archive(const std::string& path) {
+  std::ifstream in;
+  uint64_t size = 0, header_len = 0;
+  const std::string text = read_header_text(path, in, &size, &header_len);
   const uint64_t head = kPrefix + header_len + 8;
   const uint64_t data_start = (head + 7) / 8 * 8;
 

@@ -73,6 +73,10 @@ void write_model_archive(const std::string& path, const ModelArchive& archive);
 // this build reads), a truncated or corrupt file.
 ModelArchive read_model_archive(const std::string& path);
 
+// Only the JSON metadata of an archive (magic, version and the header
+// checksum checked; the arrays are not read): cheap on a large model.
+nlohmann::json read_model_meta(const std::string& path);
+
 // FNV-1a 64-bit hash (also used for the checksums).
 uint64_t fnv1a64(const void* data, size_t size, uint64_t seed = 0xcbf29ce484222325ull);
 

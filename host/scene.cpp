@@ -149,6 +149,29 @@ void drop_contained_masks(ViewMasks* m) {
   m->dropped_empty += empty;
 }
 
+std::string find_colmap_model(const std::string& dir, const std::string& sparse) {
+  const fs::path root(dir);
+  auto holds_model = [](const fs::path& p) { return fs::exists(p / "cameras.bin") || fs::exists(p / "cameras.txt"); };
+  if (!sparse.empty()) {
+    const fs::path p = root / sparse;  // an absolute `sparse` replaces the root
+    if (!fs::is_directory(p)) {
+      fail(p.string(), "no such folder (given with --sparse " + sparse +
+                           "); --sparse names the COLMAP model folder (cameras, images, points3D as .bin or "
+                           ".txt) inside the scene, e.g. sparse/0");
+    }
+    return p.string();
+  }
+  const fs::path zero = root / "sparse" / "0", flat = root / "sparse";
+  if (holds_model(zero)) return zero.string();
+  if (holds_model(flat)) return flat.string();
+  // A sparse/0/ without cameras: the reader names the missing file.
+  if (fs::is_directory(zero)) return zero.string();
+  fail(flat.string(), std::string(fs::is_directory(flat) ? "holds" : "does not exist, so there is") +
+                          " no COLMAP model; looked for cameras, images and points3D (.bin or .txt) in sparse/0/ "
+                          "and in sparse/. Name the folder that holds them with --sparse DIR, or make a model "
+                          "from photos with `ag2gs sfm IMAGES_DIR -o SCENE_DIR`");
+}
+
 std::unique_ptr<Scene> Scene::open(const std::string& dir, const SceneOptions& options) {
   if (!fs::is_directory(dir)) {
     fail(dir, "no such scene directory; a scene holds images/ and sparse/0/ (make one with `ag2gs sfm IMAGES -o " +
@@ -168,16 +191,24 @@ std::unique_ptr<Scene> Scene::open(const std::string& dir, const SceneOptions& o
   s->options_ = options;
   const fs::path root(dir);
 
-  fs::path sparse = root / options.sparse;
-  if (!fs::is_directory(sparse)) {
-    const bool flat = fs::exists(root / "sparse" / "cameras.bin") || fs::exists(root / "sparse" / "cameras.txt");
-    if (options.sparse == "sparse/0" && flat) {
-      sparse = root / "sparse";
-    } else {
-      fail(sparse.string(),
-           "no COLMAP model here; a scene needs sparse/0/ with cameras, images and points3D (.bin or .txt). "
-           "Make one from photos with `ag2gs sfm IMAGES_DIR -o SCENE_DIR`");
+  const fs::path sparse = find_colmap_model(dir, options.sparse);
+  // The image folder before the cameras: a model without its photos is not
+  // trainable whatever its camera model, and undistorting needs the photos.
+  const fs::path images = root / options.images;
+  if (!fs::is_directory(images)) {
+    std::string then;
+    try {
+      for (const std::string& m : read_colmap_model(sparse.string(), true).camera_models) {
+        if (m != "PINHOLE" && m != "SIMPLE_PINHOLE") {
+          then = "; its cameras are " + m + ", so then run `ag2gs undistort " + dir + " -o NEW_SCENE_DIR`";
+          break;
+        }
+      }
+    } catch (const std::exception&) {
+      // The model's own problems are reported once the photos are there.
     }
+    fail(images.string(), "no image folder; put the photos the COLMAP model in " + sparse.string() +
+                              " was made from in " + options.images + "/" + then);
   }
   const ColmapModel model = read_colmap_model(sparse.string());
   if (model.cameras_for_images.empty()) fail(sparse.string(), "the model has no registered images");
@@ -185,10 +216,6 @@ std::unique_ptr<Scene> Scene::open(const std::string& dir, const SceneOptions& o
   s->colors_ = model.colors;
   s->points_path_ = points_file(sparse);
 
-  const fs::path images = root / options.images;
-  if (!fs::is_directory(images)) {
-    fail(images.string(), "no image folder; put the photos the COLMAP model was made from in " + options.images + "/");
-  }
   fs::path scaled;
   if (options.resolution > 1) {
     const fs::path candidate = root / (options.images + "_" + std::to_string(options.resolution));
@@ -223,8 +250,8 @@ std::unique_ptr<Scene> Scene::open(const std::string& dir, const SceneOptions& o
     if (!found) {
       std::vector<std::string> names;
       for (const SceneView& v : s->views_) names.push_back(v.name);
-      fail(sparse.string(), "the held-out image '" + t + "' is not in the COLMAP model (it has " +
-                                   some_names(names) + "); name an image of the model");
+      fail(sparse.string(), "the held-out image '" + t + "' is not in the COLMAP model (it has " + some_names(names) +
+                                "); name an image of the model");
     }
   }
   if (!missing.empty()) {

@@ -1,5 +1,5 @@
 // A scene directory as 3DGS, OpenGaussian and LangSplat lay it out
-// (DESIGN.md section 7): images/, sparse/0/ (COLMAP), and optionally
+// (DESIGN.md section 7): images/, sparse/0/ or sparse/ (COLMAP), and optionally
 // language_features/<stem>_s.npy + <stem>_f.npy (SAM masks + CLIP features) or
 // masks/<stem>.png (16-bit instance ids).
 //
@@ -34,8 +34,16 @@ struct SceneOptions {
   std::vector<int> sam_levels = {3};
   size_t cache_bytes = size_t(2) << 30;  // images and masks kept in memory
   std::string images = "images";         // image folder inside the scene
-  std::string sparse = "sparse/0";       // COLMAP model folder inside the scene
+  std::string sparse;                    // COLMAP model folder inside the scene; empty = find_colmap_model's rule
 };
+
+// The COLMAP model folder of the scene at `dir`, one rule for every
+// subcommand: `sparse` (inside the scene, or an absolute path) when given,
+// else sparse/0/, else sparse/ itself when it holds cameras.bin or
+// cameras.txt (a model written without the 0/ level). Throws
+// std::runtime_error naming the folder looked at and the fix (--sparse DIR,
+// or `ag2gs sfm` to make a model).
+std::string find_colmap_model(const std::string& dir, const std::string& sparse = "");
 
 enum class SemanticsKind { none, language_features, mask_png };
 const char* to_string(SemanticsKind kind);
@@ -89,10 +97,11 @@ struct SceneBounds {
 
 class Scene {
  public:
-  // Reads `dir`/sparse/0 and checks that every image (and every semantic file
-  // of a scene that has semantics) exists. Throws std::runtime_error naming the
-  // file and the fix: missing folders or images, distorted cameras, a
-  // resolution whose images_N/ files disagree with the cameras, ...
+  // Reads the COLMAP model that find_colmap_model finds and checks that every
+  // image (and every semantic file of a scene that has semantics) exists.
+  // Throws std::runtime_error naming the file and the fix: missing folders
+  // (the image folder before the cameras), missing images, distorted cameras,
+  // a resolution whose images_N/ files disagree with the cameras, ...
   static std::unique_ptr<Scene> open(const std::string& dir, const SceneOptions& options = {});
 
   const std::string& dir() const { return dir_; }

@@ -4,14 +4,17 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <cctype>
 #include <cerrno>
 #include <chrono>
+#include <cmath>
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
 #include <deque>
 #include <filesystem>
 #include <fstream>
+#include <map>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 #include <regex>
@@ -19,6 +22,7 @@
 #include <thread>
 
 #include "host/colmap_reader.h"
+#include "host/scene.h"
 
 namespace ag2gs {
 namespace {
@@ -131,30 +135,57 @@ struct Step {
   std::vector<std::string> argv;
 };
 
-void run_step(const Step& step, std::ofstream& log, const std::string& log_path, const SfmOptions& o) {
-  const auto t0 = std::chrono::steady_clock::now();
+// "42 s", "3m05s", "1h17m".
+std::string duration_str(double s) {
+  char buf[32];
+  const long t = std::lround(std::max(s, 0.0));
+  if (t < 60)
+    std::snprintf(buf, sizeof buf, "%ld s", t);
+  else if (t < 3600)
+    std::snprintf(buf, sizeof buf, "%ldm%02lds", t / 60, t % 60);
+  else
+    std::snprintf(buf, sizeof buf, "%ldh%02ldm", t / 3600, (t % 3600) / 60);
+  return buf;
+}
+
+// Runs one COLMAP step. Progress lines (see parse_colmap_progress) are shown
+// with the elapsed time and a linear ETA: the first one, then one per 10% or
+// per 10 s, whichever comes first; `images` (when known) completes the
+// mapper's "registered k of n".
+void run_step(const Step& step, std::ofstream& log, const std::string& log_path, const SfmOptions& o, int images = 0) {
+  using Clock = std::chrono::steady_clock;
+  const auto t0 = Clock::now();
   say(o, step.name + " ...");
   std::deque<std::string> tail;
-  static const std::regex processed(R"(Processed file \[(\d+)/(\d+)\])");
-  static const std::regex matching(R"(Matching block \[(\d+)/(\d+)(?:, (\d+)/(\d+))?\])");
   static const std::regex registering(R"(Registering image #(\d+) \((\d+)\))");
-  auto last = std::chrono::steady_clock::now();
+  auto last = t0;
+  int last_decile = -1, shown = 0;
   const int rc = run_logged(step.argv, log, tail, [&](const std::string& line) {
+    const auto now = Clock::now();
+    const double el = std::chrono::duration<double>(now - t0).count();
+    const bool due = shown == 0 || now - last >= std::chrono::seconds(10);
+    ColmapProgress p;
     std::smatch m;
     std::string update;
-    if (std::regex_search(line, m, processed))
-      update = "  image " + m[1].str() + "/" + m[2].str();
-    else if (std::regex_search(line, m, matching))
-      update = "  " + m[0].str();
-    else if (std::regex_search(line, m, registering))
-      update = "  registered " + m[2].str() + " images";
-    const auto now = std::chrono::steady_clock::now();
-    if (!update.empty() && now - last > std::chrono::milliseconds(500)) {
-      say(o, update);
-      last = now;
+    if (parse_colmap_progress(line, &p) && p.total > 0 && p.done < p.total) {
+      const int decile = 10 * p.done / p.total;
+      if (!due && decile <= last_decile) return;
+      last_decile = decile;
+      update = "  " + p.unit + " " + std::to_string(p.done) + "/" + std::to_string(p.total) + " (" +
+               std::to_string(100 * p.done / p.total) + "%), " + duration_str(el) + " elapsed";
+      if (p.done > 0) update += ", about " + duration_str(el / p.done * (p.total - p.done)) + " left";
+    } else if (std::regex_search(line, m, registering)) {
+      if (!due) return;
+      update = "  registered " + m[2].str() + (images > 0 ? " of " + std::to_string(images) : "") + " images, " +
+               duration_str(el) + " elapsed";
+    } else {
+      return;
     }
+    say(o, update);
+    last = now;
+    ++shown;
   });
-  const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  const double s = std::chrono::duration<double>(Clock::now() - t0).count();
   if (rc != 0) {
     std::string msg = step.name + " failed (colmap exit status " + std::to_string(rc) + ")";
     if (rc == 127) msg += "; could not run " + step.argv[0] + ": " + kInstallHint;
@@ -225,6 +256,93 @@ std::vector<std::string> list_image_files(const std::string& dir) {
   return files;
 }
 
+MatcherChoice choose_matcher(const std::vector<std::string>& names) {
+  const size_t n = names.size();
+  const std::string pairs = std::to_string(n * (n - (n > 0)) / 2) + " pairs";
+  if (n <= static_cast<size_t>(kSequentialMinImages)) {
+    return {"exhaustive", std::to_string(n) + " photos, few enough to match all " + pairs};
+  }
+  std::vector<std::string> sorted = names;
+  std::sort(sorted.begin(), sorted.end());  // the order COLMAP's sequential matcher pairs them in
+  // Each name as <pattern> + <number>: the last run of digits in its stem.
+  std::vector<long long> numbers;
+  std::string pattern0;
+  for (const std::string& name : sorted) {
+    const std::string stem = fs::path(name).stem().string();
+    const size_t end = stem.find_last_of("0123456789");
+    if (end == std::string::npos) {
+      return {"exhaustive",
+              "the names carry no frame numbers (" + name + "), so the photos are not an ordered sequence"};
+    }
+    size_t begin = end;
+    while (begin > 0 && std::isdigit(static_cast<unsigned char>(stem[begin - 1]))) --begin;
+    if (end - begin + 1 > 15) return {"exhaustive", "the number in " + name + " is too long to be a frame number"};
+    std::string pattern = stem.substr(0, begin) + "#" + stem.substr(end + 1) + fs::path(name).extension().string();
+    std::transform(pattern.begin(), pattern.end(), pattern.begin(), [](unsigned char c) { return std::tolower(c); });
+    if (numbers.empty()) pattern0 = pattern;
+    if (pattern != pattern0) {
+      return {"exhaustive", "the names follow more than one pattern (" + sorted.front() + ", " + name +
+                                "), so the photos are not one ordered sequence"};
+    }
+    numbers.push_back(std::stoll(stem.substr(begin, end - begin + 1)));
+  }
+  // Steps between neighbours in name order: most must equal the common step,
+  // the rest be a few steps (dropped frames); none may go backwards.
+  std::map<long long, int> steps;
+  for (size_t i = 1; i < n; ++i) {
+    const long long d = numbers[i] - numbers[i - 1];
+    if (d <= 0) {
+      return {"exhaustive", "the frame numbers do not increase in name order (" + sorted[i - 1] + " then " + sorted[i] +
+                                "; numbers without leading zeros?), and COLMAP's sequential matcher "
+                                "pairs neighbours in name order"};
+    }
+    ++steps[d];
+  }
+  const auto common =
+      std::max_element(steps.begin(), steps.end(), [](const auto& a, const auto& b) { return a.second < b.second; });
+  const long long step = common->first;
+  size_t off = 0;
+  for (const auto& [d, count] : steps) {
+    if (d == step) continue;
+    if (d % step != 0 || d > 5 * step) {
+      return {"exhaustive", "the frame numbers do not step evenly (" + std::to_string(step) + " between most, " +
+                                std::to_string(d) + " between others), so the photos are not an ordered sequence"};
+    }
+    off += static_cast<size_t>(count);
+  }
+  if (off * 10 > n - 1) {
+    return {"exhaustive", "the frame numbers skip too often (" + std::to_string(off) + " of " + std::to_string(n - 1) +
+                              " steps are not " + std::to_string(step) + ") to be an ordered sequence"};
+  }
+  return {"sequential", std::to_string(n) + " photos named as an ordered sequence (" + sorted.front() + " .. " +
+                            sorted.back() + ", step " + std::to_string(step) +
+                            "): each is matched with its neighbours in name order instead of all " + pairs +
+                            " (--matcher exhaustive for all)"};
+}
+
+bool parse_colmap_progress(const std::string& line, ColmapProgress* p) {
+  static const std::regex processed(R"(Processed file \[(\d+)/(\d+)\])");
+  static const std::regex block(R"(Matching block \[(\d+)/(\d+), (\d+)/(\d+)\])");
+  static const std::regex image(R"(Matching image \[(\d+)/(\d+)\])");
+  static const std::regex finished(R"(\] in [0-9.]+s)");
+  std::smatch m;
+  if (std::regex_search(line, m, processed)) {
+    *p = {"image", std::stoi(m[1]), std::stoi(m[2])};
+    return true;
+  }
+  const bool done = std::regex_search(line, finished);
+  if (std::regex_search(line, m, block)) {
+    const int i = std::stoi(m[1]), n = std::stoi(m[2]), j = std::stoi(m[3]), k = std::stoi(m[4]);
+    *p = {"block", (i - 1) * k + j - (done ? 0 : 1), n * k};
+    return true;
+  }
+  if (std::regex_search(line, m, image)) {
+    *p = {"image", std::stoi(m[1]) - (done ? 0 : 1), std::stoi(m[2])};
+    return true;
+  }
+  return false;
+}
+
 std::string find_colmap(const std::string& name) {
   std::string prog = name;
   const char* env = std::getenv("AG2GS_COLMAP");
@@ -257,8 +375,8 @@ SfmResult run_sfm(const std::string& images_dir, const std::string& scene_dir, c
                              " image file(s); structure from motion needs at least 2 overlapping photos "
                              "(.jpg, .png, ...) directly in this folder");
   }
-  if (o.matcher != "exhaustive" && o.matcher != "sequential") {
-    throw std::invalid_argument("matcher '" + o.matcher + "' is unknown; use exhaustive or sequential");
+  if (o.matcher != "auto" && o.matcher != "exhaustive" && o.matcher != "sequential") {
+    throw std::invalid_argument("matcher '" + o.matcher + "' is unknown; use auto, exhaustive or sequential");
   }
   const std::string colmap = find_colmap(o.colmap);
   StagingDir staging(scene_dir, o.force);
@@ -272,6 +390,32 @@ SfmResult run_sfm(const std::string& images_dir, const std::string& scene_dir, c
   const std::string images = fs::absolute(images_dir).string();
   const std::string threads = std::to_string(o.threads);
   say(o, std::to_string(photos.size()) + " photos in " + images_dir);
+  MatcherChoice choice{o.matcher, "as --matcher says"};
+  if (o.matcher == "auto") choice = choose_matcher(photos);
+  std::string size_note = "SIFT on at most " + std::to_string(o.max_image_size) + " px (--max-image-size)";
+  const cv::Mat first = cv::imread((fs::path(images_dir) / photos.front()).string(), cv::IMREAD_UNCHANGED);
+  if (!first.empty()) {
+    const bool reduced = std::max(first.cols, first.rows) > o.max_image_size;
+    size_note = "SIFT on " + std::to_string(first.cols) + "x" + std::to_string(first.rows) + " photos " +
+                (reduced ? "reduced to " : "at their size, up to ") + std::to_string(o.max_image_size) +
+                " px on the longest side (--max-image-size)";
+  }
+  say(o, "matcher: " + choice.matcher + ", " + choice.reason + "; " + size_note);
+  // Exhaustive matching reports one line per block of image pairs: blocks of
+  // about a quarter of the photos (COLMAP's 50 at most) give 16 or more.
+  const int block = std::clamp(static_cast<int>((photos.size() + 3) / 4), 2, 50);
+  std::vector<std::string> match_args = {colmap,
+                                         choice.matcher + "_matcher",
+                                         "--database_path",
+                                         db,
+                                         "--SiftMatching.use_gpu",
+                                         "0",
+                                         "--SiftMatching.num_threads",
+                                         threads,
+                                         "--log_to_stderr",
+                                         "1"};
+  if (choice.matcher == "exhaustive")
+    match_args.insert(match_args.end(), {"--ExhaustiveMatching.block_size", std::to_string(block)});
 
   run_step({"feature extraction (SIFT, CPU)",
             {colmap, "feature_extractor", "--database_path", db, "--image_path", images, "--ImageReader.camera_model",
@@ -279,16 +423,13 @@ SfmResult run_sfm(const std::string& images_dir, const std::string& scene_dir, c
              "0", "--SiftExtraction.num_threads", threads, "--SiftExtraction.max_image_size",
              std::to_string(o.max_image_size), "--log_to_stderr", "1"}},
            log, log_path, o);
-  run_step({"matching (" + o.matcher + ")",
-            {colmap, o.matcher + "_matcher", "--database_path", db, "--SiftMatching.use_gpu", "0",
-             "--SiftMatching.num_threads", threads, "--log_to_stderr", "1"}},
-           log, log_path, o);
+  run_step({"matching (" + choice.matcher + ")", match_args}, log, log_path, o);
   run_step({"mapping",
             {colmap, "mapper", "--database_path", db, "--image_path", images, "--output_path",
              (work / "sparse").string(), "--Mapper.num_threads", threads, "--Mapper.ba_global_function_tolerance",
              "0.000001", "--Mapper.init_min_num_inliers", std::to_string(o.init_min_inliers),
              "--Mapper.abs_pose_min_num_inliers", std::to_string(o.abs_pose_min_inliers), "--log_to_stderr", "1"}},
-           log, log_path, o);
+           log, log_path, o, static_cast<int>(photos.size()));
 
   // The mapper may leave several models (disconnected groups); keep the largest.
   fs::path best;
@@ -323,7 +464,7 @@ SfmResult run_sfm(const std::string& images_dir, const std::string& scene_dir, c
 SfmResult undistort_scene(const std::string& scene_dir, const std::string& out_dir, const SfmOptions& o) {
   const auto t0 = std::chrono::steady_clock::now();
   const fs::path scene(scene_dir);
-  const fs::path sparse = scene / "sparse" / "0";
+  const fs::path sparse = find_colmap_model(scene_dir);
   const ColmapModel model = read_colmap_model(sparse.string(), true);  // validates before COLMAP runs
   if (!fs::is_directory(scene / "images")) {
     throw std::runtime_error((scene / "images").string() + ": no image folder to undistort");

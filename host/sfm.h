@@ -13,8 +13,8 @@ struct SfmOptions {
   std::string colmap = "colmap";        // program name or path (AG2GS_COLMAP overrides the default)
   std::string camera_model = "OPENCV";  // model COLMAP fits before undistortion
   bool single_camera = true;            // one camera for all photos (one phone/lens)
-  std::string matcher = "exhaustive";   // exhaustive | sequential
-  int max_image_size = 1600;            // SIFT works on images downscaled to this
+  std::string matcher = "auto";         // auto (choose_matcher) | exhaustive | sequential
+  int max_image_size = 1600;            // SIFT works on images downscaled to this (longest side, px)
   int threads = -1;                     // -1 = all cores
   // Mapper thresholds (COLMAP's defaults); lower them for small or low-texture
   // photo sets whose image pairs share fewer matches.
@@ -54,5 +54,31 @@ std::string find_colmap(const std::string& name);
 
 // Image files (by extension) directly inside `dir`, sorted.
 std::vector<std::string> list_image_files(const std::string& dir);
+
+// COLMAP's matcher for `names` (the photos' file names) and why, in words.
+// Sequential when there are more than kSequentialMinImages and the names,
+// in the sorted order COLMAP's sequential matcher pairs them in, carry
+// numbers that step evenly (video frames: frame_0001.jpg, 0001.png,
+// IMG_1234.JPG, every 5th frame, a few dropped); otherwise exhaustive, which
+// matches every pair (n(n-1)/2 of them) and finds the loop closures a walk
+// around an object needs.
+struct MatcherChoice {
+  std::string matcher;  // exhaustive | sequential
+  std::string reason;
+};
+constexpr int kSequentialMinImages = 40;
+MatcherChoice choose_matcher(const std::vector<std::string>& names);
+
+// One progress update in a line COLMAP prints: feature extraction
+// ("Processed file [i/n]"), exhaustive ("Matching block [i/n, j/m]") and
+// sequential matching ("Matching image [i/n]"). `done` counts finished
+// units: COLMAP 3.8 completes a matching line with " in 1.234s" when the
+// unit is done, newer versions log it when the unit starts.
+struct ColmapProgress {
+  std::string unit;  // "image" or "block"
+  int done = 0;
+  int total = 0;
+};
+bool parse_colmap_progress(const std::string& line, ColmapProgress* progress);
 
 }  // namespace ag2gs

@@ -204,3 +204,83 @@ TEST(Cli, TrainInitLayerSeedsTheChosenLayers) {
   EXPECT_FALSE(fs::exists(dir / "bad" / "model.ag2gs"));
   fs::remove_all(dir);
 }
+
+// One scene-folder rule for every subcommand: render finds a model in
+// sparse/ without the 0/ level as train and info do, and its errors name the
+// folder looked at and --sparse.
+TEST(Cli, RenderFindsTheModelInSparseWithoutZeroAndNamesSparseInErrors) {
+  const std::string scene = src() + "/data_samples/tiny_scene";
+  const fs::path dir = temp("flat");
+  fs::create_directories(dir);
+  fs::copy(scene, dir / "s", fs::copy_options::recursive);
+  for (const auto& e : fs::directory_iterator(dir / "s" / "sparse" / "0"))
+    fs::rename(e.path(), dir / "s" / "sparse" / e.path().filename());
+  fs::remove(dir / "s" / "sparse" / "0");
+  const std::string ply = " --ply " + scene + "/gaussians.ply";
+  Result r = run("render" + ply + " --scene " + (dir / "s").string() + " -o " + (dir / "o").string());
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_TRUE(fs::exists(dir / "o" / "rgb" / "view_003.png"));
+  EXPECT_NE(r.output.find("cameras from " + (dir / "s" / "sparse").string() + ";"), std::string::npos) << r.output;
+  // info finds the same model (tiny_scene has no images: it then stops there).
+  Result info = run("info --quick " + (dir / "s").string());
+  EXPECT_NE(info.output.find("COLMAP model: " + (dir / "s" / "sparse").string() + " (text)"), std::string::npos)
+      << info.output;
+
+  // The model elsewhere: found with --sparse, and the error says so.
+  fs::rename(dir / "s" / "sparse", dir / "s" / "colmap");
+  r = run("render" + ply + " --scene " + (dir / "s").string() + " -o " + (dir / "o2").string());
+  EXPECT_EQ(r.code, 1);
+  for (const std::string& n : {(dir / "s" / "sparse").string(), std::string("sparse/0/"), std::string("--sparse")})
+    EXPECT_NE(r.output.find(n), std::string::npos) << "lacks '" << n << "':\n" << r.output;
+  r = run("render" + ply + " --scene " + (dir / "s").string() + " --sparse colmap -o " + (dir / "o2").string());
+  EXPECT_EQ(r.code, 0) << r.output;
+  info = run("info --quick " + (dir / "s").string() + " --sparse colmap");
+  EXPECT_NE(info.output.find("COLMAP model: " + (dir / "s" / "colmap").string() + " (text)"), std::string::npos)
+      << info.output;
+  r = run("render" + ply + " --scene " + (dir / "s").string() + " --sparse sparse/1 -o " + (dir / "o3").string());
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.output.find((dir / "s" / "sparse" / "1").string() + ": no such folder"), std::string::npos) << r.output;
+  fs::remove_all(dir);
+}
+
+// render without -r uses the resolution the model was trained at (as query
+// does); an explicit -r wins; a .ply with no record beside it stays at 1.
+TEST(Cli, RenderDefaultsToTheModelsTrainingResolution) {
+  const std::string scene = src() + "/data_samples/synth_small";  // 160x120 cameras
+  const fs::path dir = temp("render_res");
+  Result t =
+      run("train " + scene + " -r 2 --iters 2 --stages 1 --top-cells 50 --log-every 0 -o " + (dir / "model").string());
+  ASSERT_EQ(t.code, 0) << t.output;
+  auto size_of = [](const fs::path& png) {
+    const cv::Mat img = cv::imread(png.string());
+    return std::make_pair(img.cols, img.rows);
+  };
+  const std::string common = " --scene " + scene + " --views view_000 -o ";
+  Result r = run("render " + (dir / "model").string() + common + (dir / "a").string());
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_EQ(size_of(dir / "a" / "rgb" / "view_000.png"), std::make_pair(80, 60));
+  EXPECT_NE(r.output.find("rendering at 1/2 resolution: the model was trained at -r 2"), std::string::npos) << r.output;
+  r = run("render " + (dir / "model").string() + common + (dir / "b").string() + " -r 1");
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_EQ(size_of(dir / "b" / "rgb" / "view_000.png"), std::make_pair(160, 120));
+  EXPECT_NE(r.output.find("-r 1 given"), std::string::npos) << r.output;
+  // --ply inside the model folder: the same record.
+  r = run("render --ply " + (dir / "model" / "point_cloud.ply").string() + common + (dir / "c").string());
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_EQ(size_of(dir / "c" / "rgb" / "view_000.png"), std::make_pair(80, 60));
+  // A baseline model: point_cloud.ply + metrics.json (written with --eval).
+  fs::create_directories(dir / "baseline");
+  fs::copy_file(dir / "model" / "point_cloud.ply", dir / "baseline" / "point_cloud.ply");
+  std::ofstream(dir / "baseline" / "metrics.json") << R"({"model": "baseline", "resolution": 4})";
+  r = run("render " + (dir / "baseline").string() + common + (dir / "d").string());
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_EQ(size_of(dir / "d" / "rgb" / "view_000.png"), std::make_pair(40, 30));
+  // A bare .ply: full resolution, and the log says why.
+  fs::create_directories(dir / "bare");
+  fs::copy_file(dir / "model" / "point_cloud.ply", dir / "bare" / "g.ply");
+  r = run("render --ply " + (dir / "bare" / "g.ply").string() + common + (dir / "e").string());
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_EQ(size_of(dir / "e" / "rgb" / "view_000.png"), std::make_pair(160, 120));
+  EXPECT_NE(r.output.find("rendering at 1/1 resolution: no record of the training -r"), std::string::npos) << r.output;
+  fs::remove_all(dir);
+}

@@ -87,3 +87,18 @@ TEST(CliScene, SfmAndUndistortErrorsAreClear) {
   EXPECT_EQ(r.code, 1);
   expect_has(r, {"ag2gs undistort: error:", "nowhere"});
 }
+
+// A folder holding a COLMAP model but no images/: info names the missing
+// folder first, not the camera model (undistorting needs the photos too).
+TEST(CliScene, InfoWithoutImagesNamesTheImageFolderFirst) {
+  ScratchDir dir("cli_scene");
+  fs::copy(source_path("data_samples/tiny_scene"), dir.path() / "s", fs::copy_options::recursive);
+  fs::remove_all(dir.path() / "s" / "images");
+  write_bytes(dir.file("s/sparse/0/cameras.txt"),
+              "1 OPENCV 160 120 160 160 80 60 0.01 0 0 0\n2 OPENCV 160 120 170 170 79.5 60.5 0.01 0 0 0\n");
+  const Result r = run("info " + dir.file("s"));
+  EXPECT_EQ(r.code, 1) << r.output;
+  expect_has(r,
+             {"camera models: OPENCV x4", dir.file("s/images") + ": no image folder", "in images/", "ag2gs undistort"});
+  EXPECT_EQ(r.output.find("Undistort first"), std::string::npos) << r.output;
+}

@@ -326,6 +326,49 @@ TEST(SceneErrors, MissingFoldersAndImagesNameTheFileAndTheFix) {
   expect_error_with<std::runtime_error>([&] { Scene::open(dir.str()); }, {"images", "no image folder"});
 }
 
+// One rule for every subcommand: sparse/0/, else sparse/ itself when it holds
+// the model; an explicit folder wins; the error names the folder and --sparse.
+TEST(Scene, FindsTheModelInSparse0ElseInSparseAndAnExplicitFolderWins) {
+  ScratchDir dir("scene");
+  make_scene(dir.path(), {});
+  EXPECT_EQ(find_colmap_model(dir.str()), dir.file("sparse/0"));
+  // A model written without the 0/ level.
+  for (const auto& e : fs::directory_iterator(dir.path() / "sparse" / "0"))
+    fs::rename(e.path(), dir.path() / "sparse" / e.path().filename());
+  fs::remove(dir.path() / "sparse" / "0");
+  EXPECT_EQ(find_colmap_model(dir.str()), dir.file("sparse"));
+  EXPECT_EQ(Scene::open(dir.str())->views().size(), 10u);
+  // Elsewhere in the scene: only an explicit folder finds it.
+  fs::rename(dir.path() / "sparse", dir.path() / "colmap");
+  expect_error_with<std::runtime_error>([&] { find_colmap_model(dir.str()); },
+                                        {dir.file("sparse"), "sparse/0/", "--sparse", "ag2gs sfm"});
+  EXPECT_EQ(find_colmap_model(dir.str(), "colmap"), dir.file("colmap"));
+  SceneOptions so;
+  so.sparse = "colmap";
+  EXPECT_EQ(Scene::open(dir.str(), so)->views().size(), 10u);
+  expect_error_with<std::runtime_error>([&] { find_colmap_model(dir.str(), "sparse/1"); },
+                                        {dir.file("sparse/1"), "no such folder", "--sparse"});
+  // sparse/0/ wins over a model in sparse/.
+  fs::create_directories(dir.path() / "sparse");
+  fs::rename(dir.path() / "colmap", dir.path() / "sparse" / "0");
+  fs::copy_file(dir.path() / "sparse" / "0" / "cameras.bin", dir.path() / "sparse" / "cameras.bin");
+  EXPECT_EQ(find_colmap_model(dir.str()), dir.file("sparse/0"));
+}
+
+// A model without its photos: the missing folder is the first thing to fix,
+// even when the cameras also need undistorting (which needs the photos).
+TEST(SceneErrors, AMissingImageFolderIsNamedBeforeADistortedCameraModel) {
+  ScratchDir dir("scene");
+  make_scene(dir.path(), {});
+  fs::remove(dir.path() / "sparse" / "0" / "cameras.bin");
+  std::string cams = "# camera list\n";
+  for (int i = 1; i <= 10; ++i) cams += std::to_string(i) + " OPENCV 40 30 32 32 20 15 0.01 0 0 0\n";
+  write_bytes(dir.file("sparse/0/cameras.txt"), cams);
+  fs::remove_all(dir.path() / "images");
+  expect_error_with<std::runtime_error>([&] { Scene::open(dir.str()); }, {dir.file("images"), "no image folder",
+                                                                          "in images/", "OPENCV", "ag2gs undistort"});
+}
+
 TEST(SceneErrors, CorruptOrWrongSizedImages) {
   ScratchDir dir("scene");
   make_scene(dir.path(), {});
