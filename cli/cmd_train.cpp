@@ -15,6 +15,7 @@
 #include <limits>
 #include <memory>
 #include <nlohmann/json.hpp>
+#include <optional>
 #include <sys/resource.h>
 #include <string>
 
@@ -24,6 +25,7 @@
 #include "host/cl_runtime.h"
 #include "host/model_io.h"
 #include "host/scene.h"
+#include "stages/divergence_guard.h"
 #include "stages/language.h"
 #include "stages/trainer.h"
 
@@ -44,22 +46,35 @@ struct TrainArgs {
   bool profile = false;
   bool resume = false;
   std::vector<int> stages{1, 2, 3};  // --stages
-  std::string preset = "paper";      // --preset
+  std::string preset = "default";    // --preset
   Stage3Config stage3;
   TrainConfig config;
 };
 
-// --preset appearance: the switches that close the gap to free Gaussians on
-// photographed scenes (README, train section: the cup at 7000 iterations
-// 29.72 dB with 34.3k Gaussians, the free-Gaussian baseline 29.56 dB with
-// 120k), at some cost in selection sharpness (the scale cap). A setting the
-// user gives on the command line wins over the preset's.
+// Presets. The default (also called "appearance") is the measured setting
+// for photographed scenes: children that may outgrow their voxel (scale cap
+// 64), 3 per anchor placed on the SfM points, recycling of transparent
+// children, faster offset and scale rates; with the library's defaults for
+// the rest (the voxel chosen from the scene, growth budgets). "paper" is the
+// method as published: 200 top-layer cells, 5 children inside their voxels,
+// no growth budget. A setting the user gives on the command line wins. A
+// resumed run takes its settings from the checkpoint, so a preset is applied
+// only when given explicitly there.
 void apply_preset(const CLI::App& sub, TrainArgs& a) {
-  if (a.preset != "appearance") return;
+  const bool continues = a.resume || std::find(a.stages.begin(), a.stages.end(), 1) == a.stages.end();
+  if (continues && sub.count("--preset") == 0) return;
   TrainConfig& c = a.config;
   auto unless_given = [&sub](const char* flag, auto& field, auto value) {
     if (sub.count(flag) == 0) field = value;
   };
+  if (a.preset == "paper") {
+    unless_given("--top-cells", c.anchors.top_cells, 200);
+    unless_given("--grow-budget", c.grow_budget, 0.0);
+    unless_given("--max-gaussians", c.max_gaussians, int64_t{0});
+    spdlog::info("preset paper: --top-cells {} --children {} --scale-cap {} --grow-budget {} --max-gaussians {}",
+                 c.anchors.top_cells, c.anchors.children, c.anchors.scale_cap, c.grow_budget, c.max_gaussians);
+    return;
+  }
   unless_given("--scale-cap", c.anchors.scale_cap, 64.f);
   unless_given("--children", c.anchors.children, 3);
   unless_given("--init-children-at-points", c.anchors.init_children_at_points, true);
@@ -67,7 +82,7 @@ void apply_preset(const CLI::App& sub, TrainArgs& a) {
   unless_given("--lr-offset", c.offset_lr_init, 1e-2);
   unless_given("--lr-scaling", c.scaling_lr, 0.01);
   spdlog::info(
-      "preset appearance: --scale-cap {} --children {} --{} --recycle-opacity {} --lr-offset {} --lr-scaling {}",
+      "preset {}: --scale-cap {} --children {} --{} --recycle-opacity {} --lr-offset {} --lr-scaling {}", a.preset,
       c.anchors.scale_cap, c.anchors.children,
       c.anchors.init_children_at_points ? "init-children-at-points" : "init-children-random", c.recycle_opacity,
       c.offset_lr_init, c.scaling_lr);
@@ -108,6 +123,24 @@ void stage3_only(const GlobalOptions& global, TrainArgs& a) {
   const Stage3Summary s = run_stage3_on_model(rt, *scene, a.out, scene->train_views(), a.stage3);
   log_stage3(s, a.stage3);
   spdlog::info("stage 3: {:.1f} s; wrote {}", s.total_ms / 1000, path);
+}
+
+// Seconds left: `remaining` steps at `step_ms` each while the model holds
+// `gaussians`, with the step time taken to follow the Gaussian count. Of
+// those steps, `growing` are still in the growth phase, over `rounds_left`
+// rounds, each expected to multiply the count by `round_factor` (the mean
+// of the rounds so far), up to `budget` (0 = none): the count is taken to
+// rise evenly to its end value through the growth phase and stay there.
+double estimate_seconds_left(int remaining, double step_ms, size_t gaussians, int growing, int rounds_left,
+                             double round_factor, size_t budget) {
+  if (remaining <= 0 || !(step_ms > 0) || gaussians == 0) return 0;
+  double end = static_cast<double>(gaussians);
+  if (rounds_left > 0 && round_factor > 1) end *= std::pow(round_factor, std::min(rounds_left, 1000));
+  if (budget > 0) end = std::min(end, std::max(static_cast<double>(budget), static_cast<double>(gaussians)));
+  const double ratio_end = end / static_cast<double>(gaussians);
+  growing = std::clamp(growing, 0, remaining);
+  const double weighted = growing * 0.5 * (1 + ratio_end) + (remaining - growing) * ratio_end;
+  return weighted * step_ms / 1000;
 }
 
 std::string fmt_duration(double s) {
@@ -226,9 +259,9 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
     std::string per_layer;
     for (size_t l = 0; l < trainer.init_stats().anchors_per_layer.size(); ++l)
       per_layer += (l ? "/" : "") + std::to_string(trainer.init_stats().anchors_per_layer[l]);
-    spdlog::info("anchors: {} (per layer {}), {} Gaussians ({} children each), voxel {:.4g} (top layer)",
-                 trainer.anchors(), per_layer, trainer.gaussians(), c.anchors.children,
-                 trainer.model().grid().voxel(0));
+    spdlog::info("anchors: {} (per layer {}), {} Gaussians ({} children each); {}", trainer.anchors(), per_layer,
+                 trainer.gaussians(), c.anchors.children,
+                 trainer.voxel_choice().describe(c.anchors.layers, c.anchors.layer_ratio));
   }
   spdlog::info("{} iterations, seed {}, SH degree up to {} (+1 every {} iterations), background {}", c.iterations,
                c.seed, c.anchors.sh_degree, c.effective_sh_interval(), c.white_background ? "white" : "black");
@@ -244,6 +277,13 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
         c.anchors.layers > 1 ? "" : " (one layer: pruning only)", c.grow_every, c.grow_from, c.effective_grow_until(),
         c.grow_threshold, c.prune_opacity, c.prune_opacity > 0 ? "" : " (off)",
         g.prune_unseen ? "in the last " + std::to_string(g.unseen_window) + " views" : std::string("off"));
+    spdlog::info("growth budget: {} per round{}, at most {} Gaussians{}",
+                 c.grow_budget > 0 ? fmt::format("{:.0f}% of the anchors", 100 * c.grow_budget) : "no limit",
+                 c.grow_budget > 0 ? " (at least 64)" : "",
+                 trainer.max_gaussians() > 0 ? std::to_string(trainer.max_gaussians()) : "no limit",
+                 c.max_gaussians == -1 ? " (the pixels of a training view, at least 2x the initial count; "
+                                         "--max-gaussians)"
+                                       : "");
   } else {
     spdlog::info("anchor growing off");
   }
@@ -304,6 +344,18 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   // Wall time of each step without an evaluation in it; the steps after
   // the last growing round run at the final Gaussian count.
   std::vector<double> step_ms, step_ms_fixed;
+  // Divergence warnings (stages/divergence_guard.h), also in metrics.json.
+  DivergenceGuard guard;
+  metrics["warnings"] = nlohmann::json::array();
+  auto warn = [&](const std::optional<std::string>& w) {
+    if (!w) return;
+    spdlog::warn("{}", *w);
+    metrics["warnings"].push_back(*w);
+  };
+  const GrowthConfig growth_schedule = c.growth_config(scene->train_views().size());
+  const size_t gaussians_at_start = trainer.gaussians();
+  int rounds_done = 0;
+  size_t gaussians_before_round = trainer.gaussians();
   for (int it = it_start; it < it_end; ++it) {
     const bool log_now = a.log_every > 0 && ((it + 1) % a.log_every == 0 || it + 1 == it_end || it == it_start);
     if (it == c.iterations) {
@@ -333,8 +385,17 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
     if (st.skipped) ++skipped;
     if (st.opacity_reset) spdlog::info("iteration {}: opacities reset to at most 0.01", st.iteration);
     if (st.grown > 0 || st.pruned > 0)
-      spdlog::info("iteration {}: grew {} anchors, pruned {} -> {} anchors, {} Gaussians", st.iteration, st.grown,
+      spdlog::info("iteration {}: grew {} anchors{}, pruned {} -> {} anchors, {} Gaussians", st.iteration, st.grown,
+                   st.over_budget > 0 ? fmt::format(" ({} more asked, over the budget)", st.over_budget) : "",
                    st.pruned, trainer.anchors(), trainer.gaussians());
+    if (!st.stage2) {
+      warn(guard.step(st.iteration, st.psnr, st.loss - (st.with_offset_loss ? c.w_offset * st.offset_reg : 0)));
+      if (growth_schedule.every > 0 && growth_schedule.due(st.iteration)) {
+        warn(guard.round(st.iteration, gaussians_before_round, trainer.gaussians()));
+        ++rounds_done;
+      }
+      gaussians_before_round = trainer.gaussians();
+    }
     if (std::isnan(psnr0)) psnr0 = st.psnr;
     sum_loss += st.loss - (st.with_offset_loss ? c.w_offset * st.offset_reg : 0);
     sum_psnr += st.psnr;
@@ -352,8 +413,24 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
       auto now = std::chrono::steady_clock::now();
       const double dt = std::chrono::duration<double>(now - t_last).count();
       const double its = (st.iteration - it_last) / std::max(dt, 1e-9);
-      const double elapsed = std::chrono::duration<double>(now - t0).count();
-      const double eta = (it_end - st.iteration) * elapsed / (st.iteration - it_start);
+      // The ETA from the recent steps' time (evaluations left out) and the
+      // growth still to come.
+      const int grow_until = c.grow_every > 0 ? std::min(c.effective_grow_until(), c.iterations) : 0;
+      const int growing = std::max(0, grow_until - st.iteration);
+      const int rounds_left = c.grow_every > 0 ? growing / c.grow_every : 0;
+      const double round_factor =
+          rounds_done > 0 ? std::pow(static_cast<double>(trainer.gaussians()) / std::max<size_t>(gaussians_at_start, 1),
+                                     1.0 / rounds_done)
+                          : 1.0;
+      const size_t recent = std::min<size_t>(step_ms.size(), 100);
+      const double recent_ms =
+          recent ? percentile(std::vector<double>(step_ms.end() - static_cast<std::ptrdiff_t>(recent), step_ms.end()),
+                              0.5)
+                 : 0.0;
+      const double eta = estimate_seconds_left(it_end - st.iteration, recent_ms, trainer.gaussians(), growing,
+                                               rounds_left, round_factor, trainer.max_gaussians());
+      const std::string eta_text =
+          fmt_duration(eta) + (growing > 0 ? fmt::format(" (growing until {})", grow_until) : std::string());
       std::string mask_terms =
           count_masks > 0 ? fmt::format(", L_is {:.4f}, L_ic {:.4f}", sum_is / count_masks, sum_ic / count_masks)
                           : std::string();
@@ -363,7 +440,7 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
           "anchors {}  Gaussians {}  {:.1f} it/s  ETA {}",
           st.iteration, it_end, sum_loss / count + c.w_offset * st.offset_reg, sum_l1 / count, sum_ssim / count,
           sum_dist / count, st.offset_reg, mask_terms, sum_psnr / count, st.sh_degree, trainer.anchors(),
-          trainer.gaussians(), its, fmt_duration(eta));
+          trainer.gaussians(), its, eta_text);
       spdlog::debug("  {:.0f} tile intersections per iteration", sum_isect / count);
       t_last = now;
       it_last = st.iteration;
@@ -515,13 +592,13 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                 "voxel, so the model spreads into regions without SfM points)");
   sub->add_option("--recycle-opacity", c.recycle_opacity,
                   "In growing rounds, children of a kept anchor below this opacity become copies of its most opaque "
-                  "child, the two sharing its opacity (default 0 = off)")
+                  "child, the two sharing its opacity (default 0.02; --preset paper 0 = off)")
       ->check(CLI::Range(0.0, 0.999));
   sub->add_flag("!--no-feature-ball", c.feature_ball,
                 "Let the semantic features grow without bound (default: projected into the unit ball after each "
                 "step, so the graph stages' absolute thresholds keep their meaning)");
   sub->add_option("--lr-feature", c.feature_lr, "Semantic feature learning rate (default 0.05)");
-  sub->add_option("--lr-offset", c.offset_lr_init, "Offset learning rate at the start (default 1e-3, voxel units)");
+  sub->add_option("--lr-offset", c.offset_lr_init, "Offset learning rate at the start (default 1e-2; --preset paper 1e-3; voxel units)");
   sub->add_option("--lr-offset-final", c.offset_lr_final, "Offset learning rate at the end (default 1e-4)");
   sub->add_flag("--lr-offset-extent,!--no-lr-offset-extent", c.offset_lr_extent,
                 "Multiply the offset rates by the camera radius (default on, as the official code; "
@@ -529,11 +606,31 @@ void register_train(CLI::App& app, GlobalOptions& global) {
   sub->add_option("--lr-sh", c.sh_dc_lr, "SH DC learning rate (default 0.0025)");
   sub->add_option("--lr-sh-rest", c.sh_rest_lr, "Higher SH learning rate (default 0.0025 / 20)");
   sub->add_option("--lr-opacity", c.opacity_lr, "Opacity logit learning rate (default 0.05)");
-  sub->add_option("--lr-scaling", c.scaling_lr, "Scale logit learning rate (default 0.005)");
+  sub->add_option("--lr-scaling", c.scaling_lr, "Scale logit learning rate (default 0.01; --preset paper 0.005)");
   sub->add_option("--lr-rotation", c.rotation_lr, "Rotation learning rate (default 0.001)");
-  sub->add_option("--top-cells", c.anchors.top_cells, "Top-layer voxels along the longest extent (default 200)")
+  sub->add_option("--top-cells", c.anchors.top_cells,
+                  "Top-layer voxels along the longest robust extent of the SfM points (default: the voxel is "
+                  "chosen from the scene, a finest-layer voxel of about a pixel at the points' median depth; "
+                  "--preset paper: 200)")
       ->check(CLI::PositiveNumber);
-  sub->add_option("--children", c.anchors.children, "Gaussians per anchor (default 5)")->check(CLI::Range(1, 64));
+  sub->add_option("--voxel-size", c.anchors.voxel_size,
+                  "Top-layer voxel edge in world units (overrides --top-cells and the scene's choice)")
+      ->check([](const std::string& v) -> std::string {
+        char* end = nullptr;
+        const double x = std::strtod(v.c_str(), &end);
+        if (end == v.c_str() || *end != 0 || !(x > 0) || !std::isfinite(x))
+          return "--voxel-size must be a finite number > 0 (world units), not '" + v + "'";
+        return {};
+      });
+  sub->add_option("--max-gaussians", c.max_gaussians,
+                  "Growth never takes the model past this many Gaussians (default: the pixels of a training view, "
+                  "at least twice the initial count; 0 = no limit; below the initial count is an error)")
+      ->check(CLI::Range(int64_t{0}, std::numeric_limits<int64_t>::max()));
+  sub->add_option("--grow-budget", c.grow_budget,
+                  "A growing round adds at most this fraction of the anchors (at least 64; default 0.25; 0 = no "
+                  "limit); the children asking hardest win")
+      ->check(CLI::Range(0.0, 1e6));
+  sub->add_option("--children", c.anchors.children, "Gaussians per anchor (default 3; --preset paper 5)")->check(CLI::Range(1, 64));
   sub->add_option("--init-layer", c.anchors.init_layer,
                   "Voxel layer the SfM points initialise anchors on (default 0 = the top layer, as the official "
                   "code; -1 = every layer, as the paper says)")
@@ -542,8 +639,8 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                   "Scale of a fresh child as a fraction of its voxel edge (default 0.5; below --scale-cap)")
       ->check(CLI::Range(1e-4, 1023.0));
   sub->add_option("--scale-cap", c.anchors.scale_cap,
-                  "A child's scale is at most this many voxel edges (default 1, the paper's: a child never "
-                  "outgrows its voxel)")
+                  "A child's scale is at most this many voxel edges (default 64; --preset paper 1: a child "
+                  "never outgrows its voxel)")
       ->check(CLI::Range(1.0, 1024.0));
   sub->add_option("--scale-cap-layers", c.anchors.scale_cap_layers,
                   "--scale-cap holds on this many of the coarsest layers (1 = the top layer only); finer layers keep "
@@ -553,7 +650,8 @@ void register_train(CLI::App& app, GlobalOptions& global) {
       ->check(CLI::Range(1e-4, 0.9999));
   sub->add_flag("--init-children-at-points,!--init-children-random", c.anchors.init_children_at_points,
                 "Seeded anchors put their children on the SfM points of their voxel, with those points' colours "
-                "(default: random offsets and the voxel's mean colour, as the official code)");
+                "(default; --init-children-random, as the official code and --preset paper: random offsets and "
+                "the voxel's mean colour)");
   sub->add_option("--grow-from", c.grow_from, "First iteration of anchor growing (default 500)")
       ->check(CLI::NonNegativeNumber);
   sub->add_option("--grow-until", c.grow_until, "Last iteration of anchor growing (default 0 = 2/3 of --iters)")
@@ -626,11 +724,11 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                   "Stage 3: a pixel belongs to a cluster holding at least this share of its weight (default 0.5)")
       ->check(CLI::Range(0.5, 0.999));
   sub->add_option("--preset", a->preset,
-                  "paper (default: the paper's settings) or appearance: --scale-cap 64 --children 3 "
-                  "--init-children-at-points --recycle-opacity 0.02 --lr-offset 1e-2 --lr-scaling 0.01, for image "
-                  "quality with fewer Gaussians on photographed scenes, at some cost in selection sharpness; flags "
-                  "given explicitly win")
-      ->check(CLI::IsMember({"paper", "appearance"}));
+                  "default (= appearance: --scale-cap 64 --children 3 --init-children-at-points --recycle-opacity "
+                  "0.02 --lr-offset 1e-2 --lr-scaling 0.01, the voxel from the scene, growth budgets) or paper (the "
+                  "method as published: --top-cells 200, 5 children inside their voxels, --scale-cap 1, no growth "
+                  "budget); flags given explicitly win")
+      ->check(CLI::IsMember({"default", "appearance", "paper"}));
   set_action(sub, [&global, a, sub] {
     apply_preset(*sub, *a);
     cmd_train(global, *a);

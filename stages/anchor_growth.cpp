@@ -40,6 +40,8 @@ void GrowthConfig::validate() const {
   if (!(prune_opacity >= 0 && prune_opacity < 1)) bad("prune_opacity must be in [0, 1)");
   if (unseen_window < 0) bad("unseen_window must be >= 0");
   if (!(recycle_opacity >= 0 && recycle_opacity < 1)) bad("recycle_opacity must be in [0, 1)");
+  if (!(round_growth >= 0) || !std::isfinite(round_growth)) bad("round_growth must be finite and >= 0 (0 = no limit)");
+  if (min_round_anchors < 0) bad("min_round_anchors must be >= 0");
 }
 
 GrowthConfig GrowthConfig::scale_to(int iterations, int reference, int min_every) const {
@@ -144,6 +146,16 @@ void AnchorGrowth::restore(const GrowthStatsHost& stats) {
   last_seen_.upload(stats.last_seen);
 }
 
+size_t AnchorGrowth::growth_allowance(size_t anchors, size_t gaussians, size_t children) const {
+  size_t allowed = std::numeric_limits<size_t>::max();
+  if (config_.round_growth > 0)
+    allowed = std::max(static_cast<size_t>(std::max(config_.min_round_anchors, 0)),
+                       static_cast<size_t>(std::ceil(static_cast<double>(config_.round_growth) * anchors)));
+  if (config_.max_gaussians > 0)
+    allowed = std::min(allowed, gaussians >= config_.max_gaussians ? 0 : (config_.max_gaussians - gaussians) / children);
+  return allowed;
+}
+
 GrowthResult AnchorGrowth::step(AnchorModel& model, uint64_t seed) {
   if (model.gaussians() != n_)
     throw std::invalid_argument("growth step: the model has " + std::to_string(model.gaussians()) +
@@ -169,6 +181,7 @@ GrowthResult AnchorGrowth::step(AnchorModel& model, uint64_t seed) {
     int64_t child;
     int layer;
     Eigen::Vector3i cell;
+    double score;  // mean gradient / threshold of the child's layer
   };
   std::vector<Request> requests;
   for (size_t g = 0; g < n_; ++g) {
@@ -187,7 +200,8 @@ GrowthResult AnchorGrowth::step(AnchorModel& model, uint64_t seed) {
     auto request = [&](int to_layer) {
       const Eigen::Vector3i cell = grid.cell_of(to_layer, mean);
       if ((cell.array() < -kMaxAnchorCell).any() || (cell.array() >= kMaxAnchorCell).any()) return;
-      requests.push_back({anchor_voxel_key(to_layer, cell), static_cast<int64_t>(g), to_layer, cell});
+      requests.push_back({anchor_voxel_key(to_layer, cell), static_cast<int64_t>(g), to_layer, cell,
+                          mean_grad / threshold});
     };
     if (layer + 1 < layers) request(layer + 1);
     if (config_.same_layer) {
@@ -198,11 +212,21 @@ GrowthResult AnchorGrowth::step(AnchorModel& model, uint64_t seed) {
   r.requests = static_cast<int>(requests.size());
   std::sort(requests.begin(), requests.end(),
             [](const Request& x, const Request& y) { return std::tie(x.key, x.child) < std::tie(y.key, y.child); });
+  std::vector<Request> fresh;  // one per free voxel, in voxel-key order
   for (size_t i = 0; i < requests.size(); ++i) {
     if (i > 0 && requests[i].key == requests[i - 1].key) continue;
     if (model.find(requests[i].layer, requests[i].cell) >= 0) continue;
-    if (model.add_anchor(requests[i].layer, requests[i].cell, requests[i].child, seed) >= 0) ++r.added;
+    fresh.push_back(requests[i]);
   }
+  const size_t allowed = growth_allowance(A0, n_, static_cast<size_t>(K));
+  if (fresh.size() > allowed) {
+    r.over_budget = static_cast<int>(fresh.size() - allowed);
+    std::stable_sort(fresh.begin(), fresh.end(), [](const Request& x, const Request& y) { return x.score > y.score; });
+    fresh.resize(allowed);
+    std::sort(fresh.begin(), fresh.end(), [](const Request& x, const Request& y) { return x.key < y.key; });
+  }
+  for (const Request& q : fresh)
+    if (model.add_anchor(q.layer, q.cell, q.child, seed) >= 0) ++r.added;
 
   // 2. Prune the anchors that existed before this step.
   const size_t A1 = model.size();

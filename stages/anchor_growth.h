@@ -113,6 +113,15 @@ struct GrowthConfig {
   // transparent child costs as much to render as an opaque one; this puts it
   // where its anchor has something to show. 0 = off.
   float recycle_opacity = 0.f;
+  // Budgets. A round adds at most max(min_round_anchors, ceil(round_growth *
+  // anchors before it)) anchors (0 = no per-round limit) and never takes the
+  // model past max_gaussians children (0 = no limit). When more voxels ask,
+  // the ones whose child asks hardest (mean gradient / its layer's
+  // threshold, ties in voxel-key order) win: the threshold adapts to what
+  // the round can afford instead of letting growth run away.
+  float round_growth = 0.f;
+  int min_round_anchors = 64;
+  size_t max_gaussians = 0;
 
   // Throws std::invalid_argument naming the first field out of range.
   void validate() const;
@@ -137,6 +146,7 @@ struct GrowthResult {
   int pruned_unseen = 0;   // ... for not being seen in the window (and not low opacity)
   int recycled = 0;        // transparent children made copies of an opaque sibling
   int requests = 0;        // children above the threshold asking for a finer anchor
+  int over_budget = 0;     // free voxels asked for but left out by the budgets
   size_t anchors_before = 0, anchors_after = 0;
   size_t gaussians_before = 0, gaussians_after = 0;
   // Gather maps for AdamGroup::gather and any per-row state: new row r comes
@@ -195,6 +205,9 @@ class AnchorGrowth {
   void restore(const GrowthStatsHost& stats);
 
  private:
+  // How many new anchors a round may add to a model of `anchors` anchors and
+  // `gaussians` children (GrowthConfig's budgets).
+  size_t growth_allowance(size_t anchors, size_t gaussians, size_t children) const;
   // GrowthConfig::recycle_opacity on the anchors kept by this step; marks the
   // recycled rows -1 in r.child_rows. Returns how many.
   int recycle(AnchorModel& model, GrowthResult& r, uint64_t seed) const;

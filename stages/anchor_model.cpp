@@ -80,7 +80,9 @@ void AnchorConfig::validate() const {
   auto bad = [](const std::string& what) { throw std::invalid_argument("AnchorConfig: " + what); };
   if (children < 1 || children > 64) bad("children is " + std::to_string(children) + "; use 1..64");
   if (layers < 1 || layers > kMaxLayers) bad("layers is " + std::to_string(layers) + "; use 1..16");
-  if (top_cells < 1) bad("top_cells is " + std::to_string(top_cells) + "; it must be positive");
+  if (top_cells < 0) bad("top_cells is " + std::to_string(top_cells) + "; use 0 (chosen from the scene) or more");
+  if (!(voxel_size >= 0) || !std::isfinite(voxel_size))
+    bad("voxel_size must be a finite number > 0 (world units), or 0 to choose it from the scene");
   if (layer_ratio < 2) bad("layer_ratio is " + std::to_string(layer_ratio) + "; it must be at least 2");
   if (init_layer < -1 || init_layer >= layers)
     bad("init_layer is " + std::to_string(init_layer) + "; use -1 (every layer) or 0.." + std::to_string(layers - 1));
@@ -99,8 +101,11 @@ void AnchorConfig::validate() const {
   if (sh_degree < 0 || sh_degree > 3) bad("sh_degree is " + std::to_string(sh_degree) + "; use 0..3");
 }
 
-VoxelGrid VoxelGrid::from_bounds(const SceneBounds& bounds, const AnchorConfig& config) {
+VoxelGrid VoxelGrid::from_bounds(const SceneBounds& bounds, const AnchorConfig& config, double top_voxel) {
   config.validate();
+  if (!(top_voxel > 0) && config.voxel_size > 0) top_voxel = config.voxel_size;
+  if (!(top_voxel > 0) && config.top_cells < 1)
+    throw std::invalid_argument("VoxelGrid: top_cells is 0 (chosen from the scene): pass choose_top_voxel's edge");
   double extent = bounds.longest_extent();
   if (!(extent > 0) || !std::isfinite(extent)) extent = 2.0 * bounds.camera_radius;
   if (!(extent > 0) || !std::isfinite(extent))
@@ -109,7 +114,7 @@ VoxelGrid VoxelGrid::from_bounds(const SceneBounds& bounds, const AnchorConfig& 
         "cannot size the voxels");
   VoxelGrid g;
   g.origin = bounds.lo;
-  g.top_voxel = extent / config.top_cells;
+  g.top_voxel = top_voxel > 0 ? top_voxel : extent / config.top_cells;
   g.layer_ratio = config.layer_ratio;
   g.layers = config.layers;
   g.validate();
@@ -388,6 +393,7 @@ void AnchorModel::to_archive(ModelArchive& archive) const {
                               {{"children", c.children},
                                {"layers", c.layers},
                                {"top_cells", c.top_cells},
+                               {"voxel_size", c.voxel_size},
                                {"layer_ratio", c.layer_ratio},
                                {"init_layer", c.init_layer},
                                {"init_children_at_points", c.init_children_at_points},
@@ -416,6 +422,7 @@ AnchorModel AnchorModel::from_archive(const ModelArchive& archive) {
     c.children = jc.at("children").get<int>();
     c.layers = jc.at("layers").get<int>();
     c.top_cells = jc.at("top_cells").get<int>();
+    c.voxel_size = jc.value("voxel_size", 0.0);
     c.layer_ratio = jc.at("layer_ratio").get<int>();
     c.init_layer = jc.at("init_layer").get<int>();
     c.init_children_at_points = jc.value("init_children_at_points", false);

@@ -36,7 +36,11 @@ constexpr int kMaxLayers = 16;
 struct AnchorConfig {
   int children = 5;            // K child Gaussians per anchor
   int layers = 3;              // voxel layers, 0 = coarsest ("top")
-  int top_cells = 200;         // top-layer cells along the longest robust extent
+  // Top-layer voxel edge: voxel_size (world units) when > 0, else the robust
+  // extent / top_cells when top_cells > 0, else chosen from the scene's points
+  // and training views (stages/voxel_rule.h, the default).
+  double voxel_size = 0;
+  int top_cells = 0;
   int layer_ratio = 4;         // each layer is this much finer than the one above
   int init_layer = 0;          // layer initialised from the SfM points; -1 = every layer
   float init_opacity = 0.1f;   // opacity of a fresh child, in (0, 1)
@@ -79,7 +83,8 @@ struct VoxelGrid {
   // A degenerate box (all points in a plane or fewer) falls back to the
   // camera rig's diameter 2 * camera_radius as the extent; throws
   // std::invalid_argument when that is zero too.
-  static VoxelGrid from_bounds(const SceneBounds& bounds, const AnchorConfig& config);
+  // With top_voxel > 0 that edge is used instead (choose_top_voxel's).
+  static VoxelGrid from_bounds(const SceneBounds& bounds, const AnchorConfig& config, double top_voxel = 0);
 
   double voxel(int layer) const;  // edge length of layer `layer`
   // floor((p - origin) / voxel(layer)), each coordinate clamped to +-2^30.

@@ -60,6 +60,9 @@ void TrainConfig::validate() const {
         "; use -1 (off), 0 (2 x training views) or a number of views");
   if (opacity_reset_every < 0 || opacity_reset_pause < 0)
     bad("opacity_reset_every and opacity_reset_pause must be >= 0 (opacity_reset_every 0 = no reset)");
+  if (!(grow_budget >= 0) || !std::isfinite(grow_budget))
+    bad("grow_budget must be finite and >= 0 (a fraction of the anchors per round; 0 = no limit)");
+  if (max_gaussians < -1) bad("max_gaussians must be -1 (from the scene), 0 (no limit) or a count");
   if (offset_lr_init > 0 && !(offset_lr_final > 0))
     bad("offset_lr_final must be > 0 when offset_lr_init is (exponential decay)");
 }
@@ -91,12 +94,19 @@ GrowthConfig TrainConfig::growth_config(size_t train_views) const {
   g.ndc = true;
   g.same_layer = grow_same_layer;
   g.recycle_opacity = static_cast<float>(recycle_opacity);
+  g.round_growth = static_cast<float>(grow_budget);
   return g;
+}
+
+size_t TrainConfig::effective_max_gaussians(size_t view_pixels, size_t initial) const {
+  if (max_gaussians >= 0) return static_cast<size_t>(max_gaussians);
+  return std::max(view_pixels, 2 * initial);
 }
 
 nlohmann::json TrainConfig::to_json() const {
   nlohmann::json a = {{"children", anchors.children},     {"layers", anchors.layers},
-                      {"top_cells", anchors.top_cells},   {"layer_ratio", anchors.layer_ratio},
+                      {"top_cells", anchors.top_cells},   {"voxel_size", anchors.voxel_size},
+                      {"layer_ratio", anchors.layer_ratio},
                       {"init_layer", anchors.init_layer}, {"init_opacity", anchors.init_opacity},
                       {"init_children_at_points", anchors.init_children_at_points},
                       {"init_scale", anchors.init_scale}, {"init_feature", anchors.init_feature},
@@ -120,6 +130,8 @@ nlohmann::json TrainConfig::to_json() const {
           {"feature_ball", feature_ball},
           {"grow_same_layer", grow_same_layer},
           {"recycle_opacity", recycle_opacity},
+          {"grow_budget", grow_budget},
+          {"max_gaussians", max_gaussians},
           {"prop_iters", effective_prop_iters()},
           {"w_prop", w_prop},
           {"prop_tau", prop_tau},
@@ -185,6 +197,7 @@ TrainConfig TrainConfig::from_json(const nlohmann::json& j) {
     c.anchors.children = a.at("children").get<int>();
     c.anchors.layers = a.at("layers").get<int>();
     c.anchors.top_cells = a.at("top_cells").get<int>();
+    c.anchors.voxel_size = a.value("voxel_size", 0.0);
     c.anchors.layer_ratio = a.at("layer_ratio").get<int>();
     c.anchors.init_layer = a.at("init_layer").get<int>();
     c.anchors.init_children_at_points = a.value("init_children_at_points", false);
@@ -210,6 +223,9 @@ TrainConfig TrainConfig::from_json(const nlohmann::json& j) {
     c.feature_ball = j.value("feature_ball", false);
     c.grow_same_layer = j.value("grow_same_layer", false);
     c.recycle_opacity = j.value("recycle_opacity", 0.0);
+    // Checkpoints from before the budgets grew without limit.
+    c.grow_budget = j.value("grow_budget", 0.0);
+    c.max_gaussians = j.value("max_gaussians", int64_t{0});
     // Written before stage 2 existed: stage 1 only.
     c.prop_iters = j.value("prop_iters", 0);
     c.w_prop = j.value("w_prop", 0.01f);  // the default of that time
@@ -323,7 +339,10 @@ Trainer::Trainer(Runtime& rt, Scene& scene, const TrainConfig& config)
   scene_.require_points();
   train_views_ = scene_.train_views();
   if (train_views_.empty()) throw std::runtime_error("scene " + scene_.dir() + " has no training views");
-  const VoxelGrid grid = VoxelGrid::from_bounds(scene_.bounds(), config_.anchors);
+  std::vector<Camera> train_cameras;
+  for (int v : train_views_) train_cameras.push_back(scene_.views()[v].camera);
+  voxel_choice_ = choose_top_voxel(config_.anchors, scene_.bounds(), scene_.points(), train_cameras);
+  const VoxelGrid grid = VoxelGrid::from_bounds(scene_.bounds(), config_.anchors, voxel_choice_.top_voxel);
   init_stats_ = model_.initialise_from_points(scene_.points(), scene_.colors(), grid, config_.anchors, config_.seed);
   if (model_.size() == 0)
     throw std::runtime_error("scene " + scene_.dir() + ": no anchor could be placed from " +
@@ -348,9 +367,22 @@ Trainer::Trainer(Runtime& rt, Scene& scene, const TrainConfig& config)
   } else {
     has_masks_ = true;
   }
-  growth_.set_config(config_.growth_config(train_views_.size()));
+  GrowthConfig gc = config_.growth_config(train_views_.size());
+  size_t view_pixels = 0;
+  for (int v : train_views_)
+    view_pixels = std::max(view_pixels, static_cast<size_t>(scene_.views()[v].camera.width) *
+                                            static_cast<size_t>(scene_.views()[v].camera.height));
+  max_gaussians_ = config_.effective_max_gaussians(view_pixels, n);
+  gc.max_gaussians = max_gaussians_;
+  if (gc.max_gaussians > 0 && n > gc.max_gaussians)
+    throw std::invalid_argument("--max-gaussians " + std::to_string(gc.max_gaussians) + " is below the " +
+                                std::to_string(n) + " Gaussians the SfM points seed (" + std::to_string(model_.size()) +
+                                " anchors x " + std::to_string(config_.anchors.children) +
+                                "); raise it, or coarsen the voxels with --voxel-size / --top-cells");
+  growth_.set_config(gc);
   growth_.reset(n);
 }
+
 
 Trainer::~Trainer() = default;
 
@@ -567,11 +599,15 @@ StepStats Trainer::step(bool compute_offset_loss, const std::function<void()>& b
       if (opacity_reset_due(last_reset) && st.iteration - last_reset <= config_.opacity_reset_pause)
         gc.prune_opacity = gc.recycle_opacity = 0;
     }
+    gc.max_gaussians = max_gaussians_;
     growth_.set_config(gc);
     const GrowthResult r = growth_.step(model_, config_.seed);
-    spdlog::debug("growing round at iteration {}: {} requests, {} anchors added, {} pruned ({} opacity, {} unseen)",
-                  st.iteration, r.requests, r.added, r.pruned, r.pruned_opacity, r.pruned_unseen);
+    spdlog::debug(
+        "growing round at iteration {}: {} requests, {} anchors added ({} left out by the budgets), {} pruned ({} "
+        "opacity, {} unseen)",
+        st.iteration, r.requests, r.added, r.over_budget, r.pruned, r.pruned_opacity, r.pruned_unseen);
     st.grown = r.added;
+    st.over_budget = r.over_budget;
     st.pruned = r.pruned;
     st.recycled = r.recycled;
     if (r.changed()) {

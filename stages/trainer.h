@@ -86,6 +86,7 @@
 #include "stages/expander.h"
 #include "stages/language.h"
 #include "stages/propagation_loss.h"
+#include "stages/voxel_rule.h"
 
 namespace ag2gs {
 
@@ -162,6 +163,14 @@ struct TrainConfig {
   // In the same rounds: children below this opacity become copies of their
   // anchor's most opaque child (GrowthConfig::recycle_opacity); 0 = off.
   double recycle_opacity = 0;
+  // Growth budgets (GrowthConfig::round_growth, max_gaussians): a round
+  // adds at most this fraction of the anchors it starts with (at least 64;
+  // 0 = no limit), and the model never holds more than max_gaussians
+  // children: -1 = derived from the scene, max(pixels of the largest
+  // training view, 2 x the initial Gaussians), effective_max_gaussians();
+  // 0 = no limit. Initial counts above an explicit budget are refused.
+  double grow_budget = 0.25;
+  int64_t max_gaussians = -1;
   // A child grows only when visible in at least this fraction of the
   // iterations since the last round (official: 0.4 = 40 of 100).
   double grow_min_seen = 0.4;
@@ -211,6 +220,9 @@ struct TrainConfig {
   // rescaled; grow_threshold -> grad_threshold, layer factor 2; grow_min_seen
   // -> min_seen_fraction; the prune fields as above).
   GrowthConfig growth_config(size_t train_views) const;
+  // max_gaussians with -1 resolved for a scene whose largest training view
+  // has `view_pixels` pixels and a model that starts with `initial` children.
+  size_t effective_max_gaussians(size_t view_pixels, size_t initial) const;
 };
 
 // What one iteration did.
@@ -233,6 +245,7 @@ struct StepStats {
   size_t intersections = 0;
   int downscale = 1;  // the images of this step were the loaded ones divided by this
   int grown = 0;   // anchors added after this step
+  int over_budget = 0;  // anchors asked for after this step but left out by the budgets
   bool opacity_reset = false;  // opacities reset after this step
   int pruned = 0;  // anchors removed after this step
   int recycled = 0;  // children recycled after this step (TrainConfig::recycle_opacity)
@@ -254,6 +267,8 @@ class Trainer {
   // Anchors from the scene's SfM points (config.anchors, seed); uploads them
   // and creates the optimiser state. Called by the constructor.
   const AnchorInitStats& init_stats() const { return init_stats_; }
+  // How the top-layer voxel was chosen (config.anchors, stages/voxel_rule.h).
+  const VoxelChoice& voxel_choice() const { return voxel_choice_; }
 
   // One training iteration. With compute_offset_loss the (unweighted) L_in
   // is read back and included in the stats' loss (a host synchronisation,
@@ -292,6 +307,8 @@ class Trainer {
   int active_sh_degree() const;
   size_t anchors() const { return model_.size(); }
   size_t gaussians() const { return model_.gaussians(); }
+  // The Gaussian budget growth keeps to (0 = none; TrainConfig::max_gaussians).
+  size_t max_gaussians() const { return max_gaussians_; }
   // The model with the device's current values.
   const AnchorModel& model();
   const TrainConfig& config() const { return config_; }
@@ -313,6 +330,8 @@ class Trainer {
   std::vector<int> train_views_;
   AnchorModel model_;
   AnchorInitStats init_stats_;
+  VoxelChoice voxel_choice_;
+  size_t max_gaussians_ = 0;
   int iteration_ = 0;
   bool host_stale_ = false;
   double extent_ = 1;

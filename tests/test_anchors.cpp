@@ -116,6 +116,7 @@ TEST(VoxelGrid, SizesCellsCentresAndNesting) {
   b.lo = Eigen::Vector3d(-1, -2, 0.5);
   b.hi = Eigen::Vector3d(3, 0, 1.5);  // longest extent 4
   AnchorConfig c;
+  c.top_cells = 200;
   const VoxelGrid g = VoxelGrid::from_bounds(b, c);
   EXPECT_EQ(g.origin, b.lo);
   EXPECT_DOUBLE_EQ(g.top_voxel, 4.0 / 200);

@@ -144,7 +144,7 @@ TEST(Cli, RenderModelFolderWithViewSetsAndOutputs) {
 // grid does not have is refused before training.
 // --preset appearance sets its switches (they reach the saved model), and a
 // flag given explicitly wins over the preset.
-TEST(Cli, TrainPresetAppearanceSetsItsSwitchesAndExplicitFlagsWin) {
+TEST(Cli, TrainPresetsDefaultAppearanceAndPaperExplicitFlagsWin) {
   const std::string scene = src() + "/data_samples/synth_small";
   const fs::path dir = temp("preset");
   const std::string common = "train " + scene + " -r 2 --iters 2 --stages 1 --top-cells 50 --log-every 0 -o ";
@@ -152,11 +152,28 @@ TEST(Cli, TrainPresetAppearanceSetsItsSwitchesAndExplicitFlagsWin) {
     const ag2gs::ModelArchive ar = ag2gs::read_model_archive((model / "model.ag2gs").string());
     return ar.meta.at("anchors").at("config");
   };
-  Result paper = run(common + (dir / "paper").string());
+  // The default is the appearance setting.
+  Result def = run(common + (dir / "default").string());
+  ASSERT_EQ(def.code, 0) << def.output;
+  EXPECT_NE(def.output.find("preset default: --scale-cap 64 --children 3"), std::string::npos) << def.output;
+  EXPECT_EQ(config_of(dir / "default").at("scale_cap").get<float>(), 64.f);
+  EXPECT_EQ(config_of(dir / "default").at("children").get<int>(), 3);
+  EXPECT_TRUE(config_of(dir / "default").at("init_children_at_points").get<bool>());
+
+  // --preset paper: the method as published; the explicit --top-cells wins.
+  Result paper = run(common + (dir / "paper").string() + " --preset paper");
   ASSERT_EQ(paper.code, 0) << paper.output;
-  EXPECT_EQ(paper.output.find("preset appearance"), std::string::npos);
+  EXPECT_NE(paper.output.find("preset paper: --top-cells 50 --children 5 --scale-cap 1 --grow-budget 0 "
+                              "--max-gaussians 0"),
+            std::string::npos)
+      << paper.output;
   EXPECT_EQ(config_of(dir / "paper").at("scale_cap").get<float>(), 1.f);
   EXPECT_EQ(config_of(dir / "paper").at("children").get<int>(), 5);
+  EXPECT_EQ(config_of(dir / "paper").at("top_cells").get<int>(), 50);
+  Result paper200 = run("train " + scene + " -r 2 --iters 1 --stages 1 --log-every 0 --preset paper -o " +
+                        (dir / "paper200").string());
+  ASSERT_EQ(paper200.code, 0) << paper200.output;
+  EXPECT_EQ(config_of(dir / "paper200").at("top_cells").get<int>(), 200);
 
   Result app = run(common + (dir / "app").string() + " --preset appearance --children 4");
   ASSERT_EQ(app.code, 0) << app.output;

@@ -302,6 +302,37 @@ TEST(GrowthDecision, GrowsOneFinerAnchorPerRequestedVoxel) {
   m.check();
 }
 
+// Budgets: a round adds at most what round_growth and max_gaussians allow,
+// and the voxels whose child asks hardest (gradient over its layer's
+// threshold) win. In the scenario, (3,2,2) and (18,2,2) on layer 1 ask at
+// 6.7x the threshold, (42,10,10) on layer 2 at 1.3x.
+TEST(GrowthDecision, BudgetsKeepTheHardestAskingVoxels) {
+  GrowthConfig per_round;
+  per_round.round_growth = 0.3f;  // ceil(0.3 x 6 anchors) = 2
+  per_round.min_round_anchors = 0;
+  const Ran a = run_scenario(per_round);
+  EXPECT_EQ(a.r.added, 2);
+  EXPECT_EQ(a.r.over_budget, 1);
+  EXPECT_GE(a.after.find(1, {3, 2, 2}), 0);
+  EXPECT_GE(a.after.find(1, {18, 2, 2}), 0);
+  EXPECT_EQ(a.after.find(2, {42, 10, 10}), -1);
+  a.after.check();
+  // The floor of a round: at least min_round_anchors.
+  per_round.min_round_anchors = 64;
+  EXPECT_EQ(run_scenario(per_round).r.added, 3);
+
+  GrowthConfig total;
+  total.max_gaussians = 41;  // 30 children now: room for two anchors of 5
+  const Ran b = run_scenario(total);
+  EXPECT_EQ(b.r.added, 2);
+  EXPECT_EQ(b.r.over_budget, 1);
+  EXPECT_EQ(b.after.find(2, {42, 10, 10}), -1);
+  total.max_gaussians = 34;  // no room for one more anchor
+  EXPECT_EQ(run_scenario(total).r.added, 0);
+  total.max_gaussians = 0;  // no limit
+  EXPECT_EQ(run_scenario(total).r.added, 3);
+}
+
 // Sideways growth (same_layer): a growing child whose mean left its anchor's
 // voxel asks for an anchor of its own layer there, on the finest layer too;
 // children inside their voxel ask for nothing more.
@@ -671,6 +702,37 @@ TEST(GrowthDecision, DeviceRoundTripAfterGrowthAndPrune) {
   // Training continues with the new sizes.
   render_and_accumulate(2);
   EXPECT_EQ(growth.download().steps, 2);
+}
+
+// Many rounds of growth on a random model with large gradients everywhere
+// never take it past its budget, and with the per-round budget the count
+// rises by at most that fraction each round.
+TEST(GrowthDecision, RoundsNeverExceedTheBudget) {
+  AnchorModel m = random_model(3000, 31);
+  for (float& o : m.opacity_logit()) o = 2.f;  // nothing pruned for opacity
+  GrowthConfig c;
+  c.grad_threshold = 1e-6f;
+  c.same_layer = true;
+  c.round_growth = 0.1f;
+  c.min_round_anchors = 8;
+  c.max_gaussians = m.gaussians() * 2;
+  AnchorGrowth growth(runtime(), c);
+  std::mt19937 rng(32);
+  std::exponential_distribution<float> ex(1.f);
+  for (int round = 0; round < 12; ++round) {
+    const size_t n = m.gaussians();
+    growth.reset(n);
+    std::vector<float> v(2 * n);
+    for (float& x : v) x = 1e-4f * ex(rng);
+    feed(growth, v, std::vector<int>(n, 2), 3, 320, 240);
+    const size_t anchors = m.size();
+    const GrowthResult r = growth.step(m, 40 + round);
+    EXPECT_LE(r.gaussians_after, c.max_gaussians) << "round " << round;
+    EXPECT_LE(static_cast<size_t>(r.added), std::max<size_t>(8, (anchors + 9) / 10)) << "round " << round;
+    EXPECT_GT(r.requests, r.added);
+  }
+  EXPECT_GT(m.gaussians(), c.max_gaussians - static_cast<size_t>(3 * m.children()));  // the budget was used
+  m.check();
 }
 
 }  // namespace
