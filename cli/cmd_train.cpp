@@ -4,6 +4,8 @@
 // checkpoint.ag2gs and point_cloud.ply. --stages picks a subset; without
 // stage 1 the run continues from MODEL_DIR's checkpoint / model.
 #include <spdlog/spdlog.h>
+#include <sys/resource.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <chrono>
@@ -16,12 +18,9 @@
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <optional>
-#include <sys/resource.h>
 #include <string>
 
 #include "cli/commands.h"
-#include <unistd.h>
-
 #include "host/cl_runtime.h"
 #include "host/model_io.h"
 #include "host/scene.h"
@@ -81,11 +80,10 @@ void apply_preset(const CLI::App& sub, TrainArgs& a) {
   unless_given("--recycle-opacity", c.recycle_opacity, 0.02);
   unless_given("--lr-offset", c.offset_lr_init, 1e-2);
   unless_given("--lr-scaling", c.scaling_lr, 0.01);
-  spdlog::info(
-      "preset {}: --scale-cap {} --children {} --{} --recycle-opacity {} --lr-offset {} --lr-scaling {}", a.preset,
-      c.anchors.scale_cap, c.anchors.children,
-      c.anchors.init_children_at_points ? "init-children-at-points" : "init-children-random", c.recycle_opacity,
-      c.offset_lr_init, c.scaling_lr);
+  spdlog::info("preset {}: --scale-cap {} --children {} --{} --recycle-opacity {} --lr-offset {} --lr-scaling {}",
+               a.preset, c.anchors.scale_cap, c.anchors.children,
+               c.anchors.init_children_at_points ? "init-children-at-points" : "init-children-random",
+               c.recycle_opacity, c.offset_lr_init, c.scaling_lr);
 }
 
 // The q-quantile (nearest rank) of `v`; NaN when empty.
@@ -96,14 +94,17 @@ double percentile(std::vector<double> v, double q) {
   return v[k];
 }
 
-bool has_stage(const TrainArgs& a, int s) { return std::find(a.stages.begin(), a.stages.end(), s) != a.stages.end(); }
+bool has_stage(const TrainArgs& a, int s) {
+  return std::find(a.stages.begin(), a.stages.end(), s) != a.stages.end();
+}
 
 // The stage-3 summary line, after training or for --stages 3 alone.
 void log_stage3(const Stage3Summary& s, const Stage3Config& config) {
-  spdlog::info("stage 3: {} clusters of {} anchors ({} components, {} anchors in clusters under {} skipped), {} with "
-               "a language feature{}",
-               s.clusters, s.anchors, s.components, s.skipped_anchors, config.cluster.min_cluster_size,
-               s.with_language, s.language ? "" : " (scene without CLIP features: none attached)");
+  spdlog::info(
+      "stage 3: {} clusters of {} anchors ({} components, {} anchors in clusters under {} skipped), {} with "
+      "a language feature{}",
+      s.clusters, s.anchors, s.components, s.skipped_anchors, config.cluster.min_cluster_size, s.with_language,
+      s.language ? "" : " (scene without CLIP features: none attached)");
 }
 
 // --stages 3 alone: stage 3 on MODEL_DIR/model.ag2gs, at the resolution and
@@ -266,9 +267,10 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   spdlog::info("{} iterations, seed {}, SH degree up to {} (+1 every {} iterations), background {}", c.iterations,
                c.seed, c.anchors.sh_degree, c.effective_sh_interval(), c.white_background ? "white" : "black");
   if (c.downscales > 0)
-    spdlog::info("coarse to fine: images / {} at first, resolution doubled every {} iterations (full from iteration {}{})",
-                 1 << c.downscales, c.res_schedule, c.downscales * c.res_schedule,
-                 scene->semantics() != SemanticsKind::none ? "; mask-loss iterations always full" : "");
+    spdlog::info(
+        "coarse to fine: images / {} at first, resolution doubled every {} iterations (full from iteration {}{})",
+        1 << c.downscales, c.res_schedule, c.downscales * c.res_schedule,
+        scene->semantics() != SemanticsKind::none ? "; mask-loss iterations always full" : "");
   if (c.grow_every > 0 && c.grow_from <= c.effective_grow_until()) {
     const GrowthConfig g = c.growth_config(scene->train_views().size());
     spdlog::info(
@@ -325,7 +327,8 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
 
   if (a.resume) metrics["resumed_at"] = trainer.iteration();
   const int it_start = trainer.iteration();
-  struct sigaction sa {}, old_sa{};
+  struct sigaction sa {
+  }, old_sa{};
   sa.sa_handler = on_sigint;
   sigemptyset(&sa.sa_mask);
   g_interrupted = 0;
@@ -424,9 +427,9 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
                           : 1.0;
       const size_t recent = std::min<size_t>(step_ms.size(), 100);
       const double recent_ms =
-          recent ? percentile(std::vector<double>(step_ms.end() - static_cast<std::ptrdiff_t>(recent), step_ms.end()),
-                              0.5)
-                 : 0.0;
+          recent
+              ? percentile(std::vector<double>(step_ms.end() - static_cast<std::ptrdiff_t>(recent), step_ms.end()), 0.5)
+              : 0.0;
       const double eta = estimate_seconds_left(it_end - st.iteration, recent_ms, trainer.gaussians(), growing,
                                                rounds_left, round_factor, trainer.max_gaussians());
       const std::string eta_text =
@@ -450,8 +453,9 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
     }
     if (g_interrupted && st.iteration != it_end) {
       trainer.save(a.out);
-      spdlog::warn("interrupted: checkpoint at iteration {} of {} in {}; continue with\n  ag2gs train {} -o {} --resume",
-                   st.iteration, it_end, a.out, a.scene, a.out);
+      spdlog::warn(
+          "interrupted: checkpoint at iteration {} of {} in {}; continue with\n  ag2gs train {} -o {} --resume",
+          st.iteration, it_end, a.out, a.scene, a.out);
       spdlog::default_logger()->flush();
       std::fflush(stdout);
       std::fflush(stderr);
@@ -463,8 +467,7 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
     }
   }
   ::sigaction(SIGINT, &old_sa, nullptr);
-  const double seconds =
-      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() - eval_seconds;
+  const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() - eval_seconds;
   const int trained = std::max(1, it_end - it_start);
   spdlog::info("trained {} iterations in {:.1f} s ({:.2f} ms/iteration){}", std::max(0, it_end - it_start), seconds,
                1000 * seconds / trained, skipped ? fmt::format(", {} steps skipped", skipped) : "");
@@ -598,7 +601,8 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                 "Let the semantic features grow without bound (default: projected into the unit ball after each "
                 "step, so the graph stages' absolute thresholds keep their meaning)");
   sub->add_option("--lr-feature", c.feature_lr, "Semantic feature learning rate (default 0.05)");
-  sub->add_option("--lr-offset", c.offset_lr_init, "Offset learning rate at the start (default 1e-2; --preset paper 1e-3; voxel units)");
+  sub->add_option("--lr-offset", c.offset_lr_init,
+                  "Offset learning rate at the start (default 1e-2; --preset paper 1e-3; voxel units)");
   sub->add_option("--lr-offset-final", c.offset_lr_final, "Offset learning rate at the end (default 1e-4)");
   sub->add_flag("--lr-offset-extent,!--no-lr-offset-extent", c.offset_lr_extent,
                 "Multiply the offset rates by the camera radius (default on, as the official code; "
@@ -630,7 +634,8 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                   "A growing round adds at most this fraction of the anchors (at least 64; default 0.25; 0 = no "
                   "limit); the children asking hardest win")
       ->check(CLI::Range(0.0, 1e6));
-  sub->add_option("--children", c.anchors.children, "Gaussians per anchor (default 3; --preset paper 5)")->check(CLI::Range(1, 64));
+  sub->add_option("--children", c.anchors.children, "Gaussians per anchor (default 3; --preset paper 5)")
+      ->check(CLI::Range(1, 64));
   sub->add_option("--init-layer", c.anchors.init_layer,
                   "Voxel layer the SfM points initialise anchors on (default 0 = the top layer, as the official "
                   "code; -1 = every layer, as the paper says)")
@@ -704,7 +709,9 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                   "Stage-2 iterations after stage 1 (default -1 = iters / 6, the official 5000 after 30000; 0 = no "
                   "stage 2)")
       ->check(CLI::Range(-1, std::numeric_limits<int>::max()));
-  sub->add_option("--w-prop", c.w_prop, "Weight of the propagation loss L_prop (a mean over edges) in stage 2 (default 10; the paper's 0.01 is on a sum)")
+  sub->add_option("--w-prop", c.w_prop,
+                  "Weight of the propagation loss L_prop (a mean over edges) in stage 2 (default 10; the paper's 0.01 "
+                  "is on a sum)")
       ->check(CLI::NonNegativeNumber);
   sub->add_option("--prop-tau", c.prop_tau, "Bilateral bandwidth tau of L_prop (default 0.05)")
       ->check(CLI::PositiveNumber);

@@ -152,7 +152,8 @@ size_t AnchorGrowth::growth_allowance(size_t anchors, size_t gaussians, size_t c
     allowed = std::max(static_cast<size_t>(std::max(config_.min_round_anchors, 0)),
                        static_cast<size_t>(std::ceil(static_cast<double>(config_.round_growth) * anchors)));
   if (config_.max_gaussians > 0)
-    allowed = std::min(allowed, gaussians >= config_.max_gaussians ? 0 : (config_.max_gaussians - gaussians) / children);
+    allowed =
+        std::min(allowed, gaussians >= config_.max_gaussians ? 0 : (config_.max_gaussians - gaussians) / children);
   return allowed;
 }
 
@@ -200,8 +201,8 @@ GrowthResult AnchorGrowth::step(AnchorModel& model, uint64_t seed) {
     auto request = [&](int to_layer) {
       const Eigen::Vector3i cell = grid.cell_of(to_layer, mean);
       if ((cell.array() < -kMaxAnchorCell).any() || (cell.array() >= kMaxAnchorCell).any()) return;
-      requests.push_back({anchor_voxel_key(to_layer, cell), static_cast<int64_t>(g), to_layer, cell,
-                          mean_grad / threshold});
+      requests.push_back(
+          {anchor_voxel_key(to_layer, cell), static_cast<int64_t>(g), to_layer, cell, mean_grad / threshold});
     };
     if (layer + 1 < layers) request(layer + 1);
     if (config_.same_layer) {

@@ -215,8 +215,7 @@ AnchorInitStats AnchorModel::initialise_from_points(const std::vector<Eigen::Vec
           for (int k = 0; k < 3; ++k) {
             offset_[(a * K + i) * 3 + k] = static_cast<float>((points[pt][k] - pos_[3 * a + k]) / l);
             if (!colors.empty())
-              sh_[(a * K + i) * kAnchorShCoeffs * 3 + k] =
-                  static_cast<float>((colors[pt][k] / 255.0 - 0.5) / kShC0);
+              sh_[(a * K + i) * kAnchorShCoeffs * 3 + k] = static_cast<float>((colors[pt][k] / 255.0 - 0.5) / kShC0);
           }
         }
       }
@@ -248,9 +247,10 @@ void AnchorModel::append_anchor(int layer, const Eigen::Vector3i& cell, uint64_t
   for (int k = 0; k < 3; ++k) {
     pos_.push_back(static_cast<float>(centre[k]));
     cell_.push_back(cell[k]);
-    feature_.push_back(parent_child >= 0 ? parent_feature[k]
-                                         : static_cast<float>(config_.init_feature *
-                                                              (2.0 * anchor_uniform01(seed, key, -1, kFeatureX + k) - 1.0)));
+    feature_.push_back(
+        parent_child >= 0
+            ? parent_feature[k]
+            : static_cast<float>(config_.init_feature * (2.0 * anchor_uniform01(seed, key, -1, kFeatureX + k) - 1.0)));
   }
   layer_.push_back(layer);
   voxel_.push_back(static_cast<float>(grid_.voxel(layer)));

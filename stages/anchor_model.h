@@ -34,17 +34,17 @@ constexpr int kAnchorShCoeffs = 16;
 constexpr int kMaxLayers = 16;
 
 struct AnchorConfig {
-  int children = 5;            // K child Gaussians per anchor
-  int layers = 3;              // voxel layers, 0 = coarsest ("top")
+  int children = 5;  // K child Gaussians per anchor
+  int layers = 3;    // voxel layers, 0 = coarsest ("top")
   // Top-layer voxel edge: voxel_size (world units) when > 0, else the robust
   // extent / top_cells when top_cells > 0, else chosen from the scene's points
   // and training views (stages/voxel_rule.h, the default).
   double voxel_size = 0;
   int top_cells = 0;
-  int layer_ratio = 4;         // each layer is this much finer than the one above
-  int init_layer = 0;          // layer initialised from the SfM points; -1 = every layer
-  float init_opacity = 0.1f;   // opacity of a fresh child, in (0, 1)
-  float init_scale = 0.5f;     // scale of a fresh child as a fraction of its voxel edge, in (0, scale_cap)
+  int layer_ratio = 4;        // each layer is this much finer than the one above
+  int init_layer = 0;         // layer initialised from the SfM points; -1 = every layer
+  float init_opacity = 0.1f;  // opacity of a fresh child, in (0, 1)
+  float init_scale = 0.5f;    // scale of a fresh child as a fraction of its voxel edge, in (0, scale_cap)
   // scale = sigmoid(logit) * scale_cap * l: 1 (the paper) keeps a child
   // inside its voxel; larger lets it cover what its voxel's neighbours
   // hold no anchors for (measured in the README, train section).

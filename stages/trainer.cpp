@@ -72,7 +72,9 @@ int TrainConfig::effective_sh_interval() const {
   return std::max(1, std::min(1000, iterations / (anchors.sh_degree + 1)));
 }
 
-int TrainConfig::effective_mask_from() const { return mask_from >= 0 ? mask_from : iterations / 6; }
+int TrainConfig::effective_mask_from() const {
+  return mask_from >= 0 ? mask_from : iterations / 6;
+}
 
 int TrainConfig::effective_grow_until() const {
   return grow_until > 0 ? grow_until : static_cast<int>(static_cast<int64_t>(iterations) * 2 / 3);
@@ -104,15 +106,14 @@ size_t TrainConfig::effective_max_gaussians(size_t view_pixels, size_t initial) 
 }
 
 nlohmann::json TrainConfig::to_json() const {
-  nlohmann::json a = {{"children", anchors.children},     {"layers", anchors.layers},
-                      {"top_cells", anchors.top_cells},   {"voxel_size", anchors.voxel_size},
-                      {"layer_ratio", anchors.layer_ratio},
-                      {"init_layer", anchors.init_layer}, {"init_opacity", anchors.init_opacity},
-                      {"init_children_at_points", anchors.init_children_at_points},
-                      {"init_scale", anchors.init_scale}, {"init_feature", anchors.init_feature},
-                      {"scale_cap", anchors.scale_cap},
-                      {"scale_cap_layers", anchors.scale_cap_layers},
-                      {"sh_degree", anchors.sh_degree}};
+  nlohmann::json a = {
+      {"children", anchors.children},         {"layers", anchors.layers},
+      {"top_cells", anchors.top_cells},       {"voxel_size", anchors.voxel_size},
+      {"layer_ratio", anchors.layer_ratio},   {"init_layer", anchors.init_layer},
+      {"init_opacity", anchors.init_opacity}, {"init_children_at_points", anchors.init_children_at_points},
+      {"init_scale", anchors.init_scale},     {"init_feature", anchors.init_feature},
+      {"scale_cap", anchors.scale_cap},       {"scale_cap_layers", anchors.scale_cap_layers},
+      {"sh_degree", anchors.sh_degree}};
   return {{"iterations", iterations},
           {"seed", seed},
           {"anchors", a},
@@ -165,7 +166,8 @@ namespace {
 // Every leaf of a JSON object as "a.b.c" -> value.
 void flatten(const nlohmann::json& j, const std::string& prefix, std::map<std::string, nlohmann::json>* out) {
   if (j.is_object()) {
-    for (auto it = j.begin(); it != j.end(); ++it) flatten(it.value(), prefix.empty() ? it.key() : prefix + "." + it.key(), out);
+    for (auto it = j.begin(); it != j.end(); ++it)
+      flatten(it.value(), prefix.empty() ? it.key() : prefix + "." + it.key(), out);
   } else {
     (*out)[prefix] = j;
   }
@@ -383,7 +385,6 @@ Trainer::Trainer(Runtime& rt, Scene& scene, const TrainConfig& config)
   growth_.reset(n);
 }
 
-
 Trainer::~Trainer() = default;
 
 int Trainer::active_sh_degree() const {
@@ -408,8 +409,8 @@ bool Trainer::opacity_reset_due(int iteration) const {
 }
 
 AdamGroup& Trainer::adam_group(const std::string& name) {
-  for (AdamGroup* g : {g_offset_.get(), g_scale_.get(), g_quat_.get(), g_opacity_.get(), g_dc_.get(), g_rest_.get(),
-                       g_feature_.get()})
+  for (AdamGroup* g :
+       {g_offset_.get(), g_scale_.get(), g_quat_.get(), g_opacity_.get(), g_dc_.get(), g_rest_.get(), g_feature_.get()})
     if (g->name() == name) return *g;
   throw std::invalid_argument("no optimiser group '" + name +
                               "' (offset, scaling, rotation, opacity, sh_dc, sh_rest, feature)");
@@ -687,9 +688,12 @@ nlohmann::json Trainer::scene_fingerprint() const {
   std::snprintf(hex[0], sizeof hex[0], "%016llx", static_cast<unsigned long long>(fnv1a64(cams.data(), cams.size())));
   std::snprintf(hex[1], sizeof hex[1], "%016llx",
                 static_cast<unsigned long long>(fnv1a64(pts.data(), pts.size() * sizeof(double))));
-  return {{"views", scene_.views().size()},         {"train_views", train_views_.size()},
-          {"resolution", scene_.options().resolution}, {"eval_split", scene_.options().eval},
-          {"cameras_fnv1a64", hex[0]},                {"points", scene_.points().size()},
+  return {{"views", scene_.views().size()},
+          {"train_views", train_views_.size()},
+          {"resolution", scene_.options().resolution},
+          {"eval_split", scene_.options().eval},
+          {"cameras_fnv1a64", hex[0]},
+          {"points", scene_.points().size()},
           {"points_fnv1a64", hex[1]}};
 }
 
@@ -758,8 +762,8 @@ void Trainer::resume(const std::string& model_dir) {
     }
     const int64_t a = static_cast<int64_t>(m.size()), n = static_cast<int64_t>(m.gaussians());
     std::vector<std::pair<AdamGroup*, int64_t>> groups;
-    const std::pair<const char*, int> specs[] = {{"offset", 3}, {"scaling", 3}, {"rotation", 4}, {"opacity", 1},
-                                                 {"sh_dc", 3},  {"sh_rest", 3 * kShRestCoeffs}};
+    const std::pair<const char*, int> specs[] = {{"offset", 3},  {"scaling", 3}, {"rotation", 4},
+                                                 {"opacity", 1}, {"sh_dc", 3},   {"sh_rest", 3 * kShRestCoeffs}};
     std::vector<std::unique_ptr<AdamGroup>> fresh;
     for (const auto& [name, row] : specs) fresh.push_back(std::make_unique<AdamGroup>(rt_, name, n, row));
     fresh.push_back(std::make_unique<AdamGroup>(rt_, "feature", a, 3));
@@ -867,9 +871,10 @@ Stage3Summary run_stage3_on_model(Runtime& rt, Scene& scene, const std::string& 
     for (const auto& [name, t] : archive.arrays())
       if (name.rfind("clusters/language", 0) != 0) kept.put_tensor(name, t);
     archive = std::move(kept);
-    spdlog::info("stage 3: scene {} has no CLIP features (language_features/<stem>_f.npy): clusters only, no "
-                 "language features attached",
-                 scene.dir());
+    spdlog::info(
+        "stage 3: scene {} has no CLIP features (language_features/<stem>_f.npy): clusters only, no "
+        "language features attached",
+        scene.dir());
   }
   sum.clusters = clustering.clusters();
   sum.components = clustering.components;

@@ -233,22 +233,22 @@ struct StepStats {
   uint64_t nonfinite = 0;
   double loss = 0;  // total (L_in only when computed, see with_offset_loss)
   double l1 = 0, ssim = 1, psnr = 0;
-  double distortion = 0;  // mean over pixels (unweighted)
-  double offset_reg = 0;  // L_in (unweighted), 0 unless computed this step
-  bool stage2 = false;    // a stage-2 step (L_prop included in loss)
-  double l_prop = 0;      // unweighted L_prop of this step (stage 2)
-  bool with_masks = false;  // the mask losses were applied (and included in loss)
+  double distortion = 0;      // mean over pixels (unweighted)
+  double offset_reg = 0;      // L_in (unweighted), 0 unless computed this step
+  bool stage2 = false;        // a stage-2 step (L_prop included in loss)
+  double l_prop = 0;          // unweighted L_prop of this step (stage 2)
+  bool with_masks = false;    // the mask losses were applied (and included in loss)
   double l_is = 0, l_ic = 0;  // unweighted mask losses of this view
   int masks = 0;              // masks of this view with rendered pixels
   bool with_offset_loss = false;
   int sh_degree = 0;
   size_t intersections = 0;
-  int downscale = 1;  // the images of this step were the loaded ones divided by this
-  int grown = 0;   // anchors added after this step
-  int over_budget = 0;  // anchors asked for after this step but left out by the budgets
+  int downscale = 1;           // the images of this step were the loaded ones divided by this
+  int grown = 0;               // anchors added after this step
+  int over_budget = 0;         // anchors asked for after this step but left out by the budgets
   bool opacity_reset = false;  // opacities reset after this step
-  int pruned = 0;  // anchors removed after this step
-  int recycled = 0;  // children recycled after this step (TrainConfig::recycle_opacity)
+  int pruned = 0;              // anchors removed after this step
+  int recycled = 0;            // children recycled after this step (TrainConfig::recycle_opacity)
 };
 
 struct EvalStats {

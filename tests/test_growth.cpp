@@ -346,9 +346,9 @@ TEST(GrowthDecision, SameLayerGrowthFollowsChildrenOutOfTheirVoxel) {
 
   Scenario s = scenario();
   const float l2 = s.model.voxel()[2];  // a2 is on layer 2 (the finest)
-  s.model.offset()[2 * 3] = 0.7f;        // row 2 mean x = 1.2: layer-0 cell (1,0,0), free
-  s.model.offset()[10 * 3 + 1] = 0.9f;   // row 10 mean leaves a2's cell along y
-  s.model.offset()[6 * 3] = 0.9f;        // row 6 below the threshold: stays put
+  s.model.offset()[2 * 3] = 0.7f;       // row 2 mean x = 1.2: layer-0 cell (1,0,0), free
+  s.model.offset()[10 * 3 + 1] = 0.9f;  // row 10 mean leaves a2's cell along y
+  s.model.offset()[6 * 3] = 0.9f;       // row 6 below the threshold: stays put
   AnchorGrowth growth(runtime(), sideways);
   growth.reset(s.model.gaussians());
   feed(growth, s.v_px, s.radii, 10, kW, kH, s.seen);
@@ -429,8 +429,8 @@ TEST(GrowthDecision, RecyclesTransparentChildrenAsCopiesOfTheMostOpaque) {
   auto sig = [](double x) { return 1.0 / (1.0 + std::exp(-x)); };
   const double donor_before = sig(b.opacity_logit()[4]);
   // 1 - (1 - o1)(1 - o3)(1 - o4) over the three rows is the donor's opacity.
-  const double cover = 1.0 - (1.0 - sig(m.opacity_logit()[1])) * (1.0 - sig(m.opacity_logit()[3])) *
-                                 (1.0 - sig(m.opacity_logit()[4]));
+  const double cover =
+      1.0 - (1.0 - sig(m.opacity_logit()[1])) * (1.0 - sig(m.opacity_logit()[3])) * (1.0 - sig(m.opacity_logit()[4]));
   EXPECT_NEAR(cover, donor_before, 1e-6);
   for (int g : {1, 3}) {
     EXPECT_EQ(on.r.child_rows[g], -1) << g;  // fresh moments
@@ -441,7 +441,7 @@ TEST(GrowthDecision, RecyclesTransparentChildrenAsCopiesOfTheMostOpaque) {
     for (int k = 0; k < 4; ++k) EXPECT_EQ(m.quat()[4 * g + k], b.quat()[4 * 4 + k]);
     for (int k = 0; k < 48; ++k) EXPECT_EQ(m.sh()[48 * g + k], b.sh()[48 * 4 + k]);
   }
-  EXPECT_NE(m.offset()[3], m.offset()[9]);  // the two copies are jittered apart
+  EXPECT_NE(m.offset()[3], m.offset()[9]);                                     // the two copies are jittered apart
   EXPECT_EQ(on.r.anchor_rows, (std::vector<int>{0, 1, 2, 3, 5, -1, -1, -1}));  // a4 unseen
   for (int g = 0; g < 25; ++g) {
     if (g == 1 || g == 3 || g == 4) continue;  // the copies and the donor (its opacity checked above)
