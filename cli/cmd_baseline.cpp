@@ -25,6 +25,7 @@ namespace {
 
 struct BaselineArgs {
   std::string scene, out;
+  std::string sparse;  // --sparse; empty = the scene-folder rule (host/scene.h)
   int resolution = 1;
   bool eval = false;
   int log_every = 100;
@@ -55,6 +56,7 @@ void cmd_baseline(const GlobalOptions& global, BaselineArgs& a) {
   so.resolution = a.resolution;
   so.eval = a.eval || !a.test_images.empty();
   so.test_images = a.test_images;
+  so.sparse = a.sparse;
   a.eval = so.eval;
   std::unique_ptr<Scene> scene = Scene::open(a.scene, so);
   scene->require_points();
@@ -127,10 +129,11 @@ void cmd_baseline(const GlobalOptions& global, BaselineArgs& a) {
       const double its = (st.iteration - it_last) / std::max(dt, 1e-9);
       const double elapsed = std::chrono::duration<double>(now - t0).count();
       const double eta = (c.iterations - st.iteration) * elapsed / st.iteration;
-      spdlog::info("it {:>6}/{}  loss {:.5f} (L1 {:.5f}, SSIM {:.4f})  PSNR {:.2f} dB  SH {}  Gaussians {}  {:.1f} it/s  "
-                   "ETA {}",
-                   st.iteration, c.iterations, sum_loss / count, sum_l1 / count, sum_ssim / count, sum_psnr / count,
-                   st.sh_degree, trainer.gaussians(), its, duration_text(eta));
+      spdlog::info(
+          "it {:>6}/{}  loss {:.5f} (L1 {:.5f}, SSIM {:.4f})  PSNR {:.2f} dB  SH {}  Gaussians {}  {:.1f} it/s  "
+          "ETA {}",
+          st.iteration, c.iterations, sum_loss / count, sum_l1 / count, sum_ssim / count, sum_psnr / count,
+          st.sh_degree, trainer.gaussians(), its, duration_text(eta));
       t_last = now;
       it_last = st.iteration;
       sum_loss = sum_psnr = sum_l1 = sum_ssim = 0;
@@ -138,8 +141,7 @@ void cmd_baseline(const GlobalOptions& global, BaselineArgs& a) {
     }
     const bool test_now = (a.test_every > 0 && st.iteration % a.test_every == 0) ||
                           std::find(a.test_at.begin(), a.test_at.end(), st.iteration) != a.test_at.end();
-    if (a.eval && test_now && st.iteration != c.iterations)
-      run_eval(st.iteration);
+    if (a.eval && test_now && st.iteration != c.iterations) run_eval(st.iteration);
   }
   const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   spdlog::info("trained {} iterations in {:.1f} s ({:.2f} ms/iteration){}", c.iterations, seconds,
@@ -180,6 +182,8 @@ void register_baseline(CLI::App& app, GlobalOptions& global) {
   sub->add_option("-o,--out", a->out, "Model directory to write (created)")->required();
   sub->add_option("--iters", c.iterations, "Training iterations (default 30000)")->check(CLI::Range(1, 100000000));
   sub->add_option("--seed", c.seed, "Random seed: view order and split samples (default 0)");
+  sub->add_option("--sparse", a->sparse,
+                  "COLMAP model folder inside the scene (default: sparse/0/, else sparse/ when it holds the model)");
   sub->add_option("-r,--resolution", a->resolution, "Divide the camera resolution by R (default 1)")
       ->check(CLI::Range(1, 64));
   sub->add_flag("--eval", a->eval, "Hold out every 8th view; test PSNR/SSIM to MODEL_DIR/metrics.json");
@@ -190,7 +194,8 @@ void register_baseline(CLI::App& app, GlobalOptions& global) {
       ->check(CLI::NonNegativeNumber);
   sub->add_option("--lambda-ssim", c.lambda_ssim, "Weight of 1 - SSIM in the loss (default 0.2)")
       ->check(CLI::Range(0.0, 1.0));
-  sub->add_option("--lr-position", c.position_lr_init, "Position learning rate at the start, x extent (default 1.6e-4)");
+  sub->add_option("--lr-position", c.position_lr_init,
+                  "Position learning rate at the start, x extent (default 1.6e-4)");
   sub->add_option("--lr-position-final", c.position_lr_final, "Position learning rate at the end, x extent (1.6e-6)");
   sub->add_option("--lr-sh", c.sh_dc_lr, "SH DC learning rate (default 0.0025)");
   sub->add_option("--lr-sh-rest", c.sh_rest_lr, "Higher SH learning rate (default 0.0025 / 20)");

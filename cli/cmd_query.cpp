@@ -34,6 +34,7 @@ namespace {
 
 struct QueryArgs {
   std::string model, scene, view, click, text, vocab, text_embedding, out, views;
+  std::string sparse;  // --sparse; empty = the scene-folder rule (host/scene.h)
   int resolution = 0;  // 0 = the resolution the model was trained at
   QueryConfig config;
 };
@@ -58,7 +59,8 @@ void parse_click(const std::string& s, double* x, double* y) {
     }
   }
   if (!ok)
-    throw std::invalid_argument("--click '" + s + "': expected X,Y pixel coordinates (column,row), e.g. --click 120,80");
+    throw std::invalid_argument("--click '" + s +
+                                "': expected X,Y pixel coordinates (column,row), e.g. --click 120,80");
 }
 
 // --views: train | test | all | comma-separated names (Scene::find_view).
@@ -138,8 +140,9 @@ void cmd_query(const GlobalOptions& global, QueryArgs a) {
   const bool by_click = !a.click.empty();
   const bool by_text = !a.text.empty() || !a.text_embedding.empty();
   if (by_click == by_text)
-    throw std::invalid_argument("give exactly one query: --view NAME --click X,Y, or --text PHRASE --vocab FILE.json, "
-                                "or --text-embedding FILE.npy");
+    throw std::invalid_argument(
+        "give exactly one query: --view NAME --click X,Y, or --text PHRASE --vocab FILE.json, "
+        "or --text-embedding FILE.npy");
   if (by_click && a.view.empty()) throw std::invalid_argument("--click needs --view NAME (the clicked image)");
   if (!a.text.empty() && !a.text_embedding.empty())
     throw std::invalid_argument("give either --text (with --vocab) or --text-embedding, not both");
@@ -172,6 +175,7 @@ void cmd_query(const GlobalOptions& global, QueryArgs a) {
   SceneOptions so;
   so.resolution = a.resolution;
   so.eval = true;  // test = every 8th view in name order, train = the rest
+  so.sparse = a.sparse;
   std::unique_ptr<Scene> scene = Scene::open(a.scene, so);
   int click_view = -1;
   if (by_click) click_view = scene->find_view(a.view);
@@ -187,10 +191,11 @@ void cmd_query(const GlobalOptions& global, QueryArgs a) {
   QueryEngine engine(rt, model, a.config);
   if (by_text) engine.set_language(clustering, language);
   const double load_ms = ms_since(t_load);
-  spdlog::info("model {}: {} anchors, {} Gaussians; query graph (cell scale {}) {} edges; loaded and prepared in "
-               "{:.0f} ms (graph, k-d tree and upload {:.0f} ms)",
-               model_file, model.size(), model.gaussians(), a.config.graph_cell_scale, engine.graph().edges(), load_ms,
-               engine.prepare_ms());
+  spdlog::info(
+      "model {}: {} anchors, {} Gaussians; query graph (cell scale {}) {} edges; loaded and prepared in "
+      "{:.0f} ms (graph, k-d tree and upload {:.0f} ms)",
+      model_file, model.size(), model.gaussians(), a.config.graph_cell_scale, engine.graph().edges(), load_ms,
+      engine.prepare_ms());
 
   nlohmann::json j;
   j["model"] = model_file;
@@ -318,7 +323,8 @@ void add_query_config_options(CLI::App* sub, QueryConfig& c) {
                   "Click seed: of this many anchors nearest the clicked point, the one whose feature is closest to "
                   "the pixel's rendered feature (default 8; 1 = the nearest anchor)");
   sub->add_flag("--click-dominant,!--click-mean", c.click_dominant,
-                "Click depth and feature: of the feature group of anchors holding the most blending weight at the pixel (default), "
+                "Click depth and feature: of the feature group of anchors holding the most blending weight at the "
+                "pixel (default), "
                 "or --click-mean: the ray's mean depth and rendered feature");
   sub->add_option("--click-front-weight", c.click_front_weight,
                   "With --click-dominant: the nearest feature group along the ray holding at least this much of the "
@@ -339,6 +345,8 @@ void register_query(CLI::App& app, GlobalOptions& global) {
   q->add_option("--text-embedding", a->text_embedding, "Text query by a float vector .npy of shape [D] or [1,D]");
   q->add_option("--views", a->views,
                 "Also write masks for: train, test (every 8th image in name order), all, or comma-separated names");
+  q->add_option("--sparse", a->sparse,
+                "COLMAP model folder inside the scene (default: sparse/0/, else sparse/ when it holds the model)");
   q->add_option("-r,--resolution", a->resolution, "Divide the cameras by R (default: the model's training -r)");
   add_query_config_options(q, a->config);
   set_action(q, [&global, a] { cmd_query(global, *a); });

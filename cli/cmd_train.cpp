@@ -35,6 +35,7 @@ namespace {
 
 struct TrainArgs {
   std::string scene, out;
+  std::string sparse;  // --sparse; empty = the scene-folder rule (host/scene.h)
   int resolution = 1;
   bool eval = false;
   int log_every = 100;
@@ -119,6 +120,7 @@ void stage3_only(const GlobalOptions& global, TrainArgs& a) {
   so.resolution = a.resolution != 1 ? a.resolution : tr.value("resolution", 1);
   so.eval = a.eval || tr.value("eval_split", false);
   so.test_images = a.test_images;
+  so.sparse = a.sparse;
   std::unique_ptr<Scene> scene = Scene::open(a.scene, so);
   Runtime rt(global.device);
   const Stage3Summary s = run_stage3_on_model(rt, *scene, a.out, scene->train_views(), a.stage3);
@@ -220,6 +222,7 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   so.resolution = a.resolution;
   so.eval = a.eval || !a.test_images.empty();
   so.test_images = a.test_images;
+  so.sparse = a.sparse;
   a.eval = so.eval;
   std::unique_ptr<Scene> scene = Scene::open(a.scene, so);
   scene->require_points();
@@ -552,6 +555,8 @@ void register_train(CLI::App& app, GlobalOptions& global) {
   sub->add_option("-o,--out", a->out, "Model directory to write (created)")->required();
   sub->add_option("--iters", c.iterations, "Training iterations (default 30000)")->check(CLI::Range(1, 100000000));
   sub->add_option("--seed", c.seed, "Random seed: anchor init and view order (default 0)");
+  sub->add_option("--sparse", a->sparse,
+                  "COLMAP model folder inside the scene (default: sparse/0/, else sparse/ when it holds the model)");
   sub->add_option("-r,--resolution", a->resolution, "Divide the camera resolution by R (default 1)")
       ->check(CLI::Range(1, 64));
   sub->add_flag("--eval", a->eval, "Hold out every 8th view; test PSNR/SSIM to MODEL_DIR/metrics.json");

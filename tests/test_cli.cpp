@@ -192,6 +192,26 @@ TEST(Cli, TrainPresetsDefaultAppearanceAndPaperExplicitFlagsWin) {
   fs::remove_all(dir);
 }
 
+// --sparse names the model folder for train and baseline too (the scene-folder
+// rule's error suggests it); without it such a scene is refused naming --sparse.
+TEST(Cli, TrainAndBaselineTakeSparse) {
+  const fs::path dir = temp("sparse_flag");
+  const fs::path scene = dir / "scene";
+  fs::create_directories(scene);
+  fs::copy(src() + "/data_samples/synth_small/images", scene / "images", fs::copy_options::recursive);
+  fs::copy(src() + "/data_samples/synth_small/sparse/0", scene / "colmap", fs::copy_options::recursive);
+  const std::string common = "--iters 1 -r 2 --log-every 0 --top-cells 50 ";
+  Result none = run("train " + scene.string() + " " + common + "--stages 1 -o " + (dir / "none").string());
+  EXPECT_NE(none.code, 0);
+  EXPECT_NE(none.output.find("--sparse"), std::string::npos) << none.output;
+  Result tr = run("train " + scene.string() + " " + common + "--stages 1 --sparse colmap -o " + (dir / "t").string());
+  EXPECT_EQ(tr.code, 0) << tr.output;
+  Result bl = run("baseline " + scene.string() + " --iters 1 -r 2 --log-every 0 --sparse colmap -o " +
+                  (dir / "b").string());
+  EXPECT_EQ(bl.code, 0) << bl.output;
+  fs::remove_all(dir);
+}
+
 TEST(Cli, TrainInitLayerSeedsTheChosenLayers) {
   const std::string scene = src() + "/data_samples/synth_small";
   const fs::path dir = temp("init_layer");
