@@ -42,7 +42,7 @@ while [ $# -gt 0 ]; do
 done
 [ -x "$bin" ] || { echo "query_benchmark: $bin not built; run scripts/build.sh first" >&2; exit 2; }
 if [ -n "$generate" ]; then
-  "$bin" synth "$scene" --hard --seed "$generate" --views "$views" --points 3000 "${synth_flags[@]}"
+  "$bin" synth "$scene" --force --hard --seed "$generate" --views "$views" --points 3000 "${synth_flags[@]}"
 fi
 for f in label vocab.json clicks.json; do
   [ -e "$scene/$f" ] || { echo "query_benchmark: $scene/$f missing (a scene from \`ag2gs synth\` has it)" >&2; exit 2; }
@@ -51,7 +51,7 @@ mkdir -p "$out"
 for run in full no_prop; do
   flags=()
   [ "$run" = no_prop ] && flags=(--w-prop 0)
-  "$bin" train "$scene" -o "$out/$run" --iters "$iters" --eval --seed 1 --log-every 1000 "${flags[@]}" "${extra[@]}" \
+  "$bin" train "$scene" -o "$out/$run" --force --iters "$iters" --eval --seed 1 --log-every 1000 "${flags[@]}" "${extra[@]}" \
     2>&1 | tee "$out/$run.log"
   for grow in grow no_grow; do
     g=()

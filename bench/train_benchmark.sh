@@ -29,10 +29,10 @@ done
 [ -x "$bin" ] || { echo "train_benchmark: $bin not built; run scripts/build.sh first" >&2; exit 2; }
 mkdir -p "$out"
 runs=("$out/anchors")
-"$bin" train "$scene" -o "$out/anchors" -r "$res" --iters "$iters" --eval --test-at "$at" --seed 1 \
+"$bin" train "$scene" -o "$out/anchors" --force -r "$res" --iters "$iters" --eval --test-at "$at" --seed 1 \
   --log-every 500 "${extra[@]}" 2>&1 | tee "$out/anchors.log"
 if [ "$baseline" = 1 ]; then
-  "$bin" baseline "$scene" -o "$out/baseline" -r "$res" --iters "$iters" --eval --test-at "$at" --seed 1 \
+  "$bin" baseline "$scene" -o "$out/baseline" --force -r "$res" --iters "$iters" --eval --test-at "$at" --seed 1 \
     --log-every 500 2>&1 | tee "$out/baseline.log"
   runs+=("$out/baseline")
 fi

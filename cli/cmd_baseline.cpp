@@ -13,6 +13,7 @@
 #include <string>
 
 #include "cli/commands.h"
+#include "cli/run_guard.h"
 #include "host/cl_runtime.h"
 #include "host/scene.h"
 #include "stages/free_trainer.h"
@@ -33,6 +34,7 @@ struct BaselineArgs {
   std::vector<int> test_at;              // --test-at: evaluate at these iterations too
   std::vector<std::string> test_images;  // --test-views: held out instead of every 8th
   bool profile = false;
+  bool force = false;  // --force: replace the model MODEL_DIR holds
   FreeTrainConfig config;
 };
 
@@ -51,6 +53,7 @@ std::string duration_text(double s) {
 void cmd_baseline(const GlobalOptions& global, BaselineArgs& a) {
   a.config.validate();
   if (a.resolution < 1) throw std::invalid_argument("-r must be >= 1 (it divides the camera resolution)");
+  refuse_model_overwrite(a.out, a.force, "--force to replace it");
   check_model_dir_writable(a.out);
   SceneOptions so;
   so.resolution = a.resolution;
@@ -103,6 +106,8 @@ void cmd_baseline(const GlobalOptions& global, BaselineArgs& a) {
     return ev;
   };
 
+  // Ctrl-C, SIGTERM and SIGHUP finish the iteration and save the model so far.
+  InterruptGuard interrupts;
   const auto t0 = std::chrono::steady_clock::now();
   auto t_last = t0;
   int it_last = 0, skipped = 0;
@@ -142,6 +147,19 @@ void cmd_baseline(const GlobalOptions& global, BaselineArgs& a) {
     const bool test_now = (a.test_every > 0 && st.iteration % a.test_every == 0) ||
                           std::find(a.test_at.begin(), a.test_at.end(), st.iteration) != a.test_at.end();
     if (a.eval && test_now && st.iteration != c.iterations) run_eval(st.iteration);
+    if (InterruptGuard::interrupted() && st.iteration != c.iterations) {
+      // The baseline has no checkpoint to resume from: what it keeps is
+      // the model so far.
+      trainer.save(a.out);
+      spdlog::warn("{}: stopped at iteration {} of {}; the model so far is in {} (the baseline cannot resume: "
+                   "run it again for the full schedule)",
+                   InterruptGuard::signal_name(), st.iteration, c.iterations,
+                   (fs::path(a.out) / "point_cloud.ply").string());
+      spdlog::default_logger()->flush();
+      std::fflush(stdout);
+      std::fflush(stderr);
+      std::exit(InterruptGuard::exit_code());
+    }
   }
   const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   spdlog::info("trained {} iterations in {:.1f} s ({:.2f} ms/iteration){}", c.iterations, seconds,
@@ -180,8 +198,10 @@ void register_baseline(CLI::App& app, GlobalOptions& global) {
                                  "directory: writes MODEL_DIR/point_cloud.ply");
   sub->add_option("scene_dir", a->scene, "Scene directory (images/, sparse/0/)")->required();
   sub->add_option("-o,--out", a->out, "Model directory to write (created)")->required();
+  sub->add_flag("--force", a->force, "Replace the model MODEL_DIR holds (refused otherwise)");
   sub->add_option("--iters", c.iterations, "Training iterations (default 30000)")->check(CLI::Range(1, 100000000));
-  sub->add_option("--seed", c.seed, "Random seed: view order and split samples (default 0)");
+  sub->add_option("--seed", c.seed, "Random seed: view order and split samples (default 0)")
+      ->check(seed_number());
   sub->add_option("--sparse", a->sparse,
                   "COLMAP model folder inside the scene (default: sparse/0/, else sparse/ when it holds the model)");
   sub->add_option("-r,--resolution", a->resolution, "Divide the camera resolution by R (default 1)")
@@ -191,7 +211,7 @@ void register_baseline(CLI::App& app, GlobalOptions& global) {
   sub->add_option("--sh-degree", c.sh_degree, "Highest SH degree (default 3)")->check(CLI::Range(0, 3));
   sub->add_option("--sh-interval", c.sh_interval,
                   "Iterations per SH degree step (default 0 = min(1000, iters / (sh-degree + 1)), as `train`)")
-      ->check(CLI::NonNegativeNumber);
+      ->check(non_negative_number());
   sub->add_option("--lambda-ssim", c.lambda_ssim, "Weight of 1 - SSIM in the loss (default 0.2)")
       ->check(CLI::Range(0.0, 1.0));
   sub->add_option("--lr-position", c.position_lr_init,
@@ -203,31 +223,31 @@ void register_baseline(CLI::App& app, GlobalOptions& global) {
   sub->add_option("--lr-scaling", c.scaling_lr, "Log-scale learning rate (default 0.005)");
   sub->add_option("--lr-rotation", c.rotation_lr, "Rotation learning rate (default 0.001)");
   sub->add_option("--densify-from", c.densify_from, "First densification iteration (default 500)")
-      ->check(CLI::NonNegativeNumber);
+      ->check(non_negative_number());
   sub->add_option("--densify-until", c.densify_until, "Last densification iteration (default 0 = half of --iters)")
-      ->check(CLI::NonNegativeNumber);
+      ->check(non_negative_number());
   sub->add_option("--densify-every", c.densify_every, "Iterations between densifications (default 100; 0 = off)")
-      ->check(CLI::NonNegativeNumber);
+      ->check(non_negative_number());
   sub->add_option("--densify-threshold", c.grad_threshold,
                   "Mean view-space positional gradient (NDC units) above which a Gaussian is cloned or split "
                   "(default 2e-4)");
   sub->add_option("--percent-dense", c.percent_dense,
                   "Clone when the largest scale is at most this x extent, split otherwise (default 0.01)")
-      ->check(CLI::NonNegativeNumber);
+      ->check(non_negative_number());
   sub->add_option("--prune-opacity", c.prune_opacity, "Remove Gaussians with opacity below this (default 0.005)")
       ->check(CLI::Range(0.0, 0.999));
   sub->add_option("--opacity-reset-every", c.opacity_reset_every,
                   "Clamp every opacity to 0.01 every N iterations until --densify-until (default 3000; 0 = off)")
-      ->check(CLI::NonNegativeNumber);
+      ->check(non_negative_number());
   sub->add_option("--max-screen-size", c.max_screen_size,
                   "After the first opacity reset, remove Gaussians with a radius above this many pixels (default 20; 0 "
                   "= off)")
-      ->check(CLI::NonNegativeNumber);
+      ->check(non_negative_number());
   sub->add_option("--max-world-size", c.max_world_size,
                   "After the first opacity reset, remove Gaussians larger than this x extent (default 0.1; 0 = off)")
-      ->check(CLI::NonNegativeNumber);
+      ->check(non_negative_number());
   sub->add_option("--log-every", a->log_every, "Progress line every N iterations (default 100; 0 = none)")
-      ->check(CLI::NonNegativeNumber);
+      ->check(non_negative_number());
   sub->add_option("--test-at", a->test_at, "With --eval: also test at these iterations (comma-separated)")
       ->delimiter(',');
   sub->add_option("--test-views", a->test_images,
@@ -235,7 +255,7 @@ void register_baseline(CLI::App& app, GlobalOptions& global) {
                   "--eval")
       ->delimiter(',');
   sub->add_option("--test-every", a->test_every, "With --eval: test metrics every N iterations (default 0 = end only)")
-      ->check(CLI::NonNegativeNumber);
+      ->check(non_negative_number());
   sub->add_flag("--profile", a->profile, "Time every kernel and print the per-iteration breakdown");
   set_action(sub, [&global, a] { cmd_baseline(global, *a); });
 }

@@ -12,6 +12,7 @@
 #include <string>
 
 #include "cli/commands.h"
+#include "cli/run_guard.h"
 #include "host/cl_runtime.h"
 #include "host/model_io.h"
 #include "host/scene.h"
@@ -42,6 +43,12 @@ void cmd_eval(const GlobalOptions& global, EvalArgs a) {
     throw std::invalid_argument("--boundary-ratio must lie in (0, 1) (0.02 of the image diagonal is the standard)");
   const auto t_load = std::chrono::steady_clock::now();
   const std::string model_file = (fs::path(a.model) / "model.ag2gs").string();
+  {
+    std::vector<std::string> inputs = {a.scene, a.labels, a.vocab, a.clicks};
+    for (const char* f : {"model.ag2gs", "checkpoint.ag2gs", "point_cloud.ply", "metrics.json"})
+      inputs.push_back((fs::path(a.model) / f).string());
+    refuse_output_over_inputs(a.out, inputs, "-o");
+  }
   if (!fs::exists(model_file))
     throw std::runtime_error(a.model + ": no model.ag2gs; give a model folder written by `ag2gs train`");
   // Fail on an unwritable report before the work.

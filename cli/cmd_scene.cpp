@@ -22,8 +22,11 @@ namespace fs = std::filesystem;
 namespace ag2gs::cli {
 namespace {
 
+// A Gaussian file: counts, bounds and mean opacity of its valid Gaussians;
+// invalid ones (host/ply_io.h) are counted, and make info fail.
 void print_ply(const std::string& ply) {
-  GaussianSet set = read_ply(ply);
+  size_t dropped = 0;
+  GaussianSet set = read_ply(ply, PlyValues::activated, InvalidGaussians::drop, &dropped);
   Eigen::Vector3f lo = Eigen::Vector3f::Constant(1e30f), hi = -lo;
   double mean_opacity = 0;
   for (size_t i = 0; i < set.size(); ++i) {
@@ -36,6 +39,15 @@ void print_ply(const std::string& ply) {
   if (set.size()) {
     std::printf("  bounds: [%g %g %g] .. [%g %g %g]\n  mean opacity: %.4f\n", lo.x(), lo.y(), lo.z(), hi.x(), hi.y(),
                 hi.z(), mean_opacity / set.size());
+  }
+  if (dropped > 0) {
+    // The error names the first offender: read again without dropping.
+    try {
+      read_ply(ply);
+    } catch (const std::exception& e) {
+      throw std::runtime_error(std::string(e.what()) + " (info counted the " + std::to_string(set.size()) +
+                               " valid ones above)");
+    }
   }
 }
 

@@ -11,6 +11,7 @@
 #include <nlohmann/json.hpp>
 
 #include "cli/commands.h"
+#include "cli/run_guard.h"
 #include "host/synth_scene.h"
 
 namespace fs = std::filesystem;
@@ -20,10 +21,12 @@ namespace {
 
 struct SynthArgs {
   std::string out;
+  bool force = false;  // --force: write into a folder that is not empty
   SynthOptions options;
 };
 
 void cmd_synth(const SynthArgs& a) {
+  refuse_nonempty_dir(a.out, a.force, "what is there (synth deletes a scene's images/ and sparse/0/ first)");
   auto t0 = std::chrono::steady_clock::now();
   write_synth_scene(a.out, a.options);
   double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
@@ -65,8 +68,11 @@ void register_synth(CLI::App& app, GlobalOptions& /*global*/) {
   auto* sub = app.add_subcommand("synth",
                                  "Write a synthetic scene with exact ground truth: images, COLMAP model, SAM-like "
                                  "masks, CLIP-like features, GT ids, labels, clicks, vocabulary");
-  sub->add_option("out_dir", a->out, "Scene directory to write (created; our files in it are replaced)")->required();
-  sub->add_option("--seed", o.seed, "Random seed; the same seed gives byte-identical files (default 1)");
+  sub->add_option("out_dir", a->out, "Scene directory to write (created; a folder that is not empty is refused)")
+      ->required();
+  sub->add_flag("--force", a->force, "Write into a folder that is not empty (our files in it are replaced)");
+  sub->add_option("--seed", o.seed, "Random seed; the same seed gives byte-identical files (default 1)")
+      ->check(seed_number());
   sub->add_option("--width", o.width, "Image width in pixels (default 160)")->check(CLI::Range(8, 8192));
   sub->add_option("--height", o.height, "Image height in pixels (default 120)")->check(CLI::Range(8, 8192));
   sub->add_option("--views", o.views, "Cameras on the ring; every 8th is a test view (default 24)")

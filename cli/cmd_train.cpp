@@ -21,6 +21,7 @@
 #include <string>
 
 #include "cli/commands.h"
+#include "cli/run_guard.h"
 #include "host/cl_runtime.h"
 #include "host/model_io.h"
 #include "host/scene.h"
@@ -45,7 +46,9 @@ struct TrainArgs {
   int save_every = 0;
   bool profile = false;
   bool resume = false;
+  bool force = false;                // --force: start over in a folder that holds a model
   std::vector<int> stages{1, 2, 3};  // --stages
+  bool stages_given = false;         // --stages was on the command line
   std::string preset = "default";    // --preset
   Stage3Config stage3;
   TrainConfig config;
@@ -71,6 +74,7 @@ void apply_preset(const CLI::App& sub, TrainArgs& a) {
     unless_given("--top-cells", c.anchors.top_cells, 200);
     unless_given("--grow-budget", c.grow_budget, 0.0);
     unless_given("--max-gaussians", c.max_gaussians, int64_t{0});
+    unless_given("--downscales", c.downscales, 0);
     spdlog::info("preset paper: --top-cells {} --children {} --scale-cap {} --grow-budget {} --max-gaussians {}",
                  c.anchors.top_cells, c.anchors.children, c.anchors.scale_cap, c.grow_budget, c.max_gaussians);
     return;
@@ -158,6 +162,37 @@ std::string fmt_duration(double s) {
   return buf;
 }
 
+// The settings outside TrainConfig that shape a run's files: the stages and
+// stage 3's. They go into the checkpoint (Trainer::set_run_record), so that
+// `--resume` alone finishes the run as it was started.
+nlohmann::json run_record(const TrainArgs& a) {
+  const Stage3Config& s = a.stage3;
+  return {{"stages", a.stages},
+          {"stage3",
+           {{"cluster_distance", s.cluster.max_distance},
+            {"min_cluster_size", s.cluster.min_cluster_size},
+            {"match_score", s.language.min_score},
+            {"match_softmax", s.language.softmax_scale},
+            {"instance_fraction", s.language.instance_fraction}}}};
+}
+
+// Takes the stages (unless --stages was given) and the stage-3 settings
+// (unless one was given) from a checkpoint's run record.
+void adopt_run_record(const nlohmann::json& run, TrainArgs& a) {
+  if (!run.is_object()) return;  // a checkpoint from before the record
+  if (!a.stages_given && run.contains("stages")) a.stages = run["stages"].get<std::vector<int>>();
+  const nlohmann::json given = run_record(a)["stage3"];
+  const nlohmann::json defaults = run_record(TrainArgs{})["stage3"];
+  if (given != defaults || !run.contains("stage3")) return;
+  const nlohmann::json& s3 = run["stage3"];
+  Stage3Config& s = a.stage3;
+  s.cluster.max_distance = s3.value("cluster_distance", s.cluster.max_distance);
+  s.cluster.min_cluster_size = s3.value("min_cluster_size", s.cluster.min_cluster_size);
+  s.language.min_score = s3.value("match_score", s.language.min_score);
+  s.language.softmax_scale = s3.value("match_softmax", s.language.softmax_scale);
+  s.language.instance_fraction = s3.value("instance_fraction", s.language.instance_fraction);
+}
+
 // --resume: the run's config comes from the checkpoint; a setting given on
 // the command line (one that differs from the default) must agree with it.
 void adopt_checkpoint_config(TrainArgs& a) {
@@ -181,25 +216,9 @@ void adopt_checkpoint_config(TrainArgs& a) {
     throw std::runtime_error("--resume: these settings differ from the checkpoint " + path +
                              " (command line vs checkpoint); drop them or start a new model folder:" + clash);
   a.config = saved;
+  adopt_run_record(ck.value("run", nlohmann::json()), a);
   a.resolution = sc.value("resolution", a.resolution);
   a.eval = a.eval || sc.value("eval_split", false);
-}
-
-// Ctrl-C: the first sets a flag the training loop reads after each
-// iteration (checkpoint, then exit 130); a second one ends the process at once.
-volatile std::sig_atomic_t g_interrupted = 0;
-
-extern "C" void on_sigint(int) {
-  if (g_interrupted) {
-    static const char msg[] = "\nsecond interrupt: aborting without saving\n";
-    ssize_t ignored = ::write(2, msg, sizeof msg - 1);
-    (void)ignored;
-    ::_exit(130);
-  }
-  g_interrupted = 1;
-  static const char msg[] = "\ninterrupt: finishing this iteration and saving a checkpoint (Ctrl-C again to abort)\n";
-  ssize_t ignored = ::write(2, msg, sizeof msg - 1);
-  (void)ignored;
 }
 
 void cmd_train(const GlobalOptions& global, TrainArgs& a) {
@@ -213,6 +232,9 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   if (a.stages == std::vector<int>{3}) return stage3_only(global, a);
   // Without stage 1 the run continues from the checkpoint.
   if (!has_stage(a, 1)) a.resume = true;
+  // A new model never replaces one by accident.
+  if (!a.resume)
+    refuse_model_overwrite(a.out, a.force, "--resume to continue it from its checkpoint, --force to start over");
   if (a.resume) adopt_checkpoint_config(a);
   a.config.validate();
   if (a.resolution < 1) throw std::invalid_argument("-r must be >= 1 (it divides the camera resolution)");
@@ -330,12 +352,9 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
 
   if (a.resume) metrics["resumed_at"] = trainer.iteration();
   const int it_start = trainer.iteration();
-  struct sigaction sa {
-  }, old_sa{};
-  sa.sa_handler = on_sigint;
-  sigemptyset(&sa.sa_mask);
-  g_interrupted = 0;
-  ::sigaction(SIGINT, &sa, &old_sa);
+  trainer.set_run_record(run_record(a));
+  // Ctrl-C, SIGTERM and SIGHUP finish the iteration and save a checkpoint.
+  InterruptGuard interrupts;
   const auto t0 = std::chrono::steady_clock::now();
   t_start = t0;
   auto t_last = t0;
@@ -454,22 +473,24 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
       count = count_masks = count_prop = 0;
       sum_prop = 0;
     }
-    if (g_interrupted && st.iteration != it_end) {
+    if (InterruptGuard::interrupted() && st.iteration != it_end) {
       trainer.save(a.out);
-      spdlog::warn(
-          "interrupted: checkpoint at iteration {} of {} in {}; continue with\n  ag2gs train {} -o {} --resume",
-          st.iteration, it_end, a.out, a.scene, a.out);
+      // The checkpoint holds every setting (stages included): the command
+      // needs only what locates the scene and the device.
+      spdlog::warn("{}: checkpoint at iteration {} of {} in {}; continue with\n  ag2gs {}train {} -o {}{} --resume",
+                   InterruptGuard::signal_name(), st.iteration, it_end, a.out,
+                   global.device >= 0 ? fmt::format("--device {} ", global.device) : "", a.scene, a.out,
+                   a.sparse.empty() ? "" : " --sparse " + a.sparse);
       spdlog::default_logger()->flush();
       std::fflush(stdout);
       std::fflush(stderr);
-      std::exit(130);
+      std::exit(InterruptGuard::exit_code());
     }
     if (a.save_every > 0 && st.iteration % a.save_every == 0 && st.iteration != it_end) {
       trainer.save(a.out);
       spdlog::info("checkpoint at iteration {} in {}", st.iteration, a.out);
     }
   }
-  ::sigaction(SIGINT, &old_sa, nullptr);
   const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() - eval_seconds;
   const int trained = std::max(1, it_end - it_start);
   spdlog::info("trained {} iterations in {:.1f} s ({:.2f} ms/iteration){}", std::max(0, it_end - it_start), seconds,
@@ -554,7 +575,8 @@ void register_train(CLI::App& app, GlobalOptions& global) {
   sub->add_option("scene_dir", a->scene, "Scene directory (images/, sparse/0/)")->required();
   sub->add_option("-o,--out", a->out, "Model directory to write (created)")->required();
   sub->add_option("--iters", c.iterations, "Training iterations (default 30000)")->check(CLI::Range(1, 100000000));
-  sub->add_option("--seed", c.seed, "Random seed: anchor init and view order (default 0)");
+  sub->add_option("--seed", c.seed, "Random seed: anchor init and view order (default 0)")
+      ->check(seed_number());
   sub->add_option("--sparse", a->sparse,
                   "COLMAP model folder inside the scene (default: sparse/0/, else sparse/ when it holds the model)");
   sub->add_option("-r,--resolution", a->resolution, "Divide the camera resolution by R (default 1)")
@@ -563,7 +585,7 @@ void register_train(CLI::App& app, GlobalOptions& global) {
   sub->add_option("--sh-degree", c.anchors.sh_degree, "Highest SH degree (default 3)")->check(CLI::Range(0, 3));
   sub->add_option("--sh-interval", c.sh_interval,
                   "Iterations per SH degree step (default 0 = min(1000, iters / (sh-degree + 1)))")
-      ->check(CLI::NonNegativeNumber);
+      ->check(non_negative_number());
   sub->add_flag("--white-bg", c.white_background, "White background instead of black");
   sub->add_option("--lambda-ssim", c.lambda_ssim, "Weight of 1 - SSIM in L_rgb (default 0.2)")
       ->check(CLI::Range(0.0, 1.0));
@@ -572,16 +594,18 @@ void register_train(CLI::App& app, GlobalOptions& global) {
   sub->add_option("--dist-from", c.distortion_from, "First iteration with the distortion term (default 0)");
   sub->add_option("--downscales", c.downscales,
                   "Coarse-to-fine: start at the images divided by 2^N, doubling the resolution every --res-schedule "
-                  "iterations (default 0 = off; mask-loss iterations and stage 2 always at full resolution)")
-      ->check(CLI::Range(0, 6));
+                  "iterations (default -1: as many halvings, at most 3, as keep the shorter side >= 64 px; 0 = off, "
+                  "as --preset paper; mask-loss iterations and stage 2 always at full resolution)")
+      ->check(CLI::Range(-1, 6));
   sub->add_option("--res-schedule", c.res_schedule,
-                  "Iterations per resolution doubling with --downscales (default 250)")
-      ->check(CLI::PositiveNumber);
+                  "Iterations per resolution doubling with --downscales (default 0: iters / (2 x levels), at most "
+                  "3000, so full resolution by the middle of the run)")
+      ->check(CLI::Range(0, 100000000));
   sub->add_option("--w-is", c.w_is,
                   "Weight of the mask-internal loss L_is on the rendered features (default 0.1; scenes with masks)")
-      ->check(CLI::NonNegativeNumber);
+      ->check(non_negative_number());
   sub->add_option("--w-ic", c.w_ic, "Weight of the mask-contrast loss L_ic (default 0.1)")
-      ->check(CLI::NonNegativeNumber);
+      ->check(non_negative_number());
   sub->add_option("--mask-from", c.mask_from,
                   "First iteration with the mask losses (default -1 = iters / 6, the official 5k of 30k)")
       ->check(CLI::Range(-1, std::numeric_limits<int>::max()));
@@ -621,7 +645,7 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                   "Top-layer voxels along the longest robust extent of the SfM points (default: the voxel is "
                   "chosen from the scene, a finest-layer voxel of about a pixel at the points' median depth; "
                   "--preset paper: 200)")
-      ->check(CLI::PositiveNumber);
+      ->check(positive_number());
   sub->add_option("--voxel-size", c.anchors.voxel_size,
                   "Top-layer voxel edge in world units (overrides --top-cells and the scene's choice)")
       ->check([](const std::string& v) -> std::string {
@@ -663,11 +687,11 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                 "(default; --init-children-random, as the official code and --preset paper: random offsets and "
                 "the voxel's mean colour)");
   sub->add_option("--grow-from", c.grow_from, "First iteration of anchor growing (default 500)")
-      ->check(CLI::NonNegativeNumber);
+      ->check(non_negative_number());
   sub->add_option("--grow-until", c.grow_until, "Last iteration of anchor growing (default 0 = 2/3 of --iters)")
-      ->check(CLI::NonNegativeNumber);
+      ->check(non_negative_number());
   sub->add_option("--grow-every", c.grow_every, "Iterations between growing rounds (default 100; 0 = no growing)")
-      ->check(CLI::NonNegativeNumber);
+      ->check(non_negative_number());
   sub->add_option("--grow-threshold", c.grow_threshold,
                   "Mean screen-space gradient (NDC units) above which a child grows a finer anchor (default 1.5e-4, "
                   "x2 per layer)");
@@ -684,26 +708,29 @@ void register_train(CLI::App& app, GlobalOptions& global) {
       ->check(CLI::Range(-1, std::numeric_limits<int>::max()));
   sub->add_option("--opacity-reset-every", c.opacity_reset_every,
                   "Reset every opacity to at most 0.01 every N iterations while growing runs (default 3000; 0 = off)")
-      ->check(CLI::NonNegativeNumber);
+      ->check(non_negative_number());
   sub->add_option("--opacity-reset-pause", c.opacity_reset_pause,
                   "Growing rounds this many iterations after a reset do not prune by opacity (default 500)")
-      ->check(CLI::NonNegativeNumber);
+      ->check(non_negative_number());
   sub->add_option("--log-every", a->log_every, "Progress line every N iterations (default 100; 0 = none)")
-      ->check(CLI::NonNegativeNumber);
+      ->check(non_negative_number());
   sub->add_option("--test-at", a->test_at,
                   "With --eval: also test at these iterations (comma-separated, e.g. 1000,3000,7000)")
       ->delimiter(',')
-      ->check(CLI::PositiveNumber);
+      ->check(positive_number());
   sub->add_option("--test-views", a->test_images,
                   "Hold out these images (comma-separated names or stems, e.g. 6.jpg) instead of every 8th; "
                   "implies --eval")
       ->delimiter(',');
   sub->add_option("--test-every", a->test_every, "With --eval: test metrics every N iterations (default 0 = end only)")
-      ->check(CLI::NonNegativeNumber);
+      ->check(non_negative_number());
   sub->add_option("--save-every", a->save_every, "Checkpoint every N iterations (default 0 = end only)")
-      ->check(CLI::NonNegativeNumber);
+      ->check(non_negative_number());
   sub->add_flag("--resume", a->resume,
-                "Continue from MODEL_DIR/checkpoint.ag2gs (its settings; flags given must agree with them)");
+                "Continue from MODEL_DIR/checkpoint.ag2gs (its settings, stages included; flags given must agree "
+                "with them)");
+  sub->add_flag("--force", a->force,
+                "Start a new model even though MODEL_DIR holds one (its files are replaced when training ends)");
   sub->add_flag("--profile", a->profile, "Time every kernel and print the per-iteration breakdown");
   sub->add_option("--stages", a->stages,
                   "Stages to run (comma-separated, default 1,2,3); without 1 they run on MODEL_DIR's checkpoint / "
@@ -717,13 +744,13 @@ void register_train(CLI::App& app, GlobalOptions& global) {
   sub->add_option("--w-prop", c.w_prop,
                   "Weight of the propagation loss L_prop (a mean over edges) in stage 2 (default 10; the paper's 0.01 "
                   "is on a sum)")
-      ->check(CLI::NonNegativeNumber);
+      ->check(non_negative_number());
   sub->add_option("--prop-tau", c.prop_tau, "Bilateral bandwidth tau of L_prop (default 0.05)")
-      ->check(CLI::PositiveNumber);
+      ->check(positive_number());
   Stage3Config& s3 = a->stage3;
   sub->add_option("--cluster-distance", s3.cluster.max_distance,
                   "Stage 3: join graph neighbours whose feature distance is below this (default 0.01)")
-      ->check(CLI::PositiveNumber);
+      ->check(positive_number());
   sub->add_option("--min-cluster-size", s3.cluster.min_cluster_size,
                   "Stage 3: clusters with fewer anchors are skipped (default 5)")
       ->check(CLI::Range(1, std::numeric_limits<int>::max()));
@@ -742,6 +769,7 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                   "budget); flags given explicitly win")
       ->check(CLI::IsMember({"default", "appearance", "paper"}));
   set_action(sub, [&global, a, sub] {
+    a->stages_given = sub->count("--stages") > 0;
     apply_preset(*sub, *a);
     cmd_train(global, *a);
   });

@@ -4,9 +4,11 @@
 
 #include <algorithm>
 #include <array>
+#include <cerrno>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <map>
@@ -76,6 +78,7 @@ struct RenderArgs {
   std::string model, ply, scene, out, views, outputs = "rgb", bg = "0,0,0", sparse;
   int resolution = 0;  // 0 = the resolution the model was trained at (1 for a bare .ply)
   bool extras = false;
+  bool drop_invalid = false;  // --drop-invalid: leave out Gaussians with invalid numbers
 };
 
 std::array<float, 3> parse_rgb(const std::string& s) {
@@ -239,7 +242,10 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
     anchor_cluster = clustering_from_archive(archive, am.size()).anchor_cluster;
     children = am.config().children;
   } else {
-    set = read_ply(ply);
+    size_t dropped = 0;
+    set = read_ply(ply, PlyValues::activated, a.drop_invalid ? InvalidGaussians::drop : InvalidGaussians::reject,
+                   &dropped);
+    if (dropped > 0) spdlog::warn("{}: left out {} Gaussians with invalid numbers (--drop-invalid)", ply, dropped);
   }
   if (!fs::is_directory(a.scene))
     throw std::runtime_error(a.scene +
@@ -331,6 +337,9 @@ void register_commands(CLI::App& app, GlobalOptions& global) {
   render->add_option("--sparse", ra->sparse,
                      "COLMAP model folder inside the scene (default sparse/0/, else sparse/ when it holds the model)");
   render->add_flag("--extras", ra->extras, "Same as adding depth,alpha to --outputs");
+  render->add_flag("--drop-invalid", ra->drop_invalid,
+                   "Leave out Gaussians with non-finite numbers, zero rotations, scales <= 0 or opacities outside "
+                   "[0, 1] (default: such a .ply is refused)");
   set_action(render, [&global, ra] { cmd_render(global, *ra); });
 
   register_scene_commands(app, global);
@@ -339,6 +348,50 @@ void register_commands(CLI::App& app, GlobalOptions& global) {
   register_baseline(app, global);
   register_query(app, global);
   register_eval(app, global);
+}
+
+namespace {
+
+// Whether `v` is a finite number written alone; its value in *x.
+bool parse_finite(const std::string& v, double* x) {
+  char* end = nullptr;
+  *x = std::strtod(v.c_str(), &end);
+  return end != v.c_str() && *end == 0 && std::isfinite(*x);
+}
+
+}  // namespace
+
+CLI::Validator positive_number() {
+  return CLI::Validator(
+      [](std::string& v) -> std::string {
+        double x = 0;
+        if (!parse_finite(v, &x) || !(x > 0)) return "must be a number > 0, not '" + v + "'";
+        return {};
+      },
+      "> 0", "positive");
+}
+
+CLI::Validator non_negative_number() {
+  return CLI::Validator(
+      [](std::string& v) -> std::string {
+        double x = 0;
+        if (!parse_finite(v, &x) || !(x >= 0)) return "must be a number >= 0, not '" + v + "'";
+        return {};
+      },
+      ">= 0", "non-negative");
+}
+
+CLI::Validator seed_number() {
+  return CLI::Validator(
+      [](std::string& v) -> std::string {
+        const std::string bad = "must be a whole number from 0 to 18446744073709551615, not '" + v + "'";
+        if (v.empty() || v.size() > 20 || v.find_first_not_of("0123456789") != std::string::npos) return bad;
+        errno = 0;
+        std::strtoull(v.c_str(), nullptr, 10);
+        if (errno == ERANGE) return bad;
+        return {};
+      },
+      "0..2^64-1", "seed");
 }
 
 void set_action(CLI::App* sub, std::function<void()> action) {

@@ -13,6 +13,14 @@ struct GlobalOptions {
   bool quiet = false;
 };
 
+// Number checks with readable messages (CLI11's PositiveNumber and
+// NonNegativeNumber print the largest double, 309 digits, as the bound).
+CLI::Validator positive_number();      // a finite number > 0
+CLI::Validator non_negative_number();  // a finite number >= 0
+// A seed: a whole number from 0 to 2^64 - 1, written in digits (no sign,
+// fraction or exponent: "-1" and "1e23" would otherwise wrap silently).
+CLI::Validator seed_number();
+
 // Adds every subcommand; each stores its action for run_selected().
 void register_commands(CLI::App& app, GlobalOptions& global);
 // Stores the action run when `sub` is the selected subcommand.

@@ -16,7 +16,7 @@ int main(int argc, char** argv) {
   app.add_option("--device", global.device,
                  "OpenCL device index (see `ag2gs devices`); default $AG2GS_DEVICE, "
                  "else the first GPU, else the CPU")
-      ->check(CLI::NonNegativeNumber);
+      ->check(ag2gs::cli::non_negative_number());
   app.add_flag("-v,--verbose", global.verbose, "Log more detail");
   app.add_flag("-q,--quiet", global.quiet, "Log only warnings and errors");
   ag2gs::cli::register_commands(app, global);

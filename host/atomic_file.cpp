@@ -1,14 +1,49 @@
 #include "host/atomic_file.h"
 
+#include <signal.h>
 #include <unistd.h>
 
 #include <cerrno>
+#include <cstdlib>
 #include <cstring>
+#include <filesystem>
+#include <mutex>
+#include <set>
 #include <stdexcept>
 
 namespace ag2gs {
 
+namespace fs = std::filesystem;
+
+int remove_stale_temp_files(const std::string& dir) {
+  int removed = 0;
+  std::error_code ec;
+  for (fs::directory_iterator it(dir.empty() ? "." : dir, ec), end; !ec && it != end; it.increment(ec)) {
+    const std::string name = it->path().filename().string();
+    const size_t at = name.rfind(".tmp.");
+    if (at == std::string::npos || at == 0 || at + 5 >= name.size()) continue;
+    const std::string digits = name.substr(at + 5);
+    if (digits.find_first_not_of("0123456789") != std::string::npos || digits.size() > 9) continue;
+    const long pid = std::strtol(digits.c_str(), nullptr, 10);
+    if (pid <= 0 || pid == static_cast<long>(::getpid())) continue;
+    // kill(pid, 0) fails with ESRCH only when no such process exists.
+    if (::kill(static_cast<pid_t>(pid), 0) == 0 || errno != ESRCH) continue;
+    std::error_code rm;
+    if (it->is_regular_file(rm) && fs::remove(it->path(), rm)) ++removed;
+  }
+  return removed;
+}
+
 AtomicFile::AtomicFile(std::string path) : path_(std::move(path)) {
+  {
+    // Once per folder and process: a scan per file would cost O(files^2)
+    // for a folder of renders.
+    static std::mutex lock;
+    static std::set<std::string> cleaned;
+    const std::string dir = fs::path(path_).parent_path().string();
+    std::lock_guard<std::mutex> hold(lock);
+    if (cleaned.insert(dir).second) remove_stale_temp_files(dir);
+  }
   temp_ = path_ + ".tmp." + std::to_string(static_cast<long>(::getpid()));
   file_ = std::fopen(temp_.c_str(), "wb");
   if (!file_) {

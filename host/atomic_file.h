@@ -2,7 +2,8 @@
 // "<path>.tmp.<pid>", which is flushed, synced and renamed over `path` only by
 // commit(). Until then an existing `path` is untouched; a writer destroyed
 // without commit() (an exception, a failed write) removes its temporary file,
-// and never a path it did not create itself.
+// and never a path it did not create itself. Temporary files that dead
+// processes left in the folder are removed before the first write there.
 #pragma once
 
 #include <cstddef>
@@ -10,6 +11,12 @@
 #include <string>
 
 namespace ag2gs {
+
+// Deletes "<name>.tmp.<pid>" files in `dir` whose process no longer runs
+// (left by a kill -9 or a power cut during a write); returns how many.
+// Temporary files of live processes are left alone. AtomicFile calls it
+// once per folder and process, before its first write there.
+int remove_stale_temp_files(const std::string& dir);
 
 class AtomicFile {
  public:

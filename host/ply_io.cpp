@@ -504,7 +504,10 @@ void read_ascii(const std::string& path, std::ifstream& in, uint64_t file_size, 
 
 }  // namespace
 
-GaussianSet read_ply(const std::string& path, PlyValues values) {
+namespace {
+
+// The file as it is, numbers unchecked.
+GaussianSet read_ply_unchecked(const std::string& path, PlyValues values) {
   std::ifstream in(path, std::ios::binary);
   if (!in) fail(path, std::string("cannot open: ") + std::strerror(errno));
   in.seekg(0, std::ios::end);
@@ -533,6 +536,84 @@ GaussianSet read_ply(const std::string& path, PlyValues values) {
     read_ascii(path, in, file_size, header, vertex_index, layout, gs, values);
   }
   return gs;
+}
+
+// What is wrong with Gaussian g ("" when nothing).
+std::string invalid_reason(const GaussianSet& gs, size_t g, PlyValues values) {
+  auto bad = [](const char* name, int i, float v) {
+    char buf[96];
+    if (i < 0)
+      std::snprintf(buf, sizeof buf, "%s = %g", name, static_cast<double>(v));
+    else
+      std::snprintf(buf, sizeof buf, "%s_%d = %g", name, i, static_cast<double>(v));
+    return std::string(buf);
+  };
+  for (int i = 0; i < 3; ++i)
+    if (!std::isfinite(gs.means[g * 3 + i])) return bad("position", i, gs.means[g * 3 + i]);
+  for (int i = 0; i < 3; ++i) {
+    const float v = gs.scales[g * 3 + i];
+    if (!std::isfinite(v) || (values == PlyValues::activated && !(v > 0))) return bad("scale", i, v);
+  }
+  float q2 = 0;
+  for (int i = 0; i < 4; ++i) {
+    const float v = gs.quats[g * 4 + i];
+    if (!std::isfinite(v)) return bad("rot", i, v);
+    q2 += v * v;
+  }
+  if (!(q2 > 0)) return "rotation (0, 0, 0, 0), which is no rotation";
+  const float o = gs.opacities[g];
+  if (!std::isfinite(o) || (values == PlyValues::activated && !(o >= 0 && o <= 1))) return bad("opacity", -1, o);
+  const size_t k = static_cast<size_t>(gs.sh_coeffs());
+  for (size_t j = 0; j < k * 3; ++j)
+    if (!std::isfinite(gs.sh[g * k * 3 + j])) return bad("sh", static_cast<int>(j), gs.sh[g * k * 3 + j]);
+  for (int i = 0; i < 3; ++i)
+    if (!std::isfinite(gs.features[g * 3 + i])) return bad("feat", i, gs.features[g * 3 + i]);
+  return {};
+}
+
+}  // namespace
+
+InvalidReport find_invalid_gaussians(const GaussianSet& gs, PlyValues values) {
+  InvalidReport r;
+  for (size_t g = 0; g < gs.size(); ++g) {
+    std::string why = invalid_reason(gs, g, values);
+    if (why.empty()) continue;
+    if (r.count++ == 0) {
+      r.first = g;
+      r.what = std::move(why);
+    }
+  }
+  return r;
+}
+
+GaussianSet read_ply(const std::string& path, PlyValues values, InvalidGaussians policy, size_t* dropped) {
+  GaussianSet gs = read_ply_unchecked(path, values);
+  if (dropped) *dropped = 0;
+  if (policy == InvalidGaussians::keep) return gs;
+  const InvalidReport bad = find_invalid_gaussians(gs, values);
+  if (bad.count == 0) return gs;
+  if (policy == InvalidGaussians::reject)
+    fail(path, std::to_string(bad.count) + " of " + std::to_string(gs.size()) +
+                   " Gaussians hold invalid numbers (the first: vertex " + std::to_string(bad.first) + ", " +
+                   bad.what + "); the file is damaged or was written by a diverged run. Give --drop-invalid to "
+                   "leave them out");
+  GaussianSet kept;
+  kept.sh_degree = gs.sh_degree;
+  kept.resize(gs.size() - bad.count);
+  const size_t k3 = static_cast<size_t>(gs.sh_coeffs()) * 3;
+  size_t out = 0;
+  for (size_t g = 0; g < gs.size(); ++g) {
+    if (!invalid_reason(gs, g, values).empty()) continue;
+    std::copy_n(&gs.means[g * 3], 3, &kept.means[out * 3]);
+    std::copy_n(&gs.scales[g * 3], 3, &kept.scales[out * 3]);
+    std::copy_n(&gs.quats[g * 4], 4, &kept.quats[out * 4]);
+    kept.opacities[out] = gs.opacities[g];
+    std::copy_n(&gs.sh[g * k3], k3, &kept.sh[out * k3]);
+    std::copy_n(&gs.features[g * 3], 3, &kept.features[out * 3]);
+    ++out;
+  }
+  if (dropped) *dropped = bad.count;
+  return kept;
 }
 
 void write_ply(const std::string& path, const GaussianSet& gs, bool with_features, PlyValues values) {

@@ -31,7 +31,26 @@ enum class PlyValues { activated, stored };
 // nx/ny/nz or feat_0..2 (features read as zero). Throws std::runtime_error
 // naming the file and what is wrong: not a PLY, big-endian, truncated data,
 // a missing property, an f_rest count that is no SH degree.
-GaussianSet read_ply(const std::string& path, PlyValues values = PlyValues::activated);
+//
+// Numbers are checked at load (one policy for every reader of Gaussians): a
+// Gaussian with a non-finite value, a zero rotation, or (activated values) a
+// scale <= 0 or an opacity outside [0, 1] is invalid. With
+// InvalidGaussians::reject (the default) any is an error naming the file,
+// how many there are and the first one; with ::drop they are left out and
+// counted in *dropped; ::keep reads the numbers as they are (tools that
+// copy a file's bits).
+enum class InvalidGaussians { reject, drop, keep };
+GaussianSet read_ply(const std::string& path, PlyValues values = PlyValues::activated,
+                     InvalidGaussians policy = InvalidGaussians::reject, size_t* dropped = nullptr);
+
+// The index of the first invalid Gaussian of `gs` (rules above) and what is
+// wrong with it, and how many there are; count 0 when all are valid.
+struct InvalidReport {
+  size_t count = 0;
+  size_t first = 0;
+  std::string what;  // "scale_1 = nan", "rotation (0, 0, 0, 0)", ...
+};
+InvalidReport find_invalid_gaussians(const GaussianSet& gs, PlyValues values = PlyValues::activated);
 
 // Writes `gaussians` (validated first: std::invalid_argument when the array
 // sizes disagree) as a binary little-endian PLY, applying the inverse

@@ -50,8 +50,9 @@ void TrainConfig::validate() const {
     if (!(v >= 0) || !std::isfinite(v)) bad(std::string(name) + " must be finite and >= 0");
   if (!(prune_opacity >= 0 && prune_opacity < 1)) bad("prune_opacity must be in [0, 1)");
   if (!(recycle_opacity >= 0 && recycle_opacity < 1)) bad("recycle_opacity must be in [0, 1)");
-  if (downscales < 0 || downscales > 6) bad("downscales is " + std::to_string(downscales) + "; use 0 (off) to 6");
-  if (res_schedule < 1) bad("res_schedule must be at least 1 iteration");
+  if (downscales < -1 || downscales > 6)
+    bad("downscales is " + std::to_string(downscales) + "; use -1 (from the images), 0 (off) or 1 to 6");
+  if (res_schedule < 0) bad("res_schedule must be 0 (from the iterations) or at least 1 iteration");
   if (grow_every < 0 || grow_from < 0 || grow_until < 0 || !(grow_min_seen >= 0 && grow_min_seen <= 1))
     bad("grow_every, grow_from and grow_until must be >= 0 and grow_min_seen in [0, 1]");
   if (!(grow_threshold > 0) || !std::isfinite(grow_threshold)) bad("grow_threshold must be finite and > 0");
@@ -98,6 +99,17 @@ GrowthConfig TrainConfig::growth_config(size_t train_views) const {
   g.recycle_opacity = static_cast<float>(recycle_opacity);
   g.round_growth = static_cast<float>(grow_budget);
   return g;
+}
+
+int TrainConfig::auto_downscales(int min_side) {
+  int levels = 0;
+  while (levels < 3 && (min_side >> (levels + 1)) >= kCoarseMinSide) ++levels;
+  return levels;
+}
+
+int TrainConfig::auto_res_schedule(int iterations, int downscales) {
+  if (downscales <= 0) return 1;
+  return std::max(1, std::min(iterations / (2 * downscales), 3000));
 }
 
 size_t TrainConfig::effective_max_gaussians(size_t view_pixels, size_t initial) const {
@@ -344,6 +356,13 @@ Trainer::Trainer(Runtime& rt, Scene& scene, const TrainConfig& config)
   std::vector<Camera> train_cameras;
   for (int v : train_views_) train_cameras.push_back(scene_.views()[v].camera);
   voxel_choice_ = choose_top_voxel(config_.anchors, scene_.bounds(), scene_.points(), train_cameras);
+  if (config_.downscales < 0) {
+    int min_side = std::numeric_limits<int>::max();
+    for (const Camera& c : train_cameras) min_side = std::min({min_side, c.width, c.height});
+    config_.downscales = TrainConfig::auto_downscales(min_side);
+  }
+  if (config_.res_schedule == 0)
+    config_.res_schedule = TrainConfig::auto_res_schedule(config_.iterations, config_.downscales);
   const VoxelGrid grid = VoxelGrid::from_bounds(scene_.bounds(), config_.anchors, voxel_choice_.top_voxel);
   init_stats_ = model_.initialise_from_points(scene_.points(), scene_.colors(), grid, config_.anchors, config_.seed);
   if (model_.size() == 0)
@@ -723,6 +742,7 @@ void Trainer::save_checkpoint(const std::string& model_dir) {
                                 {"scene_dir", scene_.dir()},
                                 {"adam", groups},
                                 {"growth", {{"steps", gs.steps}, {"step", gs.step}}}};
+  if (!run_record_.is_null()) archive.meta["checkpoint"]["run"] = run_record_;
   fs::create_directories(model_dir);
   write_model_archive(checkpoint_path(model_dir), archive);
 }

@@ -328,6 +328,49 @@ TEST(Ply, ZeroGaussiansRoundTrip) {
   EXPECT_EQ(back.sh_degree, 3);
 }
 
+// One validation policy at load: non-finite numbers, zero rotations and
+// (activated values) scales <= 0 or opacities outside [0, 1] are refused
+// naming the file, the count and the first one, or dropped on request.
+TEST(Ply, InvalidNumbersAreRefusedNamingTheFirstOrDropped) {
+  TempDir dir;
+  struct Case {
+    const char* name;
+    std::function<void(GaussianSet&, size_t)> spoil;
+    const char* needle;
+  };
+  const std::vector<Case> cases = {
+      {"nan_position", [](GaussianSet& g, size_t i) { g.means[3 * i + 1] = NAN; }, "position_1 = nan"},
+      {"inf_scale", [](GaussianSet& g, size_t i) { g.scales[3 * i + 2] = INFINITY; }, "scale_2 = inf"},
+      {"zero_rotation", [](GaussianSet& g, size_t i) { std::fill_n(&g.quats[4 * i], 4, 0.f); }, "rotation (0, 0, 0, 0)"},
+      {"nan_opacity", [](GaussianSet& g, size_t i) { g.opacities[i] = NAN; }, "opacity = nan"},
+      {"nan_sh", [](GaussianSet& g, size_t i) { g.sh[i * 16 * 3 + 7] = NAN; }, "sh_7 = nan"},
+  };
+  for (const Case& c : cases) {
+    GaussianSet gs = random_set(3, 10, 4);
+    for (size_t i : {3u, 7u}) c.spoil(gs, i);
+    const std::string path = dir.file(std::string(c.name) + ".ply");
+    write_ply(path, gs, true, PlyValues::stored);
+    expect_error_with<std::runtime_error>([&] { read_ply(path, PlyValues::stored); },
+                                          {path, "2 of 10 Gaussians", "vertex 3", c.needle, "--drop-invalid"});
+    size_t dropped = 0;
+    const GaussianSet kept = read_ply(path, PlyValues::stored, InvalidGaussians::drop, &dropped);
+    EXPECT_EQ(dropped, 2u) << c.name;
+    ASSERT_EQ(kept.size(), 8u) << c.name;
+    EXPECT_EQ(kept.means[3 * 3], gs.means[3 * 4]) << c.name << ": the Gaussian after the first dropped one moved up";
+    EXPECT_EQ(find_invalid_gaussians(kept, PlyValues::stored).count, 0u) << c.name;
+  }
+  // Activated values: a scale of 0 or an opacity above 1 are invalid too;
+  // the file's own logits are not checked for range.
+  GaussianSet gs = random_set(0, 4, 5);
+  gs.opacities[2] = 1.5f;
+  EXPECT_EQ(find_invalid_gaussians(gs).count, 1u);
+  EXPECT_NE(find_invalid_gaussians(gs).what.find("opacity = 1.5"), std::string::npos);
+  EXPECT_EQ(find_invalid_gaussians(gs, PlyValues::stored).count, 0u);
+  gs.opacities[2] = 0.5f;
+  gs.scales[1] = 0.f;
+  EXPECT_EQ(find_invalid_gaussians(gs).first, 0u);
+}
+
 TEST(Ply, AtomicWriteLeavesNoTemporaryFile) {
   TempDir dir;
   const std::string path = dir.file("model.ply");

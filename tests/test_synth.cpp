@@ -931,7 +931,7 @@ TEST(Synth, CliWritesASceneAndReportsErrors) {
   EXPECT_NE(r.output.find("view 3/3"), std::string::npos) << r.output;
   EXPECT_TRUE(fs::exists(d / "images" / "view_002.png"));
   EXPECT_EQ(read_json(d / "synth.json")["seed"].get<uint64_t>(), 9u);
-  r = run_cli("synth " + d.string() + " --hard --objects 3");
+  r = run_cli("synth " + d.string() + " --hard --objects 3 --force");
   EXPECT_EQ(r.code, 1) << r.output;
   EXPECT_NE(r.output.find("ag2gs synth: error: hard mode needs at least 5 objects"), std::string::npos) << r.output;
 }

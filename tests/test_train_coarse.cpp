@@ -153,9 +153,50 @@ TEST(TrainCoarse, ConfigRoundTripsAndOldFilesMeanFullResolution) {
   EXPECT_EQ(TrainConfig::from_json(old).downscales, 0);
   cfg.downscales = 7;
   EXPECT_THROW(cfg.validate(), std::invalid_argument);
-  cfg.downscales = 1;
-  cfg.res_schedule = 0;
+  cfg.downscales = -2;
   EXPECT_THROW(cfg.validate(), std::invalid_argument);
+  cfg.downscales = 1;
+  cfg.res_schedule = -1;
+  EXPECT_THROW(cfg.validate(), std::invalid_argument);
+  // -1 and 0 are the defaults: chosen from the images and the iterations.
+  cfg.downscales = -1;
+  cfg.res_schedule = 0;
+  EXPECT_NO_THROW(cfg.validate());
+}
+
+// The default coarse-to-fine: as many halvings (at most 3) as keep the
+// shorter image side at 64 pixels or more, full resolution by the middle of
+// the run and by iteration 3000 per level in long runs; the trainer holds
+// the chosen values (so checkpoints do).
+TEST(TrainCoarse, DefaultLevelsComeFromTheImagesAndTheScheduleFromTheIterations) {
+  EXPECT_EQ(TrainConfig::auto_downscales(120), 0);  // the sample at 160x120
+  EXPECT_EQ(TrainConfig::auto_downscales(127), 0);
+  EXPECT_EQ(TrainConfig::auto_downscales(128), 1);
+  EXPECT_EQ(TrainConfig::auto_downscales(300), 2);  // the cup at -r 2, 400x300
+  EXPECT_EQ(TrainConfig::auto_downscales(512), 3);
+  EXPECT_EQ(TrainConfig::auto_downscales(4000), 3);
+  EXPECT_EQ(TrainConfig::auto_res_schedule(2000, 2), 500);
+  EXPECT_EQ(TrainConfig::auto_res_schedule(30000, 2), 3000);
+  EXPECT_EQ(TrainConfig::auto_res_schedule(30000, 3), 3000);
+  EXPECT_EQ(TrainConfig::auto_res_schedule(3, 3), 1);
+  EXPECT_EQ(TrainConfig::auto_res_schedule(100, 0), 1);
+  SceneOptions so;
+  auto scene = Scene::open(sample_scene(), so);  // 160x120: no coarse level
+  TrainConfig c;
+  c.iterations = 400;
+  Trainer t(test::runtime(), *scene, c);
+  EXPECT_EQ(t.config().downscales, 0);
+  EXPECT_EQ(t.config().res_schedule, 1);
+  EXPECT_EQ(t.config().resolution_level(0), 0);
+  EXPECT_EQ(t.config().to_json()["downscales"], 0);
+  // A resolved config stays as it is.
+  c.downscales = 2;
+  Trainer t2(test::runtime(), *scene, c);
+  EXPECT_EQ(t2.config().downscales, 2);
+  EXPECT_EQ(t2.config().res_schedule, 100);
+  EXPECT_EQ(t2.config().resolution_level(99), 2);
+  EXPECT_EQ(t2.config().resolution_level(100), 1);
+  EXPECT_EQ(t2.config().resolution_level(200), 0);
 }
 
 }  // namespace

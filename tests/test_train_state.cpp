@@ -12,6 +12,7 @@
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
+#include <random>
 
 #include "host/model_io.h"
 #include "host/ply_io.h"
@@ -241,10 +242,10 @@ TEST(TrainState, ResumeRefusesAnotherConfigOrScene) {
   EXPECT_EQ(ok.iteration(), 1);
 }
 
-// Starts `$AG2GS_BINARY args` with stdout and stderr on a pipe, sends SIGINT
+// Starts `$AG2GS_BINARY args` with stdout and stderr on a pipe, sends `sig`
 // once a progress line of iteration >= `after` has appeared, and returns the
 // exit status (-1 unless it exited) with everything it printed.
-test::CliResult run_cli_interrupted(const std::string& args, int after) {
+test::CliResult run_cli_interrupted(const std::string& args, int after, int sig = SIGINT) {
   const char* bin = std::getenv("AG2GS_BINARY");
   const std::string cmd = "exec " + std::string(bin ? bin : "./ag2gs") + " " + args + " 2>&1";
   int fd[2];
@@ -271,7 +272,7 @@ test::CliResult run_cli_interrupted(const std::string& args, int after) {
     // Progress lines: "info: it      7/120  loss ..."
     const size_t at = line.find(" it ");
     if (!sent && at != std::string::npos && std::atoi(line.c_str() + at + 4) >= after) {
-      ::kill(pid, SIGINT);
+      ::kill(pid, sig);
       sent = true;
     }
     line.clear();
@@ -308,6 +309,62 @@ TEST(TrainState, CtrlCSavesACheckpointThatResumesToTheSameBytes) {
   EXPECT_NE(resumed.output.find("resuming"), std::string::npos) << resumed.output;
   test::expect_same_model_files(dir.file("straight"), dir.file("cut"),
                                 "the uninterrupted and the interrupted + resumed run");
+}
+
+// The command the run printed after "continue with".
+std::string printed_resume_command(const std::string& output) {
+  const size_t at = output.find("continue with\n");
+  if (at == std::string::npos) return "";
+  const size_t start = output.find("ag2gs ", at);
+  const size_t end = output.find('\n', start);
+  return start == std::string::npos ? "" : output.substr(start + 6, end - start - 6);
+}
+
+// SIGTERM (job schedulers, `docker stop`, `timeout`) at an iteration drawn
+// at random: exit 143 with a checkpoint, and the printed command alone, run
+// as printed, gives the bytes of the uninterrupted run, stages included.
+TEST(TrainState, SigtermAtARandomIterationResumesToTheSameBytesWithItsStages) {
+  test::ScratchDir dir("train_sigterm");
+  const std::string scene = sample_scene();
+  const std::string args = "train " + scene +
+                           " -r 2 --iters 90 --stages 1 --seed 5 --log-every 1 --grow-from 20 --grow-every 20 "
+                           "--grow-threshold 1e-3 -o ";
+  const test::CliResult straight = test::run_cli(args + dir.file("straight"));
+  ASSERT_EQ(straight.code, 0) << straight.output;
+
+  std::random_device entropy;
+  const int after = 3 + static_cast<int>(entropy() % 60);
+  std::printf("SIGTERM after iteration %d of 90\n", after);
+  const test::CliResult cut = run_cli_interrupted(args + dir.file("cut"), after, SIGTERM);
+  ASSERT_EQ(cut.code, 143) << cut.output;
+  EXPECT_NE(cut.output.find("SIGTERM: checkpoint at iteration"), std::string::npos) << cut.output;
+  const std::string resume = printed_resume_command(cut.output);
+  ASSERT_NE(resume.find("--resume"), std::string::npos) << cut.output;
+  EXPECT_EQ(resume.find("--stages"), std::string::npos) << "the checkpoint should hold the stages: " << resume;
+  const ModelArchive ck = read_model_archive(dir.file("cut/checkpoint.ag2gs"));
+  EXPECT_EQ(ck.meta["checkpoint"]["run"]["stages"], nlohmann::json::array({1}));
+  EXPECT_LT(ck.meta["checkpoint"]["iteration"].get<int>(), 90);
+
+  const test::CliResult resumed = test::run_cli(resume + " --log-every 0");
+  ASSERT_EQ(resumed.code, 0) << resumed.output;
+  EXPECT_EQ(resumed.output.find("stage 2: "), std::string::npos) << "stage 2 ran on resume: " << resumed.output;
+  EXPECT_EQ(resumed.output.find("stage 3"), std::string::npos) << "stage 3 ran on resume: " << resumed.output;
+  test::expect_same_model_files(dir.file("straight"), dir.file("cut"),
+                                "the uninterrupted and the SIGTERM + resumed run");
+}
+
+TEST(TrainState, SighupSavesACheckpointAndTheBaselineKeepsItsModelOnSigterm) {
+  test::ScratchDir dir("train_sighup");
+  const std::string scene = sample_scene();
+  const test::CliResult hup =
+      run_cli_interrupted("train " + scene + " -r 4 --iters 400 --log-every 1 -o " + dir.file("hup"), 3, SIGHUP);
+  EXPECT_EQ(hup.code, 129) << hup.output;
+  EXPECT_TRUE(fs::exists(dir.file("hup/checkpoint.ag2gs"))) << hup.output;
+  const test::CliResult base =
+      run_cli_interrupted("baseline " + scene + " -r 4 --iters 400 --log-every 1 -o " + dir.file("base"), 3, SIGTERM);
+  EXPECT_EQ(base.code, 143) << base.output;
+  EXPECT_TRUE(fs::exists(dir.file("base/point_cloud.ply"))) << base.output;
+  EXPECT_NE(base.output.find("the model so far"), std::string::npos) << base.output;
 }
 
 }  // namespace

@@ -1,0 +1,98 @@
+#include "cli/run_guard.h"
+
+#include <unistd.h>
+
+#include <filesystem>
+#include <stdexcept>
+
+namespace ag2gs::cli {
+
+namespace fs = std::filesystem;
+
+namespace {
+
+constexpr int kSignals[3] = {SIGINT, SIGTERM, SIGHUP};
+volatile std::sig_atomic_t g_signal = 0;
+
+// Async-signal-safe: only write(2) and _exit(2).
+extern "C" void on_terminate(int sig) {
+  if (g_signal) {
+    static const char msg[] = "\nsecond signal: aborting without saving\n";
+    ssize_t ignored = ::write(2, msg, sizeof msg - 1);
+    (void)ignored;
+    ::_exit(128 + sig);
+  }
+  g_signal = sig;
+  static const char msg[] = "\nstopping: finishing this iteration and saving a checkpoint (again to abort)\n";
+  ssize_t ignored = ::write(2, msg, sizeof msg - 1);
+  (void)ignored;
+}
+
+// `p` with `.`, `..` and the links of its existing part resolved.
+fs::path resolved(const std::string& p) {
+  std::error_code ec;
+  fs::path r = fs::weakly_canonical(fs::absolute(p), ec);
+  return ec ? fs::absolute(p).lexically_normal() : r;
+}
+
+}  // namespace
+
+InterruptGuard::InterruptGuard() {
+  g_signal = 0;
+  struct sigaction sa {};
+  sa.sa_handler = on_terminate;
+  sigemptyset(&sa.sa_mask);
+  for (int i = 0; i < 3; ++i) ::sigaction(kSignals[i], &sa, &old_[i]);
+}
+
+InterruptGuard::~InterruptGuard() {
+  for (int i = 0; i < 3; ++i) ::sigaction(kSignals[i], &old_[i], nullptr);
+}
+
+int InterruptGuard::signal() { return g_signal; }
+
+std::string InterruptGuard::signal_name() {
+  switch (g_signal) {
+    case SIGINT: return "Ctrl-C";
+    case SIGTERM: return "SIGTERM";
+    case SIGHUP: return "SIGHUP";
+    default: return "signal " + std::to_string(static_cast<int>(g_signal));
+  }
+}
+
+std::vector<std::string> model_files_in(const std::string& dir) {
+  std::vector<std::string> found;
+  std::error_code ec;
+  for (const char* name : {"model.ag2gs", "checkpoint.ag2gs", "point_cloud.ply"})
+    if (fs::exists(fs::path(dir) / name, ec)) found.push_back(name);
+  return found;
+}
+
+void refuse_model_overwrite(const std::string& dir, bool force, const std::string& proceed) {
+  const std::vector<std::string> found = model_files_in(dir);
+  if (force || found.empty()) return;
+  std::string list;
+  for (const std::string& f : found) list += (list.empty() ? "" : ", ") + f;
+  throw std::runtime_error(dir + " already holds a trained model (" + list + "); nothing was changed. Give " +
+                           proceed + ", or choose another -o");
+}
+
+void refuse_nonempty_dir(const std::string& dir, bool force, const std::string& what) {
+  std::error_code ec;
+  if (force || !fs::is_directory(dir, ec) || fs::is_empty(dir, ec)) return;
+  throw std::runtime_error(dir + " exists and is not empty; writing there would replace " + what +
+                           ". Nothing was changed: choose a new folder, or give --force to write over it");
+}
+
+void refuse_output_over_inputs(const std::string& out, const std::vector<std::string>& inputs,
+                               const std::string& flag) {
+  const fs::path o = resolved(out);
+  for (const std::string& in : inputs) {
+    if (in.empty()) continue;
+    if (o == resolved(in))
+      throw std::runtime_error(flag + " " + out + " is the input " + in +
+                               "; writing there would destroy it. Nothing was changed: choose another " + flag);
+  }
+}
+
+}  // namespace ag2gs::cli

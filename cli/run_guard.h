@@ -1,0 +1,56 @@
+// What keeps a user's work safe across the subcommands: termination signals
+// that end a long run cleanly, and outputs that never replace results or
+// inputs by accident.
+#pragma once
+
+#include <csignal>
+#include <string>
+#include <vector>
+
+namespace ag2gs::cli {
+
+// While alive, SIGINT (Ctrl-C), SIGTERM (job schedulers, `docker stop`,
+// `timeout`) and SIGHUP (a closed terminal) set a flag that a training loop
+// reads after each iteration, so it can write its checkpoint and exit with
+// 128 + the signal's number (130, 143, 129). A second signal ends the
+// process at once with that status. The previous handlers come back on
+// destruction.
+class InterruptGuard {
+ public:
+  InterruptGuard();
+  ~InterruptGuard();
+  InterruptGuard(const InterruptGuard&) = delete;
+  InterruptGuard& operator=(const InterruptGuard&) = delete;
+
+  // The signal received (0 = none).
+  static int signal();
+  static bool interrupted() { return signal() != 0; }
+  // 128 + signal(): the shell's status for a process ended by it.
+  static int exit_code() { return 128 + signal(); }
+  // "Ctrl-C", "SIGTERM", "SIGHUP".
+  static std::string signal_name();
+
+ private:
+  struct sigaction old_[3];
+};
+
+// `dir` holds the files of a trained model (model.ag2gs, checkpoint.ag2gs or
+// point_cloud.ply): the names of those present, empty otherwise.
+std::vector<std::string> model_files_in(const std::string& dir);
+
+// Refuses (std::runtime_error) to start a new model in a folder that holds
+// one, unless `force`: the message names the files and the flags that
+// proceed (`proceed`, e.g. "--resume to continue it, --force to replace it").
+void refuse_model_overwrite(const std::string& dir, bool force, const std::string& proceed);
+
+// Refuses to write into a folder that exists and is not empty, unless
+// `force`; `what` says what would be replaced ("the scene's images").
+void refuse_nonempty_dir(const std::string& dir, bool force, const std::string& what);
+
+// Refuses an output path that names one of the input files (`flag` names
+// the option, e.g. "-o"). Paths are compared after resolving `.`, `..` and
+// the symbolic links of the parts that exist.
+void refuse_output_over_inputs(const std::string& out, const std::vector<std::string>& inputs,
+                               const std::string& flag);
+
+}  // namespace ag2gs::cli

@@ -1,0 +1,178 @@
+// Nothing a user had is lost by a mistyped command: outputs that would
+// replace a model, a scene or an input are refused (and the files keep their
+// bytes), seeds and ranges are checked with readable bounds, and the
+// temporary files of killed writers are cleaned up.
+#include <gtest/gtest.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <filesystem>
+#include <map>
+#include <string>
+
+#include "cli_test_util.h"
+#include "host/atomic_file.h"
+#include "host/ply_io.h"
+#include "io_test_util.h"
+
+namespace fs = std::filesystem;
+
+namespace ag2gs {
+namespace {
+
+std::string sample_scene() { return test::source_path("data_samples/synth_small"); }
+std::string other_scene() { return test::source_path("data_samples/synth_hard"); }
+
+// Every regular file below `dir` with its bytes.
+std::map<std::string, std::string> snapshot(const fs::path& dir) {
+  std::map<std::string, std::string> files;
+  for (const auto& e : fs::recursive_directory_iterator(dir))
+    if (e.is_regular_file()) files[fs::relative(e.path(), dir).string()] = test::read_bytes(e.path().string());
+  return files;
+}
+
+void expect_unchanged(const std::map<std::string, std::string>& before, const fs::path& dir, const std::string& what) {
+  const std::map<std::string, std::string> after = snapshot(dir);
+  EXPECT_EQ(before.size(), after.size()) << what << ": files were added or removed in " << dir;
+  for (const auto& [name, bytes] : before) {
+    auto it = after.find(name);
+    ASSERT_NE(it, after.end()) << what << ": " << name << " was deleted";
+    EXPECT_TRUE(it->second == bytes) << what << ": " << name << " was changed";
+  }
+}
+
+// A pid that no process has: a child that has exited and been reaped.
+long dead_pid() {
+  const pid_t pid = ::fork();
+  if (pid == 0) ::_exit(0);
+  int status = 0;
+  ::waitpid(pid, &status, 0);
+  return static_cast<long>(pid);
+}
+
+const std::string kTiny = " -r 4 --iters 6 --stages 1 --log-every 0 --seed 3";
+
+TEST(CliGuards, TrainAndBaselineRefuseAFolderThatHoldsAModel) {
+  test::ScratchDir dir("guard_train");
+  const std::string m = dir.file("m");
+  test::CliResult r = test::run_cli("train " + sample_scene() + " -o " + m + kTiny);
+  ASSERT_EQ(r.code, 0) << r.output;
+  const auto before = snapshot(m);
+
+  r = test::run_cli("train " + other_scene() + " -o " + m + kTiny);
+  EXPECT_EQ(r.code, 1) << r.output;
+  EXPECT_NE(r.output.find("already holds a trained model"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("--resume"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("--force"), std::string::npos) << r.output;
+  expect_unchanged(before, m, "train into a model folder");
+
+  r = test::run_cli("baseline " + other_scene() + " -o " + m + " -r 4 --iters 5 --log-every 0");
+  EXPECT_EQ(r.code, 1) << r.output;
+  EXPECT_NE(r.output.find("--force"), std::string::npos) << r.output;
+  expect_unchanged(before, m, "baseline into a model folder");
+
+  // --force proceeds and replaces the model.
+  r = test::run_cli("train " + other_scene() + " -o " + m + kTiny + " --force");
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_FALSE(test::read_bytes(m + "/model.ag2gs") == before.at("model.ag2gs"));
+}
+
+TEST(CliGuards, SynthRefusesAFolderThatIsNotEmpty) {
+  test::ScratchDir dir("guard_synth");
+  fs::copy(sample_scene(), dir.path() / "scene", fs::copy_options::recursive);
+  const auto before = snapshot(dir.path() / "scene");
+  test::CliResult r = test::run_cli("synth " + dir.file("scene") + " --views 4 --width 32 --height 24");
+  EXPECT_EQ(r.code, 1) << r.output;
+  EXPECT_NE(r.output.find("not empty"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("--force"), std::string::npos) << r.output;
+  expect_unchanged(before, dir.path() / "scene", "synth into a scene");
+  // An empty folder is fine.
+  fs::create_directories(dir.path() / "empty");
+  r = test::run_cli("synth " + dir.file("empty") + " --views 3 --width 32 --height 24 --points 50");
+  EXPECT_EQ(r.code, 0) << r.output;
+}
+
+TEST(CliGuards, EvalRefusesAReportOverItsInputs) {
+  test::ScratchDir dir("guard_eval");
+  const std::string scene = sample_scene();
+  test::write_bytes(dir.file("m/model.ag2gs"), "the user's model");
+  test::write_bytes(dir.file("m/metrics.json"), "{\"final\": 1}");
+  const auto before = snapshot(dir.path() / "m");
+  const std::string common = "eval " + dir.file("m") + " --scene " + scene + " --labels " + scene + "/label --vocab " +
+                             scene + "/vocab.json --clicks " + scene + "/clicks.json -o ";
+  for (const std::string& out : {dir.file("m/model.ag2gs"), dir.file("m/./metrics.json"), dir.file("m/../m/model.ag2gs")}) {
+    test::CliResult r = test::run_cli(common + out);
+    EXPECT_EQ(r.code, 1) << r.output;
+    EXPECT_NE(r.output.find("is the input"), std::string::npos) << r.output;
+  }
+  expect_unchanged(before, dir.path() / "m", "eval -o over the model");
+}
+
+TEST(CliGuards, SeedsAndRangesAreCheckedWithReadableBounds) {
+  for (const std::string cmd : {"train x -o y", "baseline x -o y", "synth y"})
+    for (const std::string seed : {"-1", "1e23", "1.5", "18446744073709551616"}) {
+      test::CliResult r = test::run_cli(cmd + " --seed " + seed);
+      EXPECT_NE(r.code, 0) << cmd << " --seed " << seed << ": " << r.output;
+      EXPECT_NE(r.output.find("--seed: must be a whole number"), std::string::npos) << r.output;
+    }
+  for (const std::string bad : {"--top-cells 0", "--w-prop -1", "--prop-tau nan", "--save-every -3"}) {
+    test::CliResult r = test::run_cli("train x -o y " + bad);
+    EXPECT_NE(r.code, 0) << bad << ": " << r.output;
+    EXPECT_LT(r.output.size(), 300u) << bad << " gives an unreadable message: " << r.output;
+    EXPECT_EQ(r.output.find("179769313486"), std::string::npos) << r.output;
+  }
+}
+
+TEST(CliGuards, GaussianFilesWithInvalidNumbersAreRefusedByInfoAndRender) {
+  test::ScratchDir dir("guard_ply");
+  GaussianSet gs;
+  gs.sh_degree = 0;
+  gs.resize(5);
+  for (size_t i = 0; i < 5; ++i) {
+    gs.means[3 * i + 2] = 0.2f * i;
+    for (int k = 0; k < 3; ++k) gs.scales[3 * i + k] = 0.1f;
+    gs.quats[4 * i] = 1.f;
+    gs.opacities[i] = 0.8f;
+  }
+  gs.means[3 * 2] = NAN;
+  const std::string ply = dir.file("bad.ply");
+  write_ply(ply, gs);
+  test::CliResult r = test::run_cli("info " + ply);
+  EXPECT_EQ(r.code, 1) << r.output;
+  EXPECT_NE(r.output.find("1 of 5 Gaussians hold invalid numbers"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("vertex 2"), std::string::npos) << r.output;
+  EXPECT_EQ(r.output.find("nan\n"), std::string::npos) << "info printed a nan statistic: " << r.output;
+  const std::string render =
+      "render --ply " + ply + " --scene " + sample_scene() + " --views view_000 -r 4 -o " + dir.file("out");
+  r = test::run_cli(render);
+  EXPECT_EQ(r.code, 1) << r.output;
+  EXPECT_NE(r.output.find("--drop-invalid"), std::string::npos) << r.output;
+  EXPECT_FALSE(fs::exists(dir.file("out/rgb/view_000.png")));
+  r = test::run_cli(render + " --drop-invalid");
+  EXPECT_EQ(r.code, 0) << r.output;
+  EXPECT_NE(r.output.find("left out 1 Gaussians"), std::string::npos) << r.output;
+  EXPECT_TRUE(fs::exists(dir.file("out/rgb/view_000.png")));
+}
+
+TEST(CliGuards, StaleTemporaryFilesOfDeadProcessesAreRemoved) {
+  test::ScratchDir dir("guard_tmp");
+  const std::string dead = dir.file("point_cloud.ply.tmp." + std::to_string(dead_pid()));
+  const std::string live = dir.file("model.ag2gs.tmp." + std::to_string(static_cast<long>(::getppid())));
+  const std::string user = dir.file("notes.tmp.txt");
+  for (const std::string& f : {dead, live, user}) test::write_bytes(f, "x");
+  EXPECT_EQ(remove_stale_temp_files(dir.str()), 1);
+  EXPECT_FALSE(fs::exists(dead));
+  EXPECT_TRUE(fs::exists(live)) << "a running process's temporary file was removed";
+  EXPECT_TRUE(fs::exists(user)) << "a file that is not ours was removed";
+
+  // The next write into the folder cleans up after a killed run.
+  const std::string m = dir.file("m");
+  const std::string stale = m + "/checkpoint.ag2gs.tmp." + std::to_string(dead_pid());
+  test::write_bytes(stale, std::string(1 << 16, 'x'));
+  test::CliResult r = test::run_cli("train " + sample_scene() + " -o " + m + kTiny);
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_FALSE(fs::exists(stale)) << "a dead run's temporary file survived the next write";
+}
+
+}  // namespace
+}  // namespace ag2gs
