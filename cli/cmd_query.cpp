@@ -349,7 +349,12 @@ void register_query(CLI::App& app, GlobalOptions& global) {
                 "COLMAP model folder inside the scene (default: sparse/0/, else sparse/ when it holds the model)");
   q->add_option("-r,--resolution", a->resolution, "Divide the cameras by R (default: the model's training -r)");
   add_query_config_options(q, a->config);
-  set_action(q, [&global, a] { cmd_query(global, *a); });
+  set_action(q, [&global, a, q] {
+    if (q->count("--text") > 0 && a->text.find_first_not_of(" \t") == std::string::npos)
+      throw std::invalid_argument("--text is empty: give a phrase listed in the --vocab file, e.g. --text "
+                                  "\"red mug\"");
+    cmd_query(global, *a);
+  });
 }
 
 }  // namespace ag2gs::cli

@@ -90,11 +90,45 @@ int default_device_index(const std::vector<DeviceInfo>& devices) {
   return 0;
 }
 
+// PoCL (the CPU driver) hides its device when it cannot create its kernel
+// cache: $POCL_CACHE_DIR, else $XDG_CACHE_HOME/pocl, else $HOME/.cache/pocl.
+// The folder that would hold that cache when it cannot be written ("" when
+// it can, or when none is known).
+std::string unwritable_cache_root() {
+  std::string dir;
+  if (const char* p = std::getenv("POCL_CACHE_DIR"); p && *p)
+    dir = p;
+  else if (const char* x = std::getenv("XDG_CACHE_HOME"); x && *x)
+    dir = x;
+  else if (const char* h = std::getenv("HOME"); h && *h)
+    dir = std::string(h) + "/.cache";
+  else
+    return "";
+  // The deepest existing folder on the way decides.
+  std::filesystem::path p(dir);
+  std::error_code ec;
+  while (!p.empty() && !std::filesystem::exists(p, ec)) p = p.parent_path();
+  if (p.empty()) return "";
+  // A real probe: access(2) says yes to root where mkdir fails (/proc).
+  std::string probe = (p / ".ag2gs_probe_XXXXXX").string();
+  if (::mkdtemp(probe.data()) == nullptr) return p.string();
+  ::rmdir(probe.c_str());
+  return "";
+}
+
 int resolve_device_index(int requested, const std::vector<DeviceInfo>& devices) {
-  if (devices.empty())
+  if (devices.empty()) {
+    const std::string cache = unwritable_cache_root();
+    if (!cache.empty())
+      throw std::runtime_error(
+          "no OpenCL device found, and " + cache +
+          " is not writable: the CPU driver (PoCL) needs a writable kernel cache and hides its device without "
+          "one. Set XDG_CACHE_HOME (or POCL_CACHE_DIR) to a writable folder, e.g. `XDG_CACHE_HOME=/tmp/cache`, or "
+          "make HOME writable.");
     throw std::runtime_error(
         "no OpenCL device found. Install an OpenCL driver: on Debian `apt-get install pocl-opencl-icd` "
         "for the CPU, or your GPU vendor's OpenCL ICD; `clinfo -l` lists what the loader sees.");
+  }
   int index = requested;
   if (index < 0) {
     if (const char* env = std::getenv("AG2GS_DEVICE"); env && *env) {

@@ -86,4 +86,27 @@ std::vector<float> read_rgb(const std::string& path, int& width, int& height) {
   return out;
 }
 
+bool jpeg_is_truncated(const std::vector<unsigned char>& b) {
+  const size_t n = b.size();
+  if (n < 4 || b[0] != 0xFF || b[1] != 0xD8) return false;  // not a JPEG
+  // Segments with a length up to the first start of scan (FF DA).
+  size_t i = 2;
+  while (true) {
+    while (i < n && b[i] == 0xFF && i + 1 < n && b[i + 1] == 0xFF) ++i;  // fill bytes
+    if (i + 4 > n || b[i] != 0xFF) return true;                          // cut inside the headers
+    const unsigned char marker = b[i + 1];
+    if (marker == 0xD9) return false;  // an image with no scan: not ours to judge
+    const size_t len = (static_cast<size_t>(b[i + 2]) << 8) | b[i + 3];
+    if (len < 2) return true;
+    i += 2 + len;
+    if (marker == 0xDA) break;
+    if (i > n) return true;
+  }
+  // Entropy-coded data: FF is followed by 00 (stuffing), D0-D7 (restart) or
+  // a marker; the image ends at the first FF D9.
+  for (; i + 1 < n; ++i)
+    if (b[i] == 0xFF && b[i + 1] == 0xD9) return false;
+  return true;
+}
+
 }  // namespace ag2gs

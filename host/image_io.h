@@ -13,4 +13,11 @@ void write_gray16_png(const std::string& path, const std::vector<float>& img, in
 // Reads any image OpenCV can decode as [H,W,3] floats in [0,1]. Throws naming the file.
 std::vector<float> read_rgb(const std::string& path, int& width, int& height);
 
+// Whether `bytes` are a JPEG (FF D8 ...) whose image data stops before its
+// end-of-image marker (FF D9): a file cut short by a failed copy or
+// download, which decoders accept with grey or missing rows. The markers
+// are walked from the start, so a thumbnail's own markers inside APP1 do
+// not count; data after the end marker (motion photos) is allowed.
+bool jpeg_is_truncated(const std::vector<unsigned char>& bytes);
+
 }  // namespace ag2gs

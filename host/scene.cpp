@@ -1,8 +1,14 @@
 #include "host/scene.h"
 
+#include <spdlog/spdlog.h>
+
 #include <algorithm>
+#include <cerrno>
 #include <cmath>
+#include <cstring>
 #include <filesystem>
+#include <fstream>
+#include <iterator>
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
@@ -10,6 +16,7 @@
 #include <unordered_map>
 
 #include "host/colmap_reader.h"
+#include "host/image_io.h"
 #include "host/npy_io.h"
 
 namespace ag2gs {
@@ -212,9 +219,24 @@ std::unique_ptr<Scene> Scene::open(const std::string& dir, const SceneOptions& o
   }
   const ColmapModel model = read_colmap_model(sparse.string());
   if (model.cameras_for_images.empty()) fail(sparse.string(), "the model has no registered images");
-  s->points_ = model.points;
-  s->colors_ = model.colors;
   s->points_path_ = points_file(sparse);
+  // Numbers from files are checked at load: a point with a non-finite
+  // coordinate is left out, with a count (a damaged or hand-edited model).
+  size_t non_finite = 0;
+  for (size_t i = 0; i < model.points.size(); ++i) {
+    if (!model.points[i].allFinite()) {
+      ++non_finite;
+      continue;
+    }
+    s->points_.push_back(model.points[i]);
+    if (i < model.colors.size()) s->colors_.push_back(model.colors[i]);
+  }
+  if (non_finite > 0) {
+    const std::string note = s->points_path_ + ": left out " + std::to_string(non_finite) + " of " +
+                             std::to_string(model.points.size()) + " points with non-finite coordinates";
+    spdlog::warn("{}", note);
+    s->notes_.push_back(note);
+  }
 
   fs::path scaled;
   if (options.resolution > 1) {
@@ -257,7 +279,7 @@ std::unique_ptr<Scene> Scene::open(const std::string& dir, const SceneOptions& o
   if (!missing.empty()) {
     fail(images.string(), std::to_string(missing.size()) + " of " + std::to_string(s->views_.size()) +
                               " images of the COLMAP model are missing: " + some_names(missing) +
-                              ". Copy them here, or pass the folder that holds them with --images");
+                              ". Copy them here, or give the scene folder that holds them in images/");
   }
   if (options.eval && s->views_.size() == 1) {
     s->notes_.push_back("--eval with a single image holds it out and leaves nothing to train on");
@@ -419,9 +441,19 @@ void Scene::check_all() {
 }
 
 std::shared_ptr<Image> Scene::load_image(const SceneView& v) const {
-  cv::Mat raw = cv::imread(v.image_path, cv::IMREAD_COLOR | cv::IMREAD_ANYDEPTH);
+  std::vector<unsigned char> bytes;
+  {
+    std::ifstream in(v.image_path, std::ios::binary);
+    if (!in) fail(v.image_path, std::string("cannot be read: ") + std::strerror(errno) + "; check its permissions");
+    bytes.assign(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+    if (in.bad()) fail(v.image_path, std::string("reading failed: ") + std::strerror(errno));
+  }
+  if (jpeg_is_truncated(bytes))
+    fail(v.image_path, "is a truncated JPEG (its data stops before the end-of-image marker, " +
+                           std::to_string(bytes.size()) + " bytes); copy the photo again");
+  cv::Mat raw = bytes.empty() ? cv::Mat() : cv::imdecode(bytes, cv::IMREAD_COLOR | cv::IMREAD_ANYDEPTH);
   if (raw.empty()) {
-    fail(v.image_path, "cannot be decoded as an image (corrupt, truncated or an unsupported format); replace it");
+    fail(v.image_path, "cannot be decoded as an image (corrupt or an unsupported format); replace it");
   }
   const Camera& want = v.downscale ? v.full_camera : v.camera;
   if (raw.cols != want.width || raw.rows != want.height) {
@@ -507,7 +539,10 @@ std::shared_ptr<ViewMasks> Scene::load_masks(const SceneView& v) {
     for (int level : options_.sam_levels) {
       if (level >= levels) {
         fail(v.semantics_path, "has " + std::to_string(levels) + " SAM level(s) but level " + std::to_string(level) +
-                                   " was requested; pick one of 0.." + std::to_string(levels - 1));
+                                   " is used (training reads level 3, LangSplat's largest masks, from its [4,H,W] "
+                                   "_s.npy layout); regenerate the file with LangSplat's preprocessing, or inspect "
+                                   "another level with `ag2gs info --sam-level 0.." +
+                                   std::to_string(levels - 1) + "`");
       }
       cv::Mat map(h, w, CV_32S);
       const float* src = s.data.data() + static_cast<size_t>(level) * h * w;

@@ -10,6 +10,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "host/colmap_writer.h"
+#include "host/image_io.h"
 #include "host/npy_io.h"
 #include "host/scene.h"
 #include "io_test_util.h"
@@ -369,6 +370,35 @@ TEST(SceneErrors, AMissingImageFolderIsNamedBeforeADistortedCameraModel) {
                                                                           "in images/", "OPENCV", "ag2gs undistort"});
 }
 
+// A photo cut short (a failed copy) decodes with grey rows: it is refused,
+// named as truncated, before training sees it.
+TEST(SceneErrors, TruncatedJpegsAreNamedAsSuch) {
+  cv::Mat img(30, 40, CV_8UC3);
+  cv::randu(img, cv::Scalar::all(0), cv::Scalar::all(255));
+  std::vector<unsigned char> jpg;
+  ASSERT_TRUE(cv::imencode(".jpg", img, jpg));
+  EXPECT_FALSE(jpeg_is_truncated(jpg));
+  std::vector<unsigned char> cut(jpg.begin(), jpg.begin() + static_cast<std::ptrdiff_t>(jpg.size() * 6 / 10));
+  EXPECT_TRUE(jpeg_is_truncated(cut));
+  EXPECT_TRUE(jpeg_is_truncated(std::vector<unsigned char>(jpg.begin(), jpg.begin() + 30)));  // inside the headers
+  std::vector<unsigned char> trailer = jpg;
+  for (int i = 0; i < 100; ++i) trailer.push_back(static_cast<unsigned char>(i));  // a motion photo's video
+  EXPECT_FALSE(jpeg_is_truncated(trailer));
+  std::vector<unsigned char> png;
+  ASSERT_TRUE(cv::imencode(".png", img, png));
+  EXPECT_FALSE(jpeg_is_truncated(png));
+  ASSERT_FALSE(cv::imdecode(cut, cv::IMREAD_COLOR).empty()) << "the decoder accepts the cut file: the check is needed";
+
+  ScratchDir dir("scene");
+  make_scene(dir.path(), {});
+  write_bytes(dir.file("images/img_04.png"), std::string(cut.begin(), cut.end()));
+  auto scene = Scene::open(dir.str());
+  expect_error_with<std::runtime_error>([&] { scene->image(4); }, {"img_04.png", "truncated JPEG"});
+  write_bytes(dir.file("images/img_04.png"), std::string(jpg.begin(), jpg.end()));
+  auto again = Scene::open(dir.str());
+  EXPECT_EQ(again->image(4)->width, 40);
+}
+
 TEST(SceneErrors, CorruptOrWrongSizedImages) {
   ScratchDir dir("scene");
   make_scene(dir.path(), {});
@@ -422,6 +452,34 @@ TEST(SceneErrors, DistortedCamerasSayHowToUndistort) {
   for (int i = 1; i <= 10; ++i) cams += std::to_string(i) + " SIMPLE_RADIAL 40 30 32 20 15 0.01\n";
   write_bytes(dir.file("sparse/0/cameras.txt"), cams);
   expect_error_with<std::runtime_error>([&] { Scene::open(dir.str()); }, {"SIMPLE_RADIAL", "ag2gs undistort"});
+}
+
+// Non-finite SfM points are left out at load with a count (a note info
+// prints), not dropped silently; huge finite ones stay (the robust bounds
+// ignore them).
+TEST(SceneErrors, NonFinitePointsAreLeftOutAndCounted) {
+  ScratchDir dir("scene");
+  FixtureOptions o;
+  make_scene(dir.path(), o);
+  std::vector<Eigen::Vector3d> pts;
+  std::vector<Eigen::Vector3<uint8_t>> cols;
+  for (int i = 0; i < 20; ++i) {
+    pts.emplace_back(0.1 * i, 0.05 * i, 0.0);
+    cols.emplace_back(static_cast<uint8_t>(i), 0, 0);
+  }
+  pts[3].x() = std::nan("");
+  pts[7].z() = INFINITY;
+  pts[11].y() = 1e30;
+  write_colmap_model(dir.file("sparse/0"), fixture_cameras(o), pts, cols, true);
+  auto scene = Scene::open(dir.str());
+  ASSERT_EQ(scene->points().size(), 18u);
+  ASSERT_EQ(scene->colors().size(), 18u);
+  EXPECT_EQ(scene->colors()[3].x(), 4) << "colours must follow their points";
+  bool noted = false;
+  for (const std::string& n : scene->notes())
+    noted = noted || (n.find("left out 2 of 20 points with non-finite coordinates") != std::string::npos &&
+                      n.find("points3D.bin") != std::string::npos);
+  EXPECT_TRUE(noted) << "no note naming the file and the count";
 }
 
 TEST(SceneErrors, EmptyPointCloudIsReportedByRequirePoints) {
