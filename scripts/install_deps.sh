@@ -10,6 +10,11 @@ PACKAGES=(
   libcli11-dev nlohmann-json3-dev
   colmap
 )
+# --test: also what the test suite's fuzz smoke test needs (clang with its
+# libFuzzer and sanitizer runtimes).
+if [ "${1:-}" = "--test" ]; then
+  PACKAGES+=(clang libclang-rt-14-dev)
+fi
 
 missing=()
 for p in "${PACKAGES[@]}"; do
