@@ -1,5 +1,6 @@
 #include "host/semantic_io.h"
 
+#include <algorithm>
 #include <cmath>
 #include <fstream>
 #include <nlohmann/json.hpp>
@@ -122,6 +123,22 @@ LabelFrame read_label_frame(const std::string& path) {
       obj.polygon.emplace_back(finite_number(p[0], path, who + " x"), finite_number(p[1], path, who + " y"));
     }
     if (obj.polygon.size() < 3) fail(path, who + " ('" + obj.category + "') has fewer than 3 polygon points");
+    // Pixel coordinates of this frame: a polygon that misses the image
+    // would score as an object with no pixels (labels made at another
+    // size, or x and y swapped).
+    double x0 = obj.polygon[0].first, x1 = x0, y0 = obj.polygon[0].second, y1 = y0;
+    for (const auto& [x, y] : obj.polygon) {
+      x0 = std::min(x0, x), x1 = std::max(x1, x), y0 = std::min(y0, y), y1 = std::max(y1, y);
+      if (std::abs(x) > 64.0 * w || std::abs(y) > 64.0 * h)
+        fail(path, who + " ('" + obj.category + "') has the point (" + std::to_string(x) + ", " + std::to_string(y) +
+                       "), far outside the " + std::to_string(f.width) + "x" + std::to_string(f.height) +
+                       " image of info.width/height; polygons are in that image's pixels");
+    }
+    if (x1 < 0 || y1 < 0 || x0 > w || y0 > h)
+      fail(path, who + " ('" + obj.category + "') lies outside the " + std::to_string(f.width) + "x" +
+                     std::to_string(f.height) + " image of info.width/height (its points span x " +
+                     std::to_string(x0) + ".." + std::to_string(x1) + ", y " + std::to_string(y0) + ".." +
+                     std::to_string(y1) + "); were the labels made at another image size?");
     f.objects.push_back(std::move(obj));
   }
   return f;

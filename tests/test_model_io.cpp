@@ -187,6 +187,10 @@ TEST(SemanticIo, LabelFramePolygonsBecomeMasks) {
       {R"({"info": {"width": 4, "height": 4}, "objects": [{"category": "a", "segmentation": [[0,0],[1],[1,1]]}]})",
        "not [x, y]"},
       {R"({"objects": []})", "LERF-OVS"},
+      {R"({"info": {"width": 4, "height": 4}, "objects": [{"category": "a", "segmentation": [[10,0],[12,0],[12,3]]}]})",
+       "('a') lies outside the 4x4 image"},
+      {R"({"info": {"width": 4, "height": 4}, "objects": [{"category": "a", "segmentation": [[0,0],[1e300,0],[1,1]]}]})",
+       "far outside the 4x4 image"},
   };
   for (const auto& [text, needle] : bad) {
     write_bytes(dir.file("bad.json"), text);
