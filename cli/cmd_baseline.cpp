@@ -152,7 +152,7 @@ void cmd_baseline(const GlobalOptions& global, BaselineArgs& a) {
       // the model so far.
       trainer.save(a.out);
       spdlog::warn("{}: stopped at iteration {} of {}; the model so far is in {} (the baseline cannot resume: "
-                   "run it again for the full schedule)",
+                   "run it again with --force for the full schedule)",
                    InterruptGuard::signal_name(), st.iteration, c.iterations,
                    (fs::path(a.out) / "point_cloud.ply").string());
       spdlog::default_logger()->flush();

@@ -23,7 +23,7 @@ extern "C" void on_terminate(int sig) {
     ::_exit(128 + sig);
   }
   g_signal = sig;
-  static const char msg[] = "\nstopping: finishing this iteration and saving a checkpoint (again to abort)\n";
+  static const char msg[] = "\nstopping: finishing this iteration and saving (send it again to abort)\n";
   ssize_t ignored = ::write(2, msg, sizeof msg - 1);
   (void)ignored;
 }
