@@ -23,7 +23,12 @@ int remove_stale_temp_files(const std::string& dir) {
     const size_t at = name.rfind(".tmp.");
     if (at == std::string::npos || at == 0 || at + 5 >= name.size()) continue;
     const std::string digits = name.substr(at + 5);
-    if (digits.find_first_not_of("0123456789") != std::string::npos || digits.size() > 9) continue;
+    if (digits.find_first_not_of("0123456789") != std::string::npos || digits.size() > 7) continue;  // pid_max
+    // Only the kinds of file ag2gs writes: a user's own "x.tmp.1" stays.
+    const std::string target = name.substr(0, at);
+    const size_t dot = target.rfind('.');
+    static const std::set<std::string> ours = {".ag2gs", ".ply", ".json", ".png", ".npy", ".bin", ".txt"};
+    if (dot == std::string::npos || ours.count(target.substr(dot)) == 0) continue;
     const long pid = std::strtol(digits.c_str(), nullptr, 10);
     if (pid <= 0 || pid == static_cast<long>(::getpid())) continue;
     // kill(pid, 0) fails with ESRCH only when no such process exists.

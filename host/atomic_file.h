@@ -13,7 +13,9 @@
 namespace ag2gs {
 
 // Deletes "<name>.tmp.<pid>" files in `dir` whose process no longer runs
-// (left by a kill -9 or a power cut during a write); returns how many.
+// (left by a kill -9 or a power cut during a write), for the kinds of file
+// ag2gs writes (.ag2gs, .ply, .json, .png, .npy, .bin, .txt); returns how
+// many.
 // Temporary files of live processes are left alone. AtomicFile calls it
 // once per folder and process, before its first write there.
 int remove_stale_temp_files(const std::string& dir);

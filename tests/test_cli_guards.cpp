@@ -178,11 +178,13 @@ TEST(CliGuards, StaleTemporaryFilesOfDeadProcessesAreRemoved) {
   const std::string dead = dir.file("point_cloud.ply.tmp." + std::to_string(dead_pid()));
   const std::string live = dir.file("model.ag2gs.tmp." + std::to_string(static_cast<long>(::getppid())));
   const std::string user = dir.file("notes.tmp.txt");
-  for (const std::string& f : {dead, live, user}) test::write_bytes(f, "x");
+  const std::string user_dead = dir.file("thesis.tex.tmp." + std::to_string(dead_pid()));
+  for (const std::string& f : {dead, live, user, user_dead}) test::write_bytes(f, "x");
   EXPECT_EQ(remove_stale_temp_files(dir.str()), 1);
   EXPECT_FALSE(fs::exists(dead));
   EXPECT_TRUE(fs::exists(live)) << "a running process's temporary file was removed";
   EXPECT_TRUE(fs::exists(user)) << "a file that is not ours was removed";
+  EXPECT_TRUE(fs::exists(user_dead)) << "a file of a kind ag2gs never writes was removed";
 
   // The next write into the folder cleans up after a killed run.
   const std::string m = dir.file("m");
