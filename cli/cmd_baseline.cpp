@@ -155,10 +155,7 @@ void cmd_baseline(const GlobalOptions& global, BaselineArgs& a) {
                    "run it again with --force for the full schedule)",
                    InterruptGuard::signal_name(), st.iteration, c.iterations,
                    (fs::path(a.out) / "point_cloud.ply").string());
-      spdlog::default_logger()->flush();
-      std::fflush(stdout);
-      std::fflush(stderr);
-      std::exit(InterruptGuard::exit_code());
+      InterruptGuard::exit_after_saving();
     }
   }
   const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();

@@ -481,10 +481,7 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
                    InterruptGuard::signal_name(), st.iteration, it_end, a.out,
                    global.device >= 0 ? fmt::format("--device {} ", global.device) : "", a.scene, a.out,
                    a.sparse.empty() ? "" : " --sparse " + a.sparse);
-      spdlog::default_logger()->flush();
-      std::fflush(stdout);
-      std::fflush(stderr);
-      std::exit(InterruptGuard::exit_code());
+      InterruptGuard::exit_after_saving();
     }
     if (a.save_every > 0 && st.iteration % a.save_every == 0 && st.iteration != it_end) {
       trainer.save(a.out);

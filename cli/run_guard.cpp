@@ -1,7 +1,10 @@
 #include "cli/run_guard.h"
 
+#include <spdlog/spdlog.h>
 #include <unistd.h>
 
+#include <cstdio>
+#include <cstdlib>
 #include <filesystem>
 #include <stdexcept>
 
@@ -58,6 +61,13 @@ std::string InterruptGuard::signal_name() {
     case SIGHUP: return "SIGHUP";
     default: return "signal " + std::to_string(static_cast<int>(g_signal));
   }
+}
+
+void InterruptGuard::exit_after_saving() {
+  spdlog::default_logger()->flush();
+  std::fflush(stdout);
+  std::fflush(stderr);
+  std::exit(exit_code());
 }
 
 std::vector<std::string> model_files_in(const std::string& dir) {

@@ -29,6 +29,9 @@ class InterruptGuard {
   static int exit_code() { return 128 + signal(); }
   // "Ctrl-C", "SIGTERM", "SIGHUP".
   static std::string signal_name();
+  // Flushes the log and the standard streams and exits with exit_code(),
+  // once the caller has saved its work.
+  [[noreturn]] static void exit_after_saving();
 
  private:
   struct sigaction old_[3];
