@@ -8,8 +8,8 @@
 #   bench/train_benchmark.sh SCENE_DIR OUT_DIR [-r R] [--iters N] [--at 1000,3000,7000]
 #                            [--baseline] [-- extra train flags]
 #
-# Example (the issue-4 table on the cup scene, ~1 hour on 2 CPU cores):
-#   bench/train_benchmark.sh ../shared/scenes/cup out/bench_cup -r 2 --iters 30000 --at 1000,3000,7000
+# Example (the 30000-iteration table of docs/benchmarks.md on a real capture, ~1 hour on 2 CPU cores):
+#   bench/train_benchmark.sh scenes/cup out/bench_cup -r 2 --iters 30000 --at 1000,3000,7000
 set -euo pipefail
 here="$(cd "$(dirname "$0")/.." && pwd)"
 bin="${AG2GS_BIN:-$here/build/ag2gs}"

@@ -13,6 +13,7 @@
 #include <string>
 
 #include "cli/commands.h"
+#include "cli/run_driver.h"
 #include "cli/run_guard.h"
 #include "host/cl_runtime.h"
 #include "host/scene.h"
@@ -24,60 +25,29 @@ namespace fs = std::filesystem;
 namespace ag2gs::cli {
 namespace {
 
-struct BaselineArgs {
-  std::string scene, out;
-  std::string sparse;  // --sparse; empty = the scene-folder rule (host/scene.h)
-  int resolution = 1;
-  bool eval = false;
-  int log_every = 100;
-  int test_every = 0;
-  std::vector<int> test_at;              // --test-at: evaluate at these iterations too
-  std::vector<std::string> test_images;  // --test-views: held out instead of every 8th
-  bool profile = false;
-  bool force = false;  // --force: replace the model MODEL_DIR holds
+struct BaselineArgs : RunArgs {
   FreeTrainConfig config;
 };
-
-std::string duration_text(double s) {
-  if (!std::isfinite(s) || s < 0) return "?";
-  char buf[32];
-  if (s >= 3600)
-    std::snprintf(buf, sizeof buf, "%dh%02dm", static_cast<int>(s / 3600), static_cast<int>(s / 60) % 60);
-  else if (s >= 60)
-    std::snprintf(buf, sizeof buf, "%dm%02ds", static_cast<int>(s / 60), static_cast<int>(s) % 60);
-  else
-    std::snprintf(buf, sizeof buf, "%.1fs", s);
-  return buf;
-}
 
 void cmd_baseline(const GlobalOptions& global, BaselineArgs& a) {
   a.config.validate();
   if (a.resolution < 1) throw std::invalid_argument("-r must be >= 1 (it divides the camera resolution)");
   refuse_model_overwrite(a.out, a.force, "--force to replace it");
   check_model_dir_writable(a.out);
-  SceneOptions so;
-  so.resolution = a.resolution;
-  so.eval = a.eval || !a.test_images.empty();
-  so.test_images = a.test_images;
-  so.sparse = a.sparse;
-  a.eval = so.eval;
-  std::unique_ptr<Scene> scene = Scene::open(a.scene, so);
-  scene->require_points();
+  std::unique_ptr<Scene> scene = open_run_scene(a);
 
   Runtime rt(global.device);
   rt.set_profiling(a.profile);
   FreeTrainer trainer(rt, *scene, a.config);
   const FreeTrainConfig& c = trainer.config();
   const std::vector<int> test_views = scene->test_views();
-  spdlog::info("device [{}] {}", rt.info().index, rt.info().name);
-  spdlog::info("scene {}: {} training views, {} test views, {}x{} (-r {}), {} SfM points", scene->dir(),
-               scene->train_views().size(), test_views.size(), scene->views()[0].camera.width,
-               scene->views()[0].camera.height, a.resolution, scene->points().size());
+  log_run_scene(*scene, rt, a.resolution);
   spdlog::info("free Gaussians (3DGS baseline): {} from the SfM points, extent {:.4g}", trainer.gaussians(),
                trainer.extent());
   spdlog::info("{} iterations, seed {}, SH degree up to {} (+1 every {} iterations), background {}", c.iterations,
                c.seed, c.sh_degree, c.effective_sh_interval(), c.white_background ? "white" : "black");
-  if (c.densify_every > 0 && c.densify_from <= c.effective_densify_until())
+  const bool densifying = c.densify_every > 0 && c.densify_from <= c.effective_densify_until();
+  if (densifying)
     spdlog::info(
         "densification every {} iterations from {} to {} (gradient {:.3g}, clone up to {:.3g} x extent, else split); "
         "prune opacity < {:.3g}; opacity reset {}",
@@ -86,67 +56,62 @@ void cmd_baseline(const GlobalOptions& global, BaselineArgs& a) {
   else
     spdlog::info("densification off");
 
-  nlohmann::json metrics = {{"scene", scene->dir()},
-                            {"resolution", a.resolution},
-                            {"seed", c.seed},
-                            {"iterations", c.iterations},
-                            {"train_views", scene->train_views().size()},
-                            {"test_views", test_views.size()},
-                            {"model", "baseline"},
-                            {"test", nlohmann::json::array()}};
-  const fs::path metrics_path = fs::path(a.out) / "metrics.json";
-  auto run_eval = [&](int iteration) {
-    auto t = std::chrono::steady_clock::now();
-    EvalStats ev = trainer.evaluate(test_views);
-    double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count();
-    spdlog::info("[test] iteration {}: PSNR {:.3f} dB, SSIM {:.4f}, L1 {:.5f} over {} views ({:.2f} s)", iteration,
-                 ev.psnr, ev.ssim, ev.l1, ev.views, s);
-    metrics["test"].push_back({{"iteration", iteration}, {"psnr", ev.psnr}, {"ssim", ev.ssim}, {"l1", ev.l1}});
-    write_json_atomic(metrics_path.string(), metrics);
-    return ev;
-  };
+  RunDriver run(a, {{"scene", scene->dir()},
+                    {"model", "baseline"},
+                    {"resolution", a.resolution},
+                    {"seed", c.seed},
+                    {"iterations", c.iterations},
+                    {"train_views", scene->train_views().size()},
+                    {"test_views", test_views.size()}});
+  auto evaluate = [&] { return trainer.evaluate(test_views); };
+  auto counts = [&] { return nlohmann::json{{"gaussians", trainer.gaussians()}}; };
 
   // Ctrl-C, SIGTERM and SIGHUP finish the iteration and save the model so far.
   InterruptGuard interrupts;
-  const auto t0 = std::chrono::steady_clock::now();
-  auto t_last = t0;
-  int it_last = 0, skipped = 0;
+  run.start(0);
+  int skipped = 0;
   double psnr0 = NAN;
-  double sum_loss = 0, sum_psnr = 0, sum_l1 = 0, sum_ssim = 0;
-  int count = 0;
+  const size_t gaussians_at_start = trainer.gaussians();
+  int rounds_done = 0;
+  const int densify_until = densifying ? std::min(c.effective_densify_until(), c.iterations) : 0;
   for (int it = 0; it < c.iterations; ++it) {
-    const bool log_now = a.log_every > 0 && ((it + 1) % a.log_every == 0 || it + 1 == c.iterations || it == 0);
-    FreeStepStats st = trainer.step();
+    const int iteration = it + 1;
+    const bool log_now = run.log_due(iteration, 0, c.iterations);
+    // Tests run inside the step, before its densification and opacity
+    // reset, as in `train`.
+    const bool test_now = run.test_due(iteration, c.iterations);
+    const auto t_step = std::chrono::steady_clock::now();
+    FreeStepStats st = test_now ? trainer.step([&] { run.evaluate(iteration, evaluate, counts()); }) : trainer.step();
+    if (!test_now)
+      run.record_step_ms(
+          std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t_step).count(),
+          iteration > densify_until);
     if (st.skipped) ++skipped;
-    if (st.densified)
+    if (st.densified) {
+      ++rounds_done;
       spdlog::info("iteration {}: cloned {}, split {}, pruned {} -> {} Gaussians", st.iteration, st.cloned, st.split,
                    st.pruned, trainer.gaussians());
+    }
     if (st.opacity_reset) spdlog::info("iteration {}: opacity reset", st.iteration);
     if (std::isnan(psnr0)) psnr0 = st.psnr;
-    sum_loss += st.loss;
-    sum_psnr += st.psnr;
-    sum_l1 += st.l1;
-    sum_ssim += st.ssim;
-    ++count;
+    run.add_sample(st.loss, st.psnr, st.l1, st.ssim);
     if (log_now) {
-      auto now = std::chrono::steady_clock::now();
-      const double dt = std::chrono::duration<double>(now - t_last).count();
-      const double its = (st.iteration - it_last) / std::max(dt, 1e-9);
-      const double elapsed = std::chrono::duration<double>(now - t0).count();
-      const double eta = (c.iterations - st.iteration) * elapsed / st.iteration;
+      const RunDriver::Means m = run.take_means(st.iteration);
+      // The ETA from the recent steps' time and the densification still to come.
+      const int growing = std::max(0, densify_until - st.iteration);
+      const int rounds_left = c.densify_every > 0 ? growing / c.densify_every : 0;
+      const double round_factor =
+          rounds_done > 0 ? std::pow(static_cast<double>(trainer.gaussians()) / std::max<size_t>(gaussians_at_start, 1),
+                                     1.0 / rounds_done)
+                          : 1.0;
+      const double eta = estimate_seconds_left(c.iterations - st.iteration, run.recent_step_ms(), trainer.gaussians(),
+                                               growing, rounds_left, round_factor, 0);
       spdlog::info(
           "it {:>6}/{}  loss {:.5f} (L1 {:.5f}, SSIM {:.4f})  PSNR {:.2f} dB  SH {}  Gaussians {}  {:.1f} it/s  "
-          "ETA {}",
-          st.iteration, c.iterations, sum_loss / count, sum_l1 / count, sum_ssim / count, sum_psnr / count,
-          st.sh_degree, trainer.gaussians(), its, duration_text(eta));
-      t_last = now;
-      it_last = st.iteration;
-      sum_loss = sum_psnr = sum_l1 = sum_ssim = 0;
-      count = 0;
+          "ETA {}{}",
+          st.iteration, c.iterations, m.loss, m.l1, m.ssim, m.psnr, st.sh_degree, trainer.gaussians(), m.its,
+          fmt_duration(eta), growing > 0 ? fmt::format(" (densifying until {})", densify_until) : std::string());
     }
-    const bool test_now = (a.test_every > 0 && st.iteration % a.test_every == 0) ||
-                          std::find(a.test_at.begin(), a.test_at.end(), st.iteration) != a.test_at.end();
-    if (a.eval && test_now && st.iteration != c.iterations) run_eval(st.iteration);
     if (InterruptGuard::interrupted() && st.iteration != c.iterations) {
       // The baseline has no checkpoint to resume from: what it keeps is
       // the model so far.
@@ -158,31 +123,12 @@ void cmd_baseline(const GlobalOptions& global, BaselineArgs& a) {
       InterruptGuard::exit_after_saving();
     }
   }
-  const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-  spdlog::info("trained {} iterations in {:.1f} s ({:.2f} ms/iteration){}", c.iterations, seconds,
-               1000 * seconds / c.iterations, skipped ? fmt::format(", {} steps skipped", skipped) : "");
-  if (a.profile) {
-    auto timings = rt.take_timings();
-    double total = 0;
-    for (auto& [k, ms] : timings) total += ms;
-    spdlog::info("kernel time per iteration: {:.3f} ms in total", total / c.iterations);
-    for (auto& [k, ms] : timings)
-      spdlog::info("  {:<17} {:8.3f} ms ({:4.1f}%)", k, ms / c.iterations, total > 0 ? 100 * ms / total : 0.0);
-  }
+  run.finish_training(rt, c.iterations, skipped, trainer.gaussians(), psnr0, "densification");
   trainer.save(a.out);
   spdlog::info("wrote {} ({} Gaussians, SH degree {})", (fs::path(a.out) / "point_cloud.ply").string(),
                trainer.gaussians(), trainer.active_sh_degree());
-  metrics["train_seconds"] = seconds;
-  metrics["ms_per_iteration"] = 1000 * seconds / c.iterations;
-  metrics["skipped_steps"] = skipped;
-  metrics["gaussians"] = trainer.gaussians();
-  metrics["first_train_psnr"] = psnr0;
-  metrics["config"] = c.to_json();
-  if (a.eval) {
-    EvalStats ev = run_eval(c.iterations);
-    metrics["final"] = {{"iteration", c.iterations}, {"psnr", ev.psnr}, {"ssim", ev.ssim}, {"l1", ev.l1}};
-    write_json_atomic(metrics_path.string(), metrics);
-  }
+  run.metrics()["config"] = c.to_json();
+  run.final_test(c.iterations, evaluate, counts());
 }
 
 }  // namespace
@@ -193,17 +139,11 @@ void register_baseline(CLI::App& app, GlobalOptions& global) {
   auto* sub = app.add_subcommand("baseline",
                                  "Train the free-Gaussian baseline (vanilla 3DGS densification, no anchors) on a scene "
                                  "directory: writes MODEL_DIR/point_cloud.ply");
-  sub->add_option("scene_dir", a->scene, "Scene directory (images/, sparse/0/)")->required();
-  sub->add_option("-o,--out", a->out, "Model directory to write (created)")->required();
+  add_scene_options(sub, *a);
   sub->add_flag("--force", a->force, "Replace the model MODEL_DIR holds (refused otherwise)");
   sub->add_option("--iters", c.iterations, "Training iterations (default 30000)")->check(CLI::Range(1, 100000000));
   sub->add_option("--seed", c.seed, "Random seed: view order and split samples (default 0)")
       ->check(seed_number());
-  sub->add_option("--sparse", a->sparse,
-                  "COLMAP model folder inside the scene (default: sparse/0/, else sparse/ when it holds the model)");
-  sub->add_option("-r,--resolution", a->resolution, "Divide the camera resolution by R (default 1)")
-      ->check(CLI::Range(1, 64));
-  sub->add_flag("--eval", a->eval, "Hold out every 8th view; test PSNR/SSIM to MODEL_DIR/metrics.json");
   sub->add_flag("--white-bg", c.white_background, "White background instead of black");
   sub->add_option("--sh-degree", c.sh_degree, "Highest SH degree (default 3)")->check(CLI::Range(0, 3));
   sub->add_option("--sh-interval", c.sh_interval,
@@ -243,17 +183,7 @@ void register_baseline(CLI::App& app, GlobalOptions& global) {
   sub->add_option("--max-world-size", c.max_world_size,
                   "After the first opacity reset, remove Gaussians larger than this x extent (default 0.1; 0 = off)")
       ->check(non_negative_number());
-  sub->add_option("--log-every", a->log_every, "Progress line every N iterations (default 100; 0 = none)")
-      ->check(non_negative_number());
-  sub->add_option("--test-at", a->test_at, "With --eval: also test at these iterations (comma-separated)")
-      ->delimiter(',');
-  sub->add_option("--test-views", a->test_images,
-                  "Hold out these images (comma-separated names or stems, e.g. 6.jpg) instead of every 8th; implies "
-                  "--eval")
-      ->delimiter(',');
-  sub->add_option("--test-every", a->test_every, "With --eval: test metrics every N iterations (default 0 = end only)")
-      ->check(non_negative_number());
-  sub->add_flag("--profile", a->profile, "Time every kernel and print the per-iteration breakdown");
+  add_progress_options(sub, *a);
   set_action(sub, [&global, a] { cmd_baseline(global, *a); });
 }
 

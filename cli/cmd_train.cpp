@@ -21,6 +21,7 @@
 #include <string>
 
 #include "cli/commands.h"
+#include "cli/run_driver.h"
 #include "cli/run_guard.h"
 #include "host/cl_runtime.h"
 #include "host/model_io.h"
@@ -34,19 +35,9 @@ namespace fs = std::filesystem;
 namespace ag2gs::cli {
 namespace {
 
-struct TrainArgs {
-  std::string scene, out;
-  std::string sparse;  // --sparse; empty = the scene-folder rule (host/scene.h)
-  int resolution = 1;
-  bool eval = false;
-  int log_every = 100;
-  int test_every = 0;
-  std::vector<int> test_at;              // --test-at: evaluate at these iterations too
-  std::vector<std::string> test_images;  // --test-views: held out instead of every 8th
+struct TrainArgs : RunArgs {
   int save_every = 0;
-  bool profile = false;
   bool resume = false;
-  bool force = false;                // --force: start over in a folder that holds a model
   std::vector<int> stages{1, 2, 3};  // --stages
   bool stages_given = false;         // --stages was on the command line
   std::string preset = "default";    // --preset
@@ -91,14 +82,6 @@ void apply_preset(const CLI::App& sub, TrainArgs& a) {
                c.recycle_opacity, c.offset_lr_init, c.scaling_lr);
 }
 
-// The q-quantile (nearest rank) of `v`; NaN when empty.
-double percentile(std::vector<double> v, double q) {
-  if (v.empty()) return NAN;
-  const size_t k = std::min(v.size() - 1, static_cast<size_t>(q * static_cast<double>(v.size())));
-  std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(k), v.end());
-  return v[k];
-}
-
 bool has_stage(const TrainArgs& a, int s) {
   return std::find(a.stages.begin(), a.stages.end(), s) != a.stages.end();
 }
@@ -130,36 +113,6 @@ void stage3_only(const GlobalOptions& global, TrainArgs& a) {
   const Stage3Summary s = run_stage3_on_model(rt, *scene, a.out, scene->train_views(), a.stage3);
   log_stage3(s, a.stage3);
   spdlog::info("stage 3: {:.1f} s; wrote {}", s.total_ms / 1000, path);
-}
-
-// Seconds left: `remaining` steps at `step_ms` each while the model holds
-// `gaussians`, with the step time taken to follow the Gaussian count. Of
-// those steps, `growing` are still in the growth phase, over `rounds_left`
-// rounds, each expected to multiply the count by `round_factor` (the mean
-// of the rounds so far), up to `budget` (0 = none): the count is taken to
-// rise evenly to its end value through the growth phase and stay there.
-double estimate_seconds_left(int remaining, double step_ms, size_t gaussians, int growing, int rounds_left,
-                             double round_factor, size_t budget) {
-  if (remaining <= 0 || !(step_ms > 0) || gaussians == 0) return 0;
-  double end = static_cast<double>(gaussians);
-  if (rounds_left > 0 && round_factor > 1) end *= std::pow(round_factor, std::min(rounds_left, 1000));
-  if (budget > 0) end = std::min(end, std::max(static_cast<double>(budget), static_cast<double>(gaussians)));
-  const double ratio_end = end / static_cast<double>(gaussians);
-  growing = std::clamp(growing, 0, remaining);
-  const double weighted = growing * 0.5 * (1 + ratio_end) + (remaining - growing) * ratio_end;
-  return weighted * step_ms / 1000;
-}
-
-std::string fmt_duration(double s) {
-  if (!std::isfinite(s) || s < 0) return "?";
-  char buf[32];
-  if (s >= 3600)
-    std::snprintf(buf, sizeof buf, "%dh%02dm", static_cast<int>(s / 3600), static_cast<int>(s / 60) % 60);
-  else if (s >= 60)
-    std::snprintf(buf, sizeof buf, "%dm%02ds", static_cast<int>(s / 60), static_cast<int>(s) % 60);
-  else
-    std::snprintf(buf, sizeof buf, "%.1fs", s);
-  return buf;
 }
 
 // The settings outside TrainConfig that shape a run's files: the stages and
@@ -240,14 +193,7 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   if (a.resolution < 1) throw std::invalid_argument("-r must be >= 1 (it divides the camera resolution)");
   // Before anything slow: a run must not fail at its end for want of a place to write.
   check_model_dir_writable(a.out);
-  SceneOptions so;
-  so.resolution = a.resolution;
-  so.eval = a.eval || !a.test_images.empty();
-  so.test_images = a.test_images;
-  so.sparse = a.sparse;
-  a.eval = so.eval;
-  std::unique_ptr<Scene> scene = Scene::open(a.scene, so);
-  scene->require_points();
+  std::unique_ptr<Scene> scene = open_run_scene(a);
   // Without SAM masks the features never train: nothing to propagate or cluster.
   const bool semantics = scene->semantics() != SemanticsKind::none;
   if (!semantics && !a.resume && (has_stage(a, 2) || has_stage(a, 3)) &&
@@ -277,10 +223,7 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
     spdlog::info("stage 2: {} iterations after stage 1 with {} L_prop (tau {}) over the anchor graph",
                  c.effective_prop_iters(), c.w_prop, c.prop_tau);
   const std::vector<int> test_views = scene->test_views();
-  spdlog::info("device [{}] {}", rt.info().index, rt.info().name);
-  spdlog::info("scene {}: {} training views, {} test views, {}x{} (-r {}), {} SfM points", scene->dir(),
-               scene->train_views().size(), test_views.size(), scene->views()[0].camera.width,
-               scene->views()[0].camera.height, a.resolution, scene->points().size());
+  log_run_scene(*scene, rt, a.resolution);
   {
     std::string per_layer;
     for (size_t l = 0; l < trainer.init_stats().anchors_per_layer.size(); ++l)
@@ -319,87 +262,54 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
                  c.effective_mask_from(), c.w_is, c.w_ic, c.mask_alpha_normalise ? " / alpha" : "",
                  c.mask_geometry ? "every parameter" : "the semantic features only");
 
-  nlohmann::json metrics = {{"scene", scene->dir()},
-                            {"resolution", a.resolution},
-                            {"seed", c.seed},
-                            {"iterations", c.iterations},
-                            {"train_views", scene->train_views().size()},
-                            {"test_views", test_views.size()},
-                            {"test", nlohmann::json::array()}};
-  const fs::path metrics_path = fs::path(a.out) / "metrics.json";
-  // Training time excludes the evaluations (they are timed apart).
-  double eval_seconds = 0;
-  std::chrono::steady_clock::time_point t_start = std::chrono::steady_clock::now();
-  auto run_eval = [&](int iteration) {
-    auto t = std::chrono::steady_clock::now();
-    const double trained_s = std::chrono::duration<double>(t - t_start).count() - eval_seconds;
-    EvalStats ev = trainer.evaluate(test_views);
-    double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count();
-    spdlog::info("[test] iteration {}: PSNR {:.3f} dB, SSIM {:.4f}, L1 {:.5f} over {} views ({:.2f} s)", iteration,
-                 ev.psnr, ev.ssim, ev.l1, ev.views, s);
-    eval_seconds += s;
-    metrics["test"].push_back({{"iteration", iteration},
-                               {"psnr", ev.psnr},
-                               {"ssim", ev.ssim},
-                               {"l1", ev.l1},
-                               {"train_seconds", trained_s},
-                               {"eval_seconds", s},
-                               {"anchors", trainer.anchors()},
-                               {"gaussians", trainer.gaussians()}});
-    write_json_atomic(metrics_path.string(), metrics);
-    return ev;
-  };
+  RunDriver run(a, {{"scene", scene->dir()},
+                    {"model", "anchors"},
+                    {"resolution", a.resolution},
+                    {"seed", c.seed},
+                    {"iterations", c.iterations},
+                    {"train_views", scene->train_views().size()},
+                    {"test_views", test_views.size()}});
+  auto evaluate = [&] { return trainer.evaluate(test_views); };
+  auto counts = [&] { return nlohmann::json{{"anchors", trainer.anchors()}, {"gaussians", trainer.gaussians()}}; };
 
-  if (a.resume) metrics["resumed_at"] = trainer.iteration();
+  if (a.resume) run.metrics()["resumed_at"] = trainer.iteration();
   const int it_start = trainer.iteration();
   trainer.set_run_record(run_record(a));
   // Ctrl-C, SIGTERM and SIGHUP finish the iteration and save a checkpoint.
   InterruptGuard interrupts;
-  const auto t0 = std::chrono::steady_clock::now();
-  t_start = t0;
-  auto t_last = t0;
-  int it_last = it_start, skipped = 0;
+  run.start(it_start);
+  int skipped = 0;
   double psnr0 = NAN;
-  // Running means over the iterations since the last progress line.
-  double sum_loss = 0, sum_psnr = 0, sum_l1 = 0, sum_ssim = 0, sum_dist = 0, sum_is = 0, sum_ic = 0;
-  double sum_isect = 0;
-  int count = 0, count_masks = 0;
-  double stage1_end_s = -1, sum_prop = 0;
-  int count_prop = 0;
-  // Wall time of each step without an evaluation in it; the steps after
-  // the last growing round run at the final Gaussian count.
-  std::vector<double> step_ms, step_ms_fixed;
+  // Running means of the anchor trainer's own terms since the last progress line.
+  double sum_dist = 0, sum_is = 0, sum_ic = 0, sum_isect = 0, sum_prop = 0;
+  int count = 0, count_masks = 0, count_prop = 0;
+  double stage1_end_s = -1;
   // Divergence warnings (stages/divergence_guard.h), also in metrics.json.
   DivergenceGuard guard;
-  metrics["warnings"] = nlohmann::json::array();
   auto warn = [&](const std::optional<std::string>& w) {
-    if (!w) return;
-    spdlog::warn("{}", *w);
-    metrics["warnings"].push_back(*w);
+    if (w) run.warn(*w);
   };
   const GrowthConfig growth_schedule = c.growth_config(scene->train_views().size());
   const size_t gaussians_at_start = trainer.gaussians();
   int rounds_done = 0;
   size_t gaussians_before_round = trainer.gaussians();
   for (int it = it_start; it < it_end; ++it) {
-    const bool log_now = a.log_every > 0 && ((it + 1) % a.log_every == 0 || it + 1 == it_end || it == it_start);
+    const int iteration = it + 1;
+    const bool log_now = run.log_due(iteration, it_start, it_end);
     if (it == c.iterations) {
-      stage1_end_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() - eval_seconds;
+      stage1_end_s = run.train_seconds();
       spdlog::info("stage 2 from iteration {}: {} anchors", it + 1, trainer.anchors());
     }
     // Tests run inside the step, before its growing round and opacity
     // reset (as 3DGS does), so a test at a reset iteration is meaningful.
-    const int iteration = it + 1;
-    const bool test_now = a.eval && iteration != it_end &&
-                          ((a.test_every > 0 && iteration % a.test_every == 0) ||
-                           std::find(a.test_at.begin(), a.test_at.end(), iteration) != a.test_at.end());
+    const bool test_now = run.test_due(iteration, it_end);
     const auto t_step = std::chrono::steady_clock::now();
-    StepStats st = test_now ? trainer.step(log_now, [&] { run_eval(iteration); }) : trainer.step(log_now);
-    if (!test_now) {
-      const double ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t_step).count();
-      step_ms.push_back(ms);
-      if (iteration > c.effective_grow_until() && iteration <= c.iterations) step_ms_fixed.push_back(ms);
-    }
+    StepStats st = test_now ? trainer.step(log_now, [&] { run.evaluate(iteration, evaluate, counts()); })
+                            : trainer.step(log_now);
+    if (!test_now)
+      run.record_step_ms(
+          std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t_step).count(),
+          iteration > c.effective_grow_until() && iteration <= c.iterations);
     if (st.stage2 && it == c.iterations)
       spdlog::info("stage 2: anchor graph with {} edges (mean degree {:.2f})", trainer.graph().edges(),
                    trainer.anchors() ? 2.0 * trainer.graph().edges() / trainer.anchors() : 0.0);
@@ -422,10 +332,7 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
       gaussians_before_round = trainer.gaussians();
     }
     if (std::isnan(psnr0)) psnr0 = st.psnr;
-    sum_loss += st.loss - (st.with_offset_loss ? c.w_offset * st.offset_reg : 0);
-    sum_psnr += st.psnr;
-    sum_l1 += st.l1;
-    sum_ssim += st.ssim;
+    run.add_sample(st.loss - (st.with_offset_loss ? c.w_offset * st.offset_reg : 0), st.psnr, st.l1, st.ssim);
     sum_dist += st.distortion;
     sum_isect += static_cast<double>(st.intersections);
     if (st.with_masks) {
@@ -435,9 +342,7 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
     }
     ++count;
     if (log_now) {
-      auto now = std::chrono::steady_clock::now();
-      const double dt = std::chrono::duration<double>(now - t_last).count();
-      const double its = (st.iteration - it_last) / std::max(dt, 1e-9);
+      const RunDriver::Means m = run.take_means(st.iteration);
       // The ETA from the recent steps' time (evaluations left out) and the
       // growth still to come.
       const int grow_until = c.grow_every > 0 ? std::min(c.effective_grow_until(), c.iterations) : 0;
@@ -447,13 +352,8 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
           rounds_done > 0 ? std::pow(static_cast<double>(trainer.gaussians()) / std::max<size_t>(gaussians_at_start, 1),
                                      1.0 / rounds_done)
                           : 1.0;
-      const size_t recent = std::min<size_t>(step_ms.size(), 100);
-      const double recent_ms =
-          recent
-              ? percentile(std::vector<double>(step_ms.end() - static_cast<std::ptrdiff_t>(recent), step_ms.end()), 0.5)
-              : 0.0;
-      const double eta = estimate_seconds_left(it_end - st.iteration, recent_ms, trainer.gaussians(), growing,
-                                               rounds_left, round_factor, trainer.max_gaussians());
+      const double eta = estimate_seconds_left(it_end - st.iteration, run.recent_step_ms(), trainer.gaussians(),
+                                               growing, rounds_left, round_factor, trainer.max_gaussians());
       const std::string eta_text =
           fmt_duration(eta) + (growing > 0 ? fmt::format(" (growing until {})", grow_until) : std::string());
       std::string mask_terms =
@@ -463,15 +363,11 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
       spdlog::info(
           "it {:>6}/{}  loss {:.5f} (L1 {:.5f}, SSIM {:.4f}, dist {:.3e}, L_in {:.4f}{})  PSNR {:.2f} dB  SH {}  "
           "anchors {}  Gaussians {}  {:.1f} it/s  ETA {}",
-          st.iteration, it_end, sum_loss / count + c.w_offset * st.offset_reg, sum_l1 / count, sum_ssim / count,
-          sum_dist / count, st.offset_reg, mask_terms, sum_psnr / count, st.sh_degree, trainer.anchors(),
-          trainer.gaussians(), its, eta_text);
+          st.iteration, it_end, m.loss + c.w_offset * st.offset_reg, m.l1, m.ssim, sum_dist / count, st.offset_reg,
+          mask_terms, m.psnr, st.sh_degree, trainer.anchors(), trainer.gaussians(), m.its, eta_text);
       spdlog::debug("  {:.0f} tile intersections per iteration", sum_isect / count);
-      t_last = now;
-      it_last = st.iteration;
-      sum_loss = sum_psnr = sum_l1 = sum_ssim = sum_dist = sum_is = sum_ic = sum_isect = 0;
+      sum_dist = sum_is = sum_ic = sum_isect = sum_prop = 0;
       count = count_masks = count_prop = 0;
-      sum_prop = 0;
     }
     if (InterruptGuard::interrupted() && st.iteration != it_end) {
       trainer.save(a.out);
@@ -488,52 +384,13 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
       spdlog::info("checkpoint at iteration {} in {}", st.iteration, a.out);
     }
   }
-  const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() - eval_seconds;
-  const int trained = std::max(1, it_end - it_start);
-  spdlog::info("trained {} iterations in {:.1f} s ({:.2f} ms/iteration){}", std::max(0, it_end - it_start), seconds,
-               1000 * seconds / trained, skipped ? fmt::format(", {} steps skipped", skipped) : "");
-  const double median_ms = percentile(step_ms, 0.5), p90_ms = percentile(step_ms, 0.9);
-  const double fixed_median_ms = percentile(step_ms_fixed, 0.5);
-  if (!step_ms.empty())
-    spdlog::info("step time: median {:.2f} ms, 90th percentile {:.2f} ms{}", median_ms, p90_ms,
-                 step_ms_fixed.empty() ? std::string()
-                                       : fmt::format("; after growing stopped: median {:.2f} ms at {} Gaussians",
-                                                     fixed_median_ms, trainer.gaussians()));
-  if (a.profile) {
-    auto timings = rt.take_timings();
-    double total = 0;
-    for (auto& [k, ms] : timings) total += ms;
-    spdlog::info("kernel time per iteration: {:.3f} ms in total", total / trained);
-    for (auto& [k, ms] : timings)
-      spdlog::info("  {:<14} {:8.3f} ms ({:4.1f}%)", k, ms / trained, total > 0 ? 100 * ms / total : 0.0);
-  }
+  const double seconds = run.finish_training(rt, it_end - it_start, skipped, trainer.gaussians(), psnr0);
   trainer.save(a.out);
   spdlog::info("wrote {} and {} ({} anchors, {} Gaussians, SH degree {})", (fs::path(a.out) / "model.ag2gs").string(),
                (fs::path(a.out) / "point_cloud.ply").string(), trainer.anchors(), trainer.gaussians(),
                trainer.active_sh_degree());
-  metrics["train_seconds"] = seconds;
-  metrics["ms_per_iteration"] = 1000 * seconds / trained;
-  if (!step_ms.empty()) {
-    metrics["ms_per_iteration_median"] = median_ms;
-    metrics["ms_per_iteration_p90"] = p90_ms;
-  }
-  if (!step_ms_fixed.empty()) metrics["ms_per_iteration_median_after_growing"] = fixed_median_ms;
-  metrics["skipped_steps"] = skipped;
-  metrics["anchors"] = trainer.anchors();
-  metrics["gaussians"] = trainer.gaussians();
-  metrics["first_train_psnr"] = psnr0;
-  metrics["eval_seconds"] = eval_seconds;
-  metrics["device"] = rt.info().name;
-  {
-    struct rusage ru {};
-    ::getrusage(RUSAGE_SELF, &ru);
-    metrics["peak_rss_mb"] = ru.ru_maxrss / 1024.0;  // Linux: kilobytes
-  }
-  if (a.eval) {
-    EvalStats ev = run_eval(it_end);
-    metrics["final"] = {{"iteration", it_end}, {"psnr", ev.psnr}, {"ssim", ev.ssim}, {"l1", ev.l1}};
-    write_json_atomic(metrics_path.string(), metrics);
-  }
+  run.metrics()["anchors"] = trainer.anchors();
+  run.final_test(it_end, evaluate, counts());
   // Stage times of this run (training time without evaluations).
   double s1 = seconds, s2 = 0;
   if (stage1_end_s >= 0) {
@@ -556,8 +413,8 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   } else {
     spdlog::info("stage times: stage 1 {:.1f} s, stage 2 {:.1f} s", s1, s2);
   }
-  metrics["stages"] = stages;
-  write_json_atomic(metrics_path.string(), metrics);
+  run.metrics()["stages"] = stages;
+  run.write_metrics();
 }
 
 }  // namespace
@@ -569,16 +426,10 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                                  "Train the anchor model on a scene directory: stage 1 (appearance, masks), stage 2 "
                                  "(propagation loss), stage 3 (clusters, language features); writes "
                                  "MODEL_DIR/model.ag2gs and MODEL_DIR/point_cloud.ply");
-  sub->add_option("scene_dir", a->scene, "Scene directory (images/, sparse/0/)")->required();
-  sub->add_option("-o,--out", a->out, "Model directory to write (created)")->required();
+  add_scene_options(sub, *a);
   sub->add_option("--iters", c.iterations, "Training iterations (default 30000)")->check(CLI::Range(1, 100000000));
   sub->add_option("--seed", c.seed, "Random seed: anchor init and view order (default 0)")
       ->check(seed_number());
-  sub->add_option("--sparse", a->sparse,
-                  "COLMAP model folder inside the scene (default: sparse/0/, else sparse/ when it holds the model)");
-  sub->add_option("-r,--resolution", a->resolution, "Divide the camera resolution by R (default 1)")
-      ->check(CLI::Range(1, 64));
-  sub->add_flag("--eval", a->eval, "Hold out every 8th view; test PSNR/SSIM to MODEL_DIR/metrics.json");
   sub->add_option("--sh-degree", c.anchors.sh_degree, "Highest SH degree (default 3)")->check(CLI::Range(0, 3));
   sub->add_option("--sh-interval", c.sh_interval,
                   "Iterations per SH degree step (default 0 = min(1000, iters / (sh-degree + 1)))")
@@ -709,18 +560,7 @@ void register_train(CLI::App& app, GlobalOptions& global) {
   sub->add_option("--opacity-reset-pause", c.opacity_reset_pause,
                   "Growing rounds this many iterations after a reset do not prune by opacity (default 500)")
       ->check(non_negative_number());
-  sub->add_option("--log-every", a->log_every, "Progress line every N iterations (default 100; 0 = none)")
-      ->check(non_negative_number());
-  sub->add_option("--test-at", a->test_at,
-                  "With --eval: also test at these iterations (comma-separated, e.g. 1000,3000,7000)")
-      ->delimiter(',')
-      ->check(positive_number());
-  sub->add_option("--test-views", a->test_images,
-                  "Hold out these images (comma-separated names or stems, e.g. 6.jpg) instead of every 8th; "
-                  "implies --eval")
-      ->delimiter(',');
-  sub->add_option("--test-every", a->test_every, "With --eval: test metrics every N iterations (default 0 = end only)")
-      ->check(non_negative_number());
+  add_progress_options(sub, *a);
   sub->add_option("--save-every", a->save_every, "Checkpoint every N iterations (default 0 = end only)")
       ->check(non_negative_number());
   sub->add_flag("--resume", a->resume,
@@ -728,7 +568,6 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                 "with them)");
   sub->add_flag("--force", a->force,
                 "Start a new model even though MODEL_DIR holds one (its files are replaced when training ends)");
-  sub->add_flag("--profile", a->profile, "Time every kernel and print the per-iteration breakdown");
   sub->add_option("--stages", a->stages,
                   "Stages to run (comma-separated, default 1,2,3); without 1 they run on MODEL_DIR's checkpoint / "
                   "model (e.g. --stages 3 re-clusters a trained model)")

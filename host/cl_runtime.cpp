@@ -241,7 +241,7 @@ cl::Program Runtime::program(const std::string& file, const std::map<std::string
   std::string header = "// generated defines\n";
   for (auto& [k, v] : defines) header += "#define " + k + " " + v + "\n";
   header += "#define VW " + std::to_string(vector_width_) + "\n";
-  std::string source = header + kernel_source("common.cl") + "\n#line 1\n" + kernel_source(file);
+  std::string source = header + kernel_source("layout.h") + kernel_source("common.cl") + "\n#line 1\n" + kernel_source(file);
   std::string options = "-cl-std=CL1.2";
   if (const char* env = std::getenv("AG2GS_CL_OPTIONS"); env) options += std::string(" ") + env;
 

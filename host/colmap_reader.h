@@ -1,6 +1,6 @@
 // A minimal reader for COLMAP sparse models (cameras, images, points3D; binary
 // or text) and the camera helpers the CLI needs: resolution scaling and view
-// selection. Conventions: DESIGN.md section 7 and host/gaussians.h (Camera).
+// selection. Conventions: docs/formats.md and host/gaussians.h (Camera).
 #pragma once
 
 #include <Eigen/Core>

@@ -1,5 +1,5 @@
 // The SAM mask losses of one view on the device (kernels/mask_loss.cl,
-// DESIGN.md section 3): L_is pulls the rendered features of each mask
+// docs/design.md section 4): L_is pulls the rendered features of each mask
 // together, L_ic pushes the mask means apart, and their gradient with respect
 // to the rendered feature map F (and its accumulated alpha).
 //

@@ -1,5 +1,5 @@
 // NumPy .npy files (format versions 1.0, 2.0 and 3.0), the container of the
-// LangSplat / OpenGaussian language features (DESIGN.md section 7).
+// LangSplat / OpenGaussian language features (docs/formats.md).
 // Spec: https://numpy.org/doc/stable/reference/generated/numpy.lib.format.html
 #pragma once
 

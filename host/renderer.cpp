@@ -7,14 +7,13 @@
 #include <cstdlib>
 #include <stdexcept>
 
+#include "kernels/layout.h"
+
 namespace ag2gs {
 
 namespace {
 
-constexpr int kTile = 16;
-constexpr int kRecSize = 16;
-constexpr int kG2Size = 13;
-constexpr int kCamSize = 32;
+constexpr int kTile = TILE;
 constexpr int kScanBlock = 1024;
 constexpr int kRadixBlock = 4096;
 
@@ -102,6 +101,25 @@ void Renderer::sort_pairs(DeviceBuffer*& keys, DeviceBuffer*& vals, DeviceBuffer
   }
 }
 
+std::vector<float> pack_camera(const Camera& cam, const RenderSettings& settings) {
+  std::vector<float> cb(CAM_SIZE, 0.f);
+  for (int i = 0; i < 9; ++i) cb[CAM_R + i] = static_cast<float>(cam.R(i / 3, i % 3));
+  for (int i = 0; i < 3; ++i) cb[CAM_T + i] = static_cast<float>(cam.t[i]);
+  cb[CAM_FX] = static_cast<float>(cam.fx);
+  cb[CAM_FY] = static_cast<float>(cam.fy);
+  cb[CAM_CX] = static_cast<float>(cam.cx);
+  cb[CAM_CY] = static_cast<float>(cam.cy);
+  cb[CAM_W] = static_cast<float>(cam.width);
+  cb[CAM_H] = static_cast<float>(cam.height);
+  cb[CAM_NEAR] = settings.near_plane;
+  const Eigen::Vector3d c = cam.center();
+  for (int i = 0; i < 3; ++i) cb[CAM_POS + i] = static_cast<float>(c[i]);
+  cb[CAM_DNEAR] = settings.dist_near;
+  cb[CAM_DFAR] = settings.dist_far;
+  for (int i = 0; i < 3; ++i) cb[CAM_BG + i] = settings.background[i];
+  return cb;
+}
+
 std::vector<Renderer::PixelContribution> Renderer::pixel_contributions(int x, int y) const {
   if (!have_frame_) throw std::logic_error("Renderer::pixel_contributions() before forward()");
   if (x < 0 || y < 0 || x >= cam_.width || y >= cam_.height)
@@ -118,20 +136,19 @@ std::vector<Renderer::PixelContribution> Renderer::pixel_contributions(int x, in
   std::vector<float> rec;
   sorted_isect_vals_->download(vals, static_cast<size_t>(end));
   isect_gid_.download(gid, M);
-  records_.download(rec, gaussians_->n * kRecSize);
-  // Record fields (kernels/common.cl): u v cA cB cC opacity z.
+  records_.download(rec, gaussians_->n * REC_SIZE);
   const float px = x + 0.5f, py = y + 0.5f;
   float T = 1.f;
   for (int j = begin; j < end; ++j) {
     const uint32_t g = gid[vals[j]];
-    const float* q = &rec[static_cast<size_t>(g) * kRecSize];
-    const float dx = q[0] - px, dy = q[1] - py;
-    const float sigma = 0.5f * (q[2] * dx * dx + q[4] * dy * dy) + q[3] * dx * dy;
-    const float alpha = std::min(0.99f, q[5] * std::exp(-std::min(sigma, 40.f)));
-    if (!(sigma >= 0.f) || !(alpha >= 1.f / 255.f)) continue;
+    const float* q = &rec[static_cast<size_t>(g) * REC_SIZE];
+    const float dx = q[REC_U] - px, dy = q[REC_V] - py;
+    const float sigma = 0.5f * (q[REC_CA] * dx * dx + q[REC_CC] * dy * dy) + q[REC_CB] * dx * dy;
+    const float alpha = std::min(ALPHA_MAX, q[REC_OPACITY] * std::exp(-std::min(sigma, 40.f)));
+    if (!(sigma >= 0.f) || !(alpha >= ALPHA_MIN)) continue;
     const float Tn = T * (1.f - alpha);
-    if (Tn < 1e-4f) break;
-    out.push_back({g, alpha * T, q[6]});
+    if (Tn < T_MIN) break;
+    out.push_back({g, alpha * T, q[REC_Z]});
     T = Tn;
   }
   return out;
@@ -154,26 +171,10 @@ void Renderer::forward(const DeviceGaussians& g, const Camera& cam, const Render
   const int ntiles = tiles_x_ * tiles_y_;
   stats_ = FrameStats{n, 0, cam.width, cam.height};
 
-  // Camera block (layout: kernels/common.cl CAM_*).
-  std::vector<float> cb(kCamSize, 0.f);
-  for (int i = 0; i < 9; ++i) cb[i] = static_cast<float>(cam.R(i / 3, i % 3));
-  for (int i = 0; i < 3; ++i) cb[9 + i] = static_cast<float>(cam.t[i]);
-  cb[12] = static_cast<float>(cam.fx);
-  cb[13] = static_cast<float>(cam.fy);
-  cb[14] = static_cast<float>(cam.cx);
-  cb[15] = static_cast<float>(cam.cy);
-  cb[16] = static_cast<float>(cam.width);
-  cb[17] = static_cast<float>(cam.height);
-  cb[18] = settings.near_plane;
-  Eigen::Vector3d c = cam.center();
-  for (int i = 0; i < 3; ++i) cb[19 + i] = static_cast<float>(c[i]);
-  cb[22] = settings.dist_near;
-  cb[23] = settings.dist_far;
-  for (int i = 0; i < 3; ++i) cb[24 + i] = settings.background[i];
-  cam_buf_.upload(cb);
+  cam_buf_.upload(pack_camera(cam, settings));
 
   const size_t nn = std::max<size_t>(n, 1);
-  records_.reserve(nn * kRecSize * 4);
+  records_.reserve(nn * REC_SIZE * 4);
   rects_.reserve(nn * 16);
   tile_counts_.reserve(nn * 4);
   depth_keys_.reserve(nn * 4);
@@ -350,7 +351,7 @@ void Renderer::backward_from(const DeviceBuffer& g_rgb, const DeviceBuffer& g_fe
                            "(RenderSettings::features false)");
   const DeviceGaussians& g = *gaussians_;
   const size_t M = stats_.n_intersections;
-  isect_grads_.reserve(std::max<size_t>(M, 1) * kG2Size * 4);
+  isect_grads_.reserve(std::max<size_t>(M, 1) * G2_SIZE * 4);
   const int ntiles = tiles_x_ * tiles_y_;
   const bool staging = blend_staging_for(rt_);
   const int wg = staging ? 256 / rt_.vector_width() : 1;  // CPUs: one work-item per tile, see blend_bwd.cl

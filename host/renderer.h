@@ -30,6 +30,9 @@ struct DeviceGaussianGrads {
                      *features = nullptr, *means2d = nullptr;
 };
 
+// The camera block the kernels read (CAM_* of kernels/layout.h).
+std::vector<float> pack_camera(const Camera& cam, const RenderSettings& settings);
+
 struct FrameStats {
   size_t n_gaussians = 0;
   size_t n_intersections = 0;

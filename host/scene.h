@@ -1,5 +1,5 @@
 // A scene directory as 3DGS, OpenGaussian and LangSplat lay it out
-// (DESIGN.md section 7): images/, sparse/0/ or sparse/ (COLMAP), and optionally
+// (docs/formats.md): images/, sparse/0/ or sparse/ (COLMAP), and optionally
 // language_features/<stem>_s.npy + <stem>_f.npy (SAM masks + CLIP features) or
 // masks/<stem>.png (16-bit instance ids).
 //

@@ -1,4 +1,4 @@
-// The JSON inputs of queries and evaluation (DESIGN.md section 7): a text
+// The JSON inputs of queries and evaluation (docs/formats.md): a text
 // vocabulary of CLIP embeddings, LERF-OVS label frames (labelme polygons) and
 // click lists. Every reader validates fully and throws std::runtime_error
 // naming the file, the entry and what to fix.

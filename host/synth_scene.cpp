@@ -902,7 +902,7 @@ Layout layout_ordinary(const SynthOptions& opt, const Rng& rng, int first_id, st
   return lay;
 }
 
-// Hard scenes (issue 6): ids 1-2 a red and a dark red mug side by side
+// Hard scenes: ids 1-2 a red and a dark red mug side by side
 // (similar colour, similar category); id 3 a thin wooden pole just behind the
 // red mug as camera 1 sees it (occlusion); ids 4-5 a yellow and a blue box
 // touching face to face; further objects placed as in ordinary scenes.

@@ -3,8 +3,8 @@
 // on a ring, all inside a textured backdrop (a cylindrical wall with a floor
 // ring and a ceiling, so every camera ray meets textured geometry that the
 // sparse points cover, as in a real capture; --no-backdrop gives the old
-// untextured sky instead). It writes a complete scene directory in the formats of DESIGN.md
-// section 7, so every stage (training, clustering, queries, evaluation) can be
+// untextured sky instead). It writes a complete scene directory in the formats of
+// docs/formats.md, so every stage (training, clustering, queries, evaluation) can be
 // measured against truth that is known exactly. Everything is deterministic
 // from the seed (a counter-based hash, no global RNG state).
 //
@@ -41,11 +41,11 @@ struct SynthOptions {
   int samples = 2;        // supersampling per pixel axis (2 = 4 rays per pixel)
   int points = 4000;      // SfM-like points written to points3D
   // The SAM-like masks (language_features/, masks/) at 1/mask_factor of the
-  // image resolution, as the public LERF-OVS data often has them (DESIGN.md
-  // section 7: "masks may be smaller than the image"); width and height must
+  // image resolution, as the public LERF-OVS data often has them (docs/formats.md
+  // section 3: masks may be smaller than the image); width and height must
   // be multiples of it. The exact GT (gt/, label/, clicks) is always full size.
   int mask_factor = 1;
-  // The hard settings of issue 6: two objects touching, two objects of
+  // The hard settings: two objects touching, two objects of
   // similar colour, one thin object, and occlusion between objects.
   bool hard = false;
   bool text_model = false;  // write the COLMAP model as .txt instead of .bin

@@ -1,19 +1,13 @@
 // Shared device code: vector-width plumbing, small matrix helpers, and every
 // differentiable helper beside its vector-Jacobian product (v_<name>).
-// The host prepends "#define"s: VW (pixels per work-item), TILE (16), and the
-// kernel-specific settings.
+// The host prepends "#define"s (VW, pixels per work-item, and the
+// kernel-specific settings), then kernels/layout.h.
 
 // Identical float operations in forward and backward kernels, so that the
 // backward pass reproduces the forward pass's discrete decisions exactly.
 #pragma OPENCL FP_CONTRACT OFF
 
-#ifndef TILE
-#define TILE 16
-#endif
 #define TILE_PIXELS (TILE * TILE)
-#define ALPHA_MIN (1.0f / 255.0f)
-#define ALPHA_MAX 0.99f
-#define T_MIN 1e-4f
 
 #define CAT_(a, b) a##b
 #define CAT(a, b) CAT_(a, b)
@@ -58,48 +52,8 @@ inline float hsum4(float4 v) { return (v.s0 + v.s1) + (v.s2 + v.s3); }
 #define EXPF native_exp
 #endif
 
-// Per-Gaussian record written by projection and read by blending, 16 floats.
-#define REC_U 0
-#define REC_V 1
-#define REC_CA 2
-#define REC_CB 3
-#define REC_CC 4
-#define REC_OPACITY 5
-#define REC_Z 6
-#define REC_M 7
-#define REC_RGB 8
-#define REC_FEAT 11
-#define REC_THR 14   // ln(255 opacity): alpha >= 1/255 needs sigma <= REC_THR
-#define REC_CM 15    // cC - cB^2 / cA: sigma >= 0.5 dy^2 REC_CM on a row at offset dy
-#define REC_SIZE 16
-
-// Per-intersection gradient slot written by blend backward, 13 floats.
-#define G2_U 0
-#define G2_V 1
-#define G2_CA 2
-#define G2_CB 3
-#define G2_CC 4
-#define G2_OPACITY 5
-#define G2_RGB 6
-#define G2_FEAT 9
-#define G2_Z 12
-#define G2_SIZE 13
-
-// Camera block [CAM_SIZE floats], filled by host/renderer.cpp.
-#define CAM_R 0      // [9] world->camera rotation, row-major
-#define CAM_T 9      // [3]
-#define CAM_FX 12
-#define CAM_FY 13
-#define CAM_CX 14
-#define CAM_CY 15
-#define CAM_W 16
-#define CAM_H 17
-#define CAM_NEAR 18
-#define CAM_POS 19   // [3] camera centre in world space
-#define CAM_DNEAR 22 // distortion depth mapping
-#define CAM_DFAR 23
-#define CAM_BG 24    // [3]
-#define CAM_SIZE 32
+// Record and camera layouts (REC_*, G2_*, CAM_*, TILE): kernels/layout.h,
+// which the host puts in front of this file.
 
 // --------------------------------------------------------------- 3x3 matrices
 typedef struct { float m[9]; } mat3;  // row-major

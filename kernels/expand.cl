@@ -1,4 +1,4 @@
-// Anchor -> Gaussian expansion (DESIGN.md section 2) and its backward pass.
+// Anchor -> Gaussian expansion (docs/design.md section 2) and its backward pass.
 // Gaussian g = a * CHILDREN + i is child i of anchor a.
 // Defines: CHILDREN (K), SCALE_CAP (M, default 1: a child's scale is at most
 // M voxel edges; AnchorConfig::scale_cap). The cap holds for anchors whose

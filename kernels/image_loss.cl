@@ -1,5 +1,5 @@
 // Photometric loss of 3DGS between a rendered image x and a target y, 3
-// channels (DESIGN.md section 3):
+// channels (docs/design.md section 4):
 //
 //   L_rgb = (1 - lambda) L1 + lambda (1 - SSIM)
 //   L1    = sum_p w_p sum_c |x - y| / (3 sum_p w_p)      (w = 1: mean over H*W*3)

@@ -1,4 +1,4 @@
-// SAM mask losses of one view (DESIGN.md section 3) on the rendered feature
+// SAM mask losses of one view (docs/design.md section 4) on the rendered feature
 // map F (3 channels) and their gradient with respect to F (and alpha):
 //
 //   G(p)    = F(p) / alpha(p)  where alpha(p) >= MASK_ALPHA_MIN, else the pixel

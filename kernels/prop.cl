@@ -1,4 +1,4 @@
-// The propagation loss of stage 2 (DESIGN.md section 4) over the anchor
+// The propagation loss of stage 2 (docs/design.md section 6) over the anchor
 // graph (stages/anchor_graph.h), and its gradient with respect to the anchor
 // features f [A,3]:
 //

@@ -1,7 +1,7 @@
 // Small kernels of the stage-1 training loop (stages/trainer.cpp).
 
 // Offset regulariser L_in = mean over the N offsets of exp(relu(|o|^2 - 1))
-// (DESIGN.md section 3; offsets in voxel units). Per offset row g: writes its
+// (docs/design.md section 4; offsets in voxel units). Per offset row g: writes its
 // term to value[g] (the host sums them in double when it logs) and adds
 // weight / N * d term / d o to grad[g]. One work-item per row, no atomics.
 __kernel void offset_reg(int n, float scale,           // scale = weight / N

@@ -1,4 +1,4 @@
-// The anchor graph of stage 2 (DESIGN.md section 4): a sparse, symmetric
+// The anchor graph of stage 2 (docs/design.md section 6): a sparse, symmetric
 // graph over the anchors of an AnchorModel, built from the voxel structure.
 //
 // Neighbourhood cells: the top-layer voxel grid coarsened by an integer

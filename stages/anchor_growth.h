@@ -1,4 +1,4 @@
-// Anchor growing and pruning (DESIGN.md section 2, "Growing"): statistics of
+// Anchor growing and pruning (docs/design.md section 3): statistics of
 // every child Gaussian collected on the device after each backward pass
 // (kernels/growth.cl), and the decision step on the host model that adds
 // finer anchors where children ask for detail and drops anchors that do not

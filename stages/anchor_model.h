@@ -1,4 +1,4 @@
-// The stage-1 representation (DESIGN.md section 2): anchors at voxel centres of
+// The stage-1 representation (docs/design.md section 2): anchors at voxel centres of
 // a layered grid, each with a semantic feature and K child Gaussians whose
 // parameters are stored raw (logits, offsets in voxel units) so that
 //

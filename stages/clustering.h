@@ -1,4 +1,4 @@
-// Stage 3, part 1 (DESIGN.md section 5): anchors -> object instances by
+// Stage 3, part 1 (docs/design.md section 7): anchors -> object instances by
 // union-find over the anchor-graph edges whose semantic features are close.
 //
 // The graph comes in as plain CSR arrays (AnchorGraphView), so any CSR of

@@ -360,10 +360,8 @@ int FreeTrainer::active_sh_degree() const {
 }
 
 double FreeTrainer::position_lr(int it) const {
-  if (config_.position_lr_init <= 0) return 0;
-  const double p = std::clamp(static_cast<double>(it) / config_.iterations, 0.0, 1.0);
-  return extent_ *
-         std::exp(std::log(config_.position_lr_init) * (1 - p) + std::log(config_.position_lr_final) * p);
+  return extent_ * exp_decay_lr(config_.position_lr_init, config_.position_lr_final,
+                                static_cast<double>(it) / config_.iterations);
 }
 
 int FreeTrainer::view_for_iteration(int it) const {
@@ -381,16 +379,14 @@ void FreeTrainer::upload_params(const FreeGaussians& g) {
 }
 
 void FreeTrainer::upload(const FreeGaussians& g) {
-  const bool same = g_mean_ && g.size() == n_;
+  const bool same = groups_ && g.size() == n_;
   upload_params(g);
-  if (!same) {
-    g_mean_ = std::make_unique<AdamGroup>(rt_, "means", n_, 3);
-    g_scale_ = std::make_unique<AdamGroup>(rt_, "scaling", n_, 3);
-    g_quat_ = std::make_unique<AdamGroup>(rt_, "rotation", n_, 4);
-    g_opacity_ = std::make_unique<AdamGroup>(rt_, "opacity", n_, 1);
-    g_dc_ = std::make_unique<AdamGroup>(rt_, "sh_dc", n_, 3);
-    g_rest_ = std::make_unique<AdamGroup>(rt_, "sh_rest", n_, 3 * kRest);
-  }
+  if (!same)
+    groups_ = std::make_unique<ParamGroups>(
+        rt_,
+        std::vector<ParamGroupSpec>{
+            {"means", 3}, {"scaling", 3}, {"rotation", 4}, {"opacity", 1}, {"sh_dc", 3}, {"sh_rest", 3 * kRest}},
+        n_, 0);
   reset_stats();
 }
 
@@ -438,7 +434,7 @@ void FreeTrainer::activate(int sh_degree) {
   rt_.launch("free_activate", k, cl::NDRange(std::max<size_t>(n_, 1)), cl::NDRange(64));
 }
 
-FreeStepStats FreeTrainer::step() {
+FreeStepStats FreeTrainer::step(const std::function<void()>& before_rounds) {
   FreeStepStats st;
   const int it = iteration_;
   st.iteration = it + 1;
@@ -447,7 +443,6 @@ FreeStepStats FreeTrainer::step() {
   const SceneView& view = scene_.views()[st.view];
   std::shared_ptr<const Image> target = scene_.image(st.view);
   const int w = view.camera.width, h = view.camera.height;
-  const size_t npix = static_cast<size_t>(w) * h;
   activate(st.sh_degree);
   RenderSettings settings;
   const float bg = config_.white_background ? 1.f : 0.f;
@@ -455,10 +450,7 @@ FreeStepStats FreeTrainer::step() {
   settings.features = false;  // free Gaussians carry no semantic feature
   renderer_.forward(gaussians_, view.camera, settings);
 
-  target_planar_.resize(npix * 3);
-  for (size_t p = 0; p < npix; ++p)
-    for (int c = 0; c < 3; ++c) target_planar_[c * npix + p] = target->rgb[p * 3 + c];
-  target_dev_.upload(target_planar_);
+  upload_target(*target, 1, target_planar_, target_dev_);
   image_loss_.enqueue(renderer_.device_rgb(), target_dev_, w, h, config_.lambda_ssim, &grad_rgb_dev_, nullptr,
                       ImageLayout::kPlanar);
   Renderer::DeviceOutputGrads og;
@@ -484,25 +476,19 @@ FreeStepStats FreeTrainer::step() {
     rt_.launch("free_activate_bwd", k, cl::NDRange(std::max<size_t>(n_, 1)), cl::NDRange(64));
   }
 
-  adam_.clear_nonfinite();
-  adam_.accumulate_nonfinite(*rg.means, n_ * 3);
-  adam_.accumulate_nonfinite(v_log_scale_, n_ * 3);
-  adam_.accumulate_nonfinite(*rg.quats, n_ * 4);
-  adam_.accumulate_nonfinite(v_opacity_logit_, n_);
-  adam_.accumulate_nonfinite(v_sh_dc_, n_ * 3);
-  adam_.accumulate_nonfinite(v_sh_rest_, n_ * 3 * kRest);
-  st.nonfinite = adam_.read_nonfinite();
+  const std::vector<GroupStep> updates = {{kMeans, &mean_, rg.means, position_lr(it)},
+                                          {kScaling, &log_scale_, &v_log_scale_, config_.scaling_lr},
+                                          {kRotation, &quat_, rg.quats, config_.rotation_lr},
+                                          {kOpacity, &opacity_logit_, &v_opacity_logit_, config_.opacity_lr},
+                                          {kShDc, &sh_dc_, &v_sh_dc_, config_.sh_dc_lr},
+                                          {kShRest, &sh_rest_, &v_sh_rest_, config_.sh_rest_lr}};
+  st.nonfinite = groups_->count_nonfinite(adam_, updates);
   if (st.nonfinite > 0 || !std::isfinite(st.loss)) {
     st.skipped = true;
     spdlog::warn("iteration {}: {} non-finite gradient values (loss {}); step skipped", st.iteration, st.nonfinite,
                  st.loss);
   } else {
-    adam_.step(*g_mean_, mean_, *rg.means, position_lr(it));
-    adam_.step(*g_scale_, log_scale_, v_log_scale_, config_.scaling_lr);
-    adam_.step(*g_quat_, quat_, *rg.quats, config_.rotation_lr);
-    adam_.step(*g_opacity_, opacity_logit_, v_opacity_logit_, config_.opacity_lr);
-    adam_.step(*g_dc_, sh_dc_, v_sh_dc_, config_.sh_dc_lr);
-    adam_.step(*g_rest_, sh_rest_, v_sh_rest_, config_.sh_rest_lr);
+    groups_->step(adam_, updates);
     if (st.iteration <= config_.effective_densify_until() && n_ > 0) {
       cl::Kernel k = rt_.kernel("free_gaussians.cl", "free_densify_accumulate", {});
       set_kernel_args(k, static_cast<cl_int>(n_), *rg.means2d, renderer_.device_radii(), 0.5f * w, 0.5f * h,
@@ -510,6 +496,7 @@ FreeStepStats FreeTrainer::step() {
       rt_.launch("free_densify_acc", k, cl::NDRange(n_), cl::NDRange(64));
     }
   }
+  if (before_rounds) before_rounds();
   iteration_ = it + 1;
   if (config_.densify_due(st.iteration)) densify(st);
   if (config_.reset_due(st.iteration)) {
@@ -532,8 +519,7 @@ void FreeTrainer::densify(FreeStepStats& st) {
                              std::to_string(plan.pruned) + " pruned); lower --prune-opacity");
   const FreeGaussians next = apply_densification(g, plan, config_.seed, st.iteration);
   const std::vector<int> rows = plan.adam_rows();
-  for (AdamGroup* grp : {g_mean_.get(), g_scale_.get(), g_quat_.get(), g_opacity_.get(), g_dc_.get(), g_rest_.get()})
-    grp->gather(rows);
+  groups_->gather(rows, {});
   upload_params(next);
   reset_stats();
 }
@@ -541,35 +527,18 @@ void FreeTrainer::densify(FreeStepStats& st) {
 void FreeTrainer::reset_opacity() {
   std::vector<float> o;
   opacity_logit_.download(o, n_);
-  const float cap = static_cast<float>(logit(0.01));
-  for (float& x : o) x = std::min(x, cap);
+  cap_opacity_logits(o);
   opacity_logit_.upload(o);
-  g_opacity_->zero_moments();
+  (*groups_)[kOpacity].zero_moments();
 }
 
 EvalStats FreeTrainer::evaluate(const std::vector<int>& views) {
-  EvalStats ev;
-  if (views.empty()) return ev;
+  if (views.empty()) return {};
   activate(active_sh_degree());
   RenderSettings settings;
   const float bg = config_.white_background ? 1.f : 0.f;
   settings.background = {bg, bg, bg};
-  for (int v : views) {
-    renderer_.forward(gaussians_, scene_.views()[v].camera, settings);
-    RenderOutput out = renderer_.download_output();
-    for (float& x : out.rgb) x = std::clamp(x, 0.f, 1.f);
-    std::shared_ptr<const Image> target = scene_.image(v);
-    ImageLossResult r = image_loss_.forward_backward(out.rgb, target->rgb, out.width, out.height, config_.lambda_ssim,
-                                                     nullptr, nullptr);
-    ev.psnr += r.psnr();
-    ev.ssim += r.ssim;
-    ev.l1 += r.l1;
-    ++ev.views;
-  }
-  ev.psnr /= ev.views;
-  ev.ssim /= ev.views;
-  ev.l1 /= ev.views;
-  return ev;
+  return evaluate_views(renderer_, image_loss_, gaussians_, scene_, views, settings, config_.lambda_ssim);
 }
 
 void FreeTrainer::save(const std::string& model_dir) {

@@ -38,6 +38,7 @@
 #include <array>
 #include <cstddef>
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <string>
@@ -49,6 +50,7 @@
 #include "host/image_loss.h"
 #include "host/renderer.h"
 #include "host/scene.h"
+#include "stages/param_groups.h"
 #include "stages/trainer.h"
 
 namespace ag2gs {
@@ -175,7 +177,9 @@ class FreeTrainer {
   FreeTrainer(Runtime& rt, Scene& scene, const FreeTrainConfig& config);
   ~FreeTrainer();
 
-  FreeStepStats step();
+  // before_rounds, when set, runs after the parameter update and before
+  // this iteration's densification and opacity reset (as Trainer::step).
+  FreeStepStats step(const std::function<void()>& before_rounds = {});
   EvalStats evaluate(const std::vector<int>& views);
   // MODEL_DIR/point_cloud.ply (standard 3DGS, active SH degree), atomic.
   void save(const std::string& model_dir);
@@ -219,7 +223,9 @@ class FreeTrainer {
   Renderer renderer_;
   ImageLoss image_loss_;
   Adam adam_;
-  std::unique_ptr<AdamGroup> g_mean_, g_scale_, g_quat_, g_opacity_, g_dc_, g_rest_;
+  // The optimiser groups (stages/param_groups.h), in this order.
+  enum Group : size_t { kMeans, kScaling, kRotation, kOpacity, kShDc, kShRest };
+  std::unique_ptr<ParamGroups> groups_;
   DeviceBuffer target_dev_, grad_rgb_dev_;
   std::vector<float> target_planar_;
 };

@@ -1,4 +1,4 @@
-// Stage 3, part 3 (DESIGN.md section 5): score every cluster's instance map
+// Stage 3, part 3 (docs/design.md section 7): score every cluster's instance map
 // against the SAM masks of each view and attach CLIP features to clusters.
 //
 // Per view (InstanceMap ids, rendered feature F [3,H,W] and alpha [H,W], the

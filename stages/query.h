@@ -1,4 +1,4 @@
-// Click and text queries on a trained anchor model (DESIGN.md section 6).
+// Click and text queries on a trained anchor model (docs/design.md section 8).
 //
 // Both queries end in the same region growing over the query graph, the
 // anchor graph rebuilt with twice the voxel neighbourhood

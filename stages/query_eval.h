@@ -1,5 +1,5 @@
 // Evaluation of text and click queries against labelled frames, the
-// LERF-OVS protocol (DESIGN.md section 7):
+// LERF-OVS protocol (docs/design.md section 8):
 //
 // - text: every category present in every label frame is one query; its
 //   embedding comes from the vocabulary, the selection from

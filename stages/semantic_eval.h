@@ -1,4 +1,4 @@
-// Scoring stages 2 and 3 against exact ground truth (issue 5): which object
+// Scoring stages 2 and 3 against exact ground truth: which object
 // each anchor belongs to, how well the clusters match the objects (purity and
 // adjusted Rand index), and whether each object's cluster carries the right
 // category's CLIP feature.

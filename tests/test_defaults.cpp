@@ -1,5 +1,5 @@
-// The defaults a user meets with no tuning flags (issue: defaults that work
-// on a real capture): the voxel chosen from the scene, the divergence guard,
+// The defaults a user meets with no tuning flags (defaults that work on a
+// real capture): the voxel chosen from the scene, the divergence guard,
 // and the program's default training on a small generated scene.
 #include <gtest/gtest.h>
 

@@ -1,4 +1,4 @@
-// The hard cases of DESIGN.md section 8, each a named test: outputs finite,
+// The hard cases of docs/design.md section 11, each a named test: outputs finite,
 // culling right, no NaN anywhere, hidden Gaussians leave the image unchanged,
 // and (where the case is smooth) agreement with the double reference.
 #include "reference/reference_renderer.h"

@@ -85,6 +85,7 @@ TEST(Runtime, DiskCacheIsWrittenReusedAndCorruptEntriesRebuilt) {
 
 TEST(Runtime, BuildFailureCarriesNameOptionsAndLog) {
   fs::path dir = fresh_dir("kernels");
+  std::ofstream(dir / "layout.h") << kernel_source("layout.h");
   std::ofstream(dir / "common.cl") << kernel_source("common.cl");
   std::ofstream(dir / "broken.cl") << "__kernel void broken(__global float* x) { x[0] = undefined_name; }\n";
   setenv("AG2GS_KERNEL_DIR", dir.c_str(), 1);

@@ -8,6 +8,8 @@
 #include <filesystem>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
+#include <sys/wait.h>
+#include <unistd.h>
 
 #include "host/colmap_writer.h"
 #include "host/image_io.h"
@@ -397,6 +399,56 @@ TEST(SceneErrors, TruncatedJpegsAreNamedAsSuch) {
   write_bytes(dir.file("images/img_04.png"), std::string(jpg.begin(), jpg.end()));
   auto again = Scene::open(dir.str());
   EXPECT_EQ(again->image(4)->width, 40);
+}
+
+// A photo the user may not read is named as such (with the system's reason),
+// not called corrupt. Root reads any file, so as root the read runs in a
+// child process that has given up its privileges.
+TEST(SceneErrors, UnreadableImagesAreNamedWithTheReason) {
+  ScratchDir dir("scene");
+  make_scene(dir.path(), {});
+  namespace fs = std::filesystem;
+  fs::permissions(dir.path(), fs::perms::all, fs::perm_options::add);  // traversable by anyone
+  fs::permissions(dir.path() / "images", fs::perms::all, fs::perm_options::add);
+  fs::permissions(dir.file("images/img_04.png"), fs::perms::none);
+  auto scene = Scene::open(dir.str());
+  auto message_of_failed_read = [&]() -> std::string {
+    try {
+      scene->image(4);
+    } catch (const std::runtime_error& e) {
+      return e.what();
+    }
+    return "(no error)";
+  };
+  if (::geteuid() != 0) {
+    const std::string m = message_of_failed_read();
+    for (const char* part : {"img_04.png", "cannot be read", "Permission denied", "permissions"})
+      EXPECT_NE(m.find(part), std::string::npos) << m;
+    return;
+  }
+  int fds[2];
+  ASSERT_EQ(::pipe(fds), 0);
+  const pid_t child = ::fork();
+  ASSERT_GE(child, 0);
+  if (child == 0) {
+    ::close(fds[0]);
+    std::string m = "could not drop privileges";
+    if (::setgid(65534) == 0 && ::setuid(65534) == 0) m = message_of_failed_read();
+    const ssize_t written = ::write(fds[1], m.data(), m.size());
+    ::_exit(written == static_cast<ssize_t>(m.size()) ? 0 : 1);
+  }
+  ::close(fds[1]);
+  std::string m;
+  char buf[512];
+  for (ssize_t n; (n = ::read(fds[0], buf, sizeof buf)) > 0;) m.append(buf, static_cast<size_t>(n));
+  ::close(fds[0]);
+  int status = 0;
+  ASSERT_EQ(::waitpid(child, &status, 0), child);
+  ASSERT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) == 0) << m;
+  for (const char* part : {"img_04.png", "cannot be read", "Permission denied", "permissions"})
+    EXPECT_NE(m.find(part), std::string::npos) << m;
+  fs::permissions(dir.file("images/img_04.png"), fs::perms::owner_all);
+  EXPECT_EQ(scene->image(4)->width, 40);
 }
 
 TEST(SceneErrors, CorruptOrWrongSizedImages) {

@@ -44,7 +44,7 @@ TrainConfig stage_config() {
   return cfg;
 }
 
-// L_prop of DESIGN.md section 4 in double precision, straight from the CSR rows.
+// L_prop of docs/design.md section 6 in double precision, straight from the CSR rows.
 double host_prop_loss(const AnchorGraph& g, const std::vector<float>& f, double tau) {
   double sum = 0;
   size_t edges = 0;

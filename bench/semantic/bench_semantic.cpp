@@ -1,4 +1,4 @@
-// Stages 2 and 3 against exact ground truth (issue 5): on a model trained on
+// Stages 2 and 3 against exact ground truth: on a model trained on
 // a scene made by `ag2gs synth`, the purity and adjusted Rand index of the
 // anchor clusters against the objects, and for each object whether its
 // cluster's language feature is closest to the object's own category.

@@ -3,9 +3,9 @@
 // kernel against the forward render per view (kernel times from profiling
 // events, median over repeats).
 //
-// Until the stage-2 anchor graph lands, the graph here is the DESIGN.md
-// section 4 neighbourhood built by brute force: anchors whose top-layer cells
-// are equal or 26-neighbours are connected.
+// The graph here is a neighbourhood built by brute force (docs/design.md
+// section 6 describes the real one): anchors whose top-layer cells are equal
+// or 26-neighbours are connected.
 //
 //   ag2gs_bench_stage3 MODEL_DIR SCENE_DIR [--repeats N] [--max-distance D] [--out FILE]
 #include <CLI/CLI.hpp>
