@@ -15,8 +15,8 @@
 #include <map>
 #include <random>
 
-#include "host/cl_runtime.h"
-#include "host/renderer.h"
+#include "host/device/cl_runtime.h"
+#include "host/render/renderer.h"
 #include "tests/reference/reference_renderer.h"
 
 using namespace ag2gs;

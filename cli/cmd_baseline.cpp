@@ -15,8 +15,8 @@
 #include "cli/commands.h"
 #include "cli/run_driver.h"
 #include "cli/run_guard.h"
-#include "host/cl_runtime.h"
-#include "host/scene.h"
+#include "host/device/cl_runtime.h"
+#include "host/scene/scene.h"
 #include "stages/free_trainer.h"
 #include "stages/trainer.h"
 
@@ -56,13 +56,7 @@ void cmd_baseline(const GlobalOptions& global, BaselineArgs& a) {
   else
     spdlog::info("densification off");
 
-  RunDriver run(a, {{"scene", scene->dir()},
-                    {"model", "baseline"},
-                    {"resolution", a.resolution},
-                    {"seed", c.seed},
-                    {"iterations", c.iterations},
-                    {"train_views", scene->train_views().size()},
-                    {"test_views", test_views.size()}});
+  RunDriver run(a, *scene, "baseline", c.seed, c.iterations);
   auto evaluate = [&] { return trainer.evaluate(test_views); };
   auto counts = [&] { return nlohmann::json{{"gaussians", trainer.gaussians()}}; };
 

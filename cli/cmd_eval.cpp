@@ -1,4 +1,4 @@
-// eval: the LERF-OVS protocol on a trained model (stages/query_eval.h):
+// eval: the LERF-OVS protocol on a trained model (queries/query_eval.h):
 // text queries for every labelled category of every label frame, click
 // queries from a click list, IoU and boundary IoU per (frame, query) pair, a
 // per-frame and mean table, timing per query, and a JSON report.
@@ -13,15 +13,15 @@
 
 #include "cli/commands.h"
 #include "cli/run_guard.h"
-#include "host/cl_runtime.h"
-#include "host/model_io.h"
-#include "host/scene.h"
-#include "host/semantic_io.h"
+#include "host/device/cl_runtime.h"
+#include "host/io/model_io.h"
+#include "host/io/semantic_io.h"
+#include "host/scene/scene.h"
+#include "queries/query.h"
+#include "queries/query_eval.h"
 #include "stages/anchor_model.h"
 #include "stages/clustering.h"
 #include "stages/language.h"
-#include "stages/query.h"
-#include "stages/query_eval.h"
 #include "stages/trainer.h"
 
 namespace fs = std::filesystem;

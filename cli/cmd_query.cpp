@@ -1,5 +1,5 @@
 // query: select an object of a trained model by a click or by text
-// (stages/query.h) and write its Gaussians, the rest, a JSON summary and
+// (queries/query.h) and write its Gaussians, the rest, a JSON summary and
 // the selection's masks in the requested views.
 #include <spdlog/spdlog.h>
 
@@ -15,17 +15,17 @@
 #include <string>
 
 #include "cli/commands.h"
-#include "host/atomic_file.h"
-#include "host/cl_runtime.h"
-#include "host/model_io.h"
-#include "host/npy_io.h"
-#include "host/ply_io.h"
-#include "host/scene.h"
-#include "host/semantic_io.h"
+#include "host/device/cl_runtime.h"
+#include "host/io/atomic_file.h"
+#include "host/io/model_io.h"
+#include "host/io/npy_io.h"
+#include "host/io/ply_io.h"
+#include "host/io/semantic_io.h"
+#include "host/scene/scene.h"
+#include "queries/query.h"
 #include "stages/anchor_model.h"
 #include "stages/clustering.h"
 #include "stages/language.h"
-#include "stages/query.h"
 
 namespace fs = std::filesystem;
 
@@ -34,7 +34,7 @@ namespace {
 
 struct QueryArgs {
   std::string model, scene, view, click, text, vocab, text_embedding, out, views;
-  std::string sparse;  // --sparse; empty = the scene-folder rule (host/scene.h)
+  std::string sparse;  // --sparse; empty = the scene-folder rule (host/scene/scene.h)
   int resolution = 0;  // 0 = the resolution the model was trained at
   QueryConfig config;
 };

@@ -8,11 +8,11 @@
 #include <memory>
 
 #include "cli/commands.h"
-#include "host/colmap_reader.h"
-#include "host/model_io.h"
-#include "host/ply_io.h"
-#include "host/scene.h"
-#include "host/sfm.h"
+#include "host/io/colmap_reader.h"
+#include "host/io/model_io.h"
+#include "host/io/ply_io.h"
+#include "host/scene/scene.h"
+#include "host/scene/sfm.h"
 #include "stages/anchor_graph.h"
 #include "stages/clustering.h"
 #include "stages/language.h"
@@ -23,7 +23,7 @@ namespace ag2gs::cli {
 namespace {
 
 // A Gaussian file: counts, bounds and mean opacity of its valid Gaussians;
-// invalid ones (host/ply_io.h) are counted, and make info fail.
+// invalid ones (host/io/ply_io.h) are counted, and make info fail.
 void print_ply(const std::string& ply) {
   size_t dropped = 0;
   GaussianSet set = read_ply(ply, PlyValues::activated, InvalidGaussians::drop, &dropped);

@@ -1,4 +1,4 @@
-// synth: writes a synthetic scene with exact ground truth (host/synth_scene.h)
+// synth: writes a synthetic scene with exact ground truth (synth/synth_scene.h)
 // and prints a summary read back from the scene's synth.json.
 #include <spdlog/spdlog.h>
 
@@ -12,7 +12,7 @@
 
 #include "cli/commands.h"
 #include "cli/run_guard.h"
-#include "host/synth_scene.h"
+#include "synth/synth_scene.h"
 
 namespace fs = std::filesystem;
 

@@ -23,9 +23,9 @@
 #include "cli/commands.h"
 #include "cli/run_driver.h"
 #include "cli/run_guard.h"
-#include "host/cl_runtime.h"
-#include "host/model_io.h"
-#include "host/scene.h"
+#include "host/device/cl_runtime.h"
+#include "host/io/model_io.h"
+#include "host/scene/scene.h"
 #include "stages/divergence_guard.h"
 #include "stages/language.h"
 #include "stages/trainer.h"
@@ -262,13 +262,7 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
                  c.effective_mask_from(), c.w_is, c.w_ic, c.mask_alpha_normalise ? " / alpha" : "",
                  c.mask_geometry ? "every parameter" : "the semantic features only");
 
-  RunDriver run(a, {{"scene", scene->dir()},
-                    {"model", "anchors"},
-                    {"resolution", a.resolution},
-                    {"seed", c.seed},
-                    {"iterations", c.iterations},
-                    {"train_views", scene->train_views().size()},
-                    {"test_views", test_views.size()}});
+  RunDriver run(a, *scene, "anchors", c.seed, c.iterations);
   auto evaluate = [&] { return trainer.evaluate(test_views); };
   auto counts = [&] { return nlohmann::json{{"anchors", trainer.anchors()}, {"gaussians", trainer.gaussians()}}; };
 

@@ -3,7 +3,7 @@
 #include <CLI/CLI.hpp>
 #include <functional>
 
-#include "stages/query.h"
+#include "queries/query.h"
 
 namespace ag2gs::cli {
 
@@ -27,6 +27,8 @@ void register_commands(CLI::App& app, GlobalOptions& global);
 void set_action(CLI::App* sub, std::function<void()> action);
 
 // Subcommands defined in their own files.
+void register_devices(CLI::App& app, GlobalOptions& global);        // devices (cmd_devices.cpp)
+void register_render(CLI::App& app, GlobalOptions& global);         // render (cmd_render.cpp)
 void register_scene_commands(CLI::App& app, GlobalOptions& global);  // info, sfm, undistort (cmd_scene.cpp)
 void register_synth(CLI::App& app, GlobalOptions& global);          // synth (cmd_synth.cpp)
 void register_train(CLI::App& app, GlobalOptions& global);          // train (cmd_train.cpp)

@@ -92,7 +92,16 @@ double estimate_seconds_left(int remaining, double step_ms, size_t gaussians, in
   return weighted * step_ms / 1000;
 }
 
-RunDriver::RunDriver(const RunArgs& args, nlohmann::json head) : args_(args), metrics_(std::move(head)) {
+RunDriver::RunDriver(const RunArgs& args, const Scene& scene, const std::string& model, uint64_t seed,
+                     int iterations)
+    : args_(args),
+      metrics_({{"scene", scene.dir()},
+                {"model", model},
+                {"resolution", args.resolution},
+                {"seed", seed},
+                {"iterations", iterations},
+                {"train_views", scene.train_views().size()},
+                {"test_views", scene.test_views().size()}}) {
   metrics_["test"] = nlohmann::json::array();
   metrics_["warnings"] = nlohmann::json::array();
 }

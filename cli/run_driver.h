@@ -6,6 +6,7 @@
 #pragma once
 
 #include <chrono>
+#include <cstdint>
 #include <CLI/CLI.hpp>
 #include <functional>
 #include <memory>
@@ -13,8 +14,8 @@
 #include <string>
 #include <vector>
 
-#include "host/cl_runtime.h"
-#include "host/scene.h"
+#include "host/device/cl_runtime.h"
+#include "host/scene/scene.h"
 #include "stages/train_common.h"
 
 namespace ag2gs::cli {
@@ -22,7 +23,7 @@ namespace ag2gs::cli {
 // The flags every training subcommand takes.
 struct RunArgs {
   std::string scene, out;
-  std::string sparse;  // --sparse; empty = the scene-folder rule (host/scene.h)
+  std::string sparse;  // --sparse; empty = the scene-folder rule (host/scene/scene.h)
   int resolution = 1;
   bool eval = false;
   int log_every = 100;
@@ -60,9 +61,10 @@ double estimate_seconds_left(int remaining, double step_ms, size_t gaussians, in
 
 class RunDriver {
  public:
-  // `head`: the metrics' fixed fields (scene, seed, iterations, ...); the
-  // driver adds "test" and "warnings".
-  RunDriver(const RunArgs& args, nlohmann::json head);
+  // The metrics start with the run's fixed fields: the scene, `model`
+  // ("anchors" or "baseline"), -r, the seed, the iterations and the view
+  // counts.
+  RunDriver(const RunArgs& args, const Scene& scene, const std::string& model, uint64_t seed, int iterations);
 
   // Whether step `iteration` (1-based) prints a progress line / runs a test
   // (the last step's test is the final one, run after saving).

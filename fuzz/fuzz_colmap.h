@@ -8,7 +8,7 @@
 #include <filesystem>
 
 #include "fuzz/fuzz_common.h"
-#include "host/colmap_reader.h"
+#include "host/io/colmap_reader.h"
 
 namespace ag2gs::fuzz {
 

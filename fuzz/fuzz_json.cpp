@@ -1,9 +1,9 @@
 // libFuzzer target for the JSON readers of queries and evaluation
-// (host/semantic_io.h): the first input byte picks the reader.
+// (host/io/semantic_io.h): the first input byte picks the reader.
 #include <exception>
 
 #include "fuzz/fuzz_common.h"
-#include "host/semantic_io.h"
+#include "host/io/semantic_io.h"
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   if (size < 1) return 0;

@@ -1,10 +1,10 @@
-// libFuzzer target for read_model_archive (host/model_io.h). An archive that
+// libFuzzer target for read_model_archive (host/io/model_io.h). An archive that
 // reads must survive write + read with identical arrays and metadata.
 #include <cstdlib>
 #include <exception>
 
 #include "fuzz/fuzz_common.h"
-#include "host/model_io.h"
+#include "host/io/model_io.h"
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   const std::string path = ag2gs::fuzz::temp_dir() + "/input.ag2gs";

@@ -1,11 +1,11 @@
-// libFuzzer target for read_npy (host/npy_io.h). A file that reads must also
+// libFuzzer target for read_npy (host/io/npy_io.h). A file that reads must also
 // survive write_npy + read_npy unchanged (shape and every bit).
 #include <cstdlib>
 #include <cstring>
 #include <exception>
 
 #include "fuzz/fuzz_common.h"
-#include "host/npy_io.h"
+#include "host/io/npy_io.h"
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   const std::string path = ag2gs::fuzz::temp_dir() + "/input.npy";

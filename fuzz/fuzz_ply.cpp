@@ -1,10 +1,10 @@
-// libFuzzer target for read_ply (host/ply_io.h). A file that reads must give
+// libFuzzer target for read_ply (host/io/ply_io.h). A file that reads must give
 // a GaussianSet whose arrays agree in size.
 #include <cstdlib>
 #include <exception>
 
 #include "fuzz/fuzz_common.h"
-#include "host/ply_io.h"
+#include "host/io/ply_io.h"
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   const std::string path = ag2gs::fuzz::temp_dir() + "/input.ply";

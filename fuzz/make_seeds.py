@@ -154,7 +154,7 @@ def fnv1a64(data):
 
 
 def archive(meta, arrays):
-    """A model.ag2gs file laid out as host/model_io.cpp writes it."""
+    """A model.ag2gs file laid out as host/io/model_io.cpp writes it."""
     import json
     entries, blobs, offset = [], b"", 0
     for name, dtype, shape, payload in arrays:

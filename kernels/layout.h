@@ -1,5 +1,5 @@
 // Records shared by the kernels and the host, as float offsets. This header is
-// valid C++ and OpenCL C: host/renderer.cpp includes it, and the host puts it
+// valid C++ and OpenCL C: host/render/renderer.cpp includes it, and the host puts it
 // in front of kernels/common.cl in every program it builds, so the two sides
 // cannot drift apart.
 #ifndef AG2GS_KERNELS_LAYOUT_H
@@ -44,7 +44,7 @@
 #define G2_Z 12
 #define G2_SIZE 13
 
-// Camera block, CAM_SIZE floats (host: pack_camera in host/renderer.cpp).
+// Camera block, CAM_SIZE floats (host: pack_camera in host/render/renderer.cpp).
 #define CAM_R 0        // [9] world->camera rotation, row-major
 #define CAM_T 9        // [3]
 #define CAM_FX 12

@@ -26,7 +26,7 @@
 #include <string>
 #include <vector>
 
-#include "host/model_io.h"
+#include "host/io/model_io.h"
 #include "stages/anchor_model.h"
 
 namespace ag2gs {

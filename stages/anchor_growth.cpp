@@ -107,7 +107,7 @@ void AnchorGrowth::accumulate(const DeviceBuffer& v_means2d, const DeviceBuffer&
   if (n_ == 0) return;
   const float sx = config_.ndc ? 0.5f * static_cast<float>(width) : 1.f;
   const float sy = config_.ndc ? 0.5f * static_cast<float>(height) : 1.f;
-  cl::Kernel k = rt_.kernel("growth.cl", "growth_accumulate", {});
+  cl::Kernel k = rt_.kernel("anchor_growth.cl", "growth_accumulate", {});
   set_kernel_args(k, static_cast<int>(n_), v_means2d, radii, sx, sy, step_, grad_sum_, count_, last_seen_);
   rt_.launch("growth_accumulate", k, cl::NDRange(n_), cl::NDRange(kWorkGroup));
 }

@@ -1,6 +1,6 @@
 // Anchor growing and pruning (docs/design.md section 3): statistics of
 // every child Gaussian collected on the device after each backward pass
-// (kernels/growth.cl), and the decision step on the host model that adds
+// (kernels/anchor_growth.cl), and the decision step on the host model that adds
 // finer anchors where children ask for detail and drops anchors that do not
 // contribute.
 //
@@ -83,7 +83,7 @@
 #include <cstdint>
 #include <vector>
 
-#include "host/cl_runtime.h"
+#include "host/device/cl_runtime.h"
 #include "stages/anchor_model.h"
 
 namespace ag2gs {

@@ -7,7 +7,7 @@
 #include <string>
 #include <utility>
 
-#include "host/counter_rng.h"
+#include "host/core/counter_rng.h"
 
 namespace ag2gs {
 

@@ -22,9 +22,9 @@
 #include <unordered_map>
 #include <vector>
 
-#include "host/gaussians.h"
-#include "host/model_io.h"
-#include "host/scene.h"
+#include "host/core/gaussians.h"
+#include "host/io/model_io.h"
+#include "host/scene/scene.h"
 
 namespace ag2gs {
 

@@ -9,10 +9,10 @@
 #include <stdexcept>
 #include <system_error>
 
-#include "host/atomic_file.h"
-#include "host/counter_rng.h"
-#include "host/model_io.h"
-#include "host/ply_io.h"
+#include "host/core/counter_rng.h"
+#include "host/io/atomic_file.h"
+#include "host/io/model_io.h"
+#include "host/io/ply_io.h"
 #include "stages/trainer.h"
 
 namespace fs = std::filesystem;

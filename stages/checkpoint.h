@@ -10,7 +10,7 @@
 #include <string>
 #include <vector>
 
-#include "host/scene.h"
+#include "host/scene/scene.h"
 
 namespace ag2gs {
 
@@ -27,7 +27,7 @@ nlohmann::json scene_fingerprint(const Scene& scene, size_t train_views);
 // caller runs this before training so a long run cannot fail at the end.
 void check_model_dir_writable(const std::string& dir);
 
-// A JSON document written atomically (host/atomic_file.h).
+// A JSON document written atomically (host/io/atomic_file.h).
 void write_json_atomic(const std::string& path, const nlohmann::json& doc);
 
 }  // namespace ag2gs

@@ -23,7 +23,7 @@
 #include <cstdint>
 #include <vector>
 
-#include "host/model_io.h"
+#include "host/io/model_io.h"
 
 namespace ag2gs {
 

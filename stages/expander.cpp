@@ -153,7 +153,7 @@ void Expander::forward(const DeviceAnchors& anchors, DeviceGaussians& out, int a
   reserve_floats(out.sh, n * sh_out * 3);
   reserve_floats(out.features, n * 3);
   if (n == 0) return;
-  cl::Kernel k = rt_.kernel("expand.cl", "expand_fwd", expand_defines(anchors));
+  cl::Kernel k = rt_.kernel("expander.cl", "expand_fwd", expand_defines(anchors));
   set_kernel_args(k, static_cast<int>(n), anchors.pos, anchors.voxel, anchors.feature, anchors.offset,
                   anchors.scale_logit, anchors.quat, anchors.opacity_logit, anchors.sh_dc, anchors.sh_rest, sh_out,
                   anchors.cap_edge, out.means, out.scales, out.quats, out.opacities, out.sh, out.features);
@@ -186,12 +186,12 @@ void Expander::backward(const DeviceAnchors& anchors, const DeviceGaussianGrads&
   reserve_floats(out.sh_rest, n * kShRestCoeffs * 3);
   if (n == 0) return;
   const std::map<std::string, std::string> defines = expand_defines(anchors);
-  cl::Kernel k = rt_.kernel("expand.cl", "expand_bwd", defines);
+  cl::Kernel k = rt_.kernel("expander.cl", "expand_bwd", defines);
   set_kernel_args(k, static_cast<int>(n), anchors.voxel, anchors.scale_logit, anchors.opacity_logit, *grads.means,
                   *grads.scales, *grads.quats, *grads.opacities, *grads.sh, sh_in, anchors.cap_edge, out.offset,
                   out.scale_logit, out.quat, out.opacity_logit, out.sh_dc, out.sh_rest);
   rt_.launch("expand_bwd", k, cl::NDRange(n), cl::NDRange(kWorkGroup));
-  cl::Kernel kf = rt_.kernel("expand.cl", "expand_bwd_feature", defines);
+  cl::Kernel kf = rt_.kernel("expander.cl", "expand_bwd_feature", defines);
   set_kernel_args(kf, static_cast<int>(anchors.anchors), *grads.features, out.feature);
   rt_.launch("expand_bwd", kf, cl::NDRange(anchors.anchors), cl::NDRange(kWorkGroup));
 }

@@ -1,4 +1,4 @@
-// Device copies of an AnchorModel and the expansion kernels (kernels/expand.cl):
+// Device copies of an AnchorModel and the expansion kernels (kernels/expander.cl):
 // forward anchors -> DeviceGaussians (what Renderer::forward consumes) and
 // backward renderer gradients -> anchor-parameter gradients.
 //
@@ -26,8 +26,8 @@
 #include <cstddef>
 #include <vector>
 
-#include "host/cl_runtime.h"
-#include "host/renderer.h"
+#include "host/device/cl_runtime.h"
+#include "host/render/renderer.h"
 #include "stages/anchor_model.h"
 
 namespace ag2gs {

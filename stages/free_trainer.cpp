@@ -10,8 +10,8 @@
 #include <numeric>
 #include <stdexcept>
 
-#include "host/counter_rng.h"
-#include "host/ply_io.h"
+#include "host/core/counter_rng.h"
+#include "host/io/ply_io.h"
 
 namespace fs = std::filesystem;
 
@@ -427,11 +427,32 @@ void FreeTrainer::activate(int sh_degree) {
   gaussians_.opacities.reserve(nb);
   gaussians_.sh.reserve(nb * 3 * sh_out);
   gaussians_.features.reserve(nb * 3);
-  cl::Kernel k = rt_.kernel("free_gaussians.cl", "free_activate", {});
+  cl::Kernel k = rt_.kernel("free_trainer.cl", "free_activate", {});
   set_kernel_args(k, static_cast<cl_int>(n_), mean_, log_scale_, quat_, opacity_logit_, sh_dc_, sh_rest_,
                   static_cast<cl_int>(sh_out), gaussians_.means, gaussians_.scales, gaussians_.quats,
                   gaussians_.opacities, gaussians_.sh, gaussians_.features);
   rt_.launch("free_activate", k, cl::NDRange(std::max<size_t>(n_, 1)), cl::NDRange(64));
+}
+
+void FreeTrainer::activate_backward(const DeviceGaussianGrads& rg) {
+  const size_t nb = std::max<size_t>(n_, 1) * sizeof(float);
+  v_log_scale_.reserve(nb * 3);
+  v_opacity_logit_.reserve(nb);
+  v_sh_dc_.reserve(nb * 3);
+  v_sh_rest_.reserve(nb * 3 * kRest);
+  cl::Kernel k = rt_.kernel("free_trainer.cl", "free_activate_bwd", {});
+  set_kernel_args(k, static_cast<cl_int>(n_), log_scale_, opacity_logit_, *rg.scales, *rg.opacities, *rg.sh,
+                  static_cast<cl_int>(sh_coeffs_for_degree(rg.sh_degree)), v_log_scale_, v_opacity_logit_, v_sh_dc_,
+                  v_sh_rest_);
+  rt_.launch("free_activate_bwd", k, cl::NDRange(std::max<size_t>(n_, 1)), cl::NDRange(64));
+}
+
+void FreeTrainer::accumulate_densify_stats(const DeviceGaussianGrads& rg, int width, int height) {
+  if (n_ == 0) return;
+  cl::Kernel k = rt_.kernel("free_trainer.cl", "free_densify_accumulate", {});
+  set_kernel_args(k, static_cast<cl_int>(n_), *rg.means2d, renderer_.device_radii(), 0.5f * width, 0.5f * height,
+                  grad_sum_, count_, max_radius_);
+  rt_.launch("free_densify_acc", k, cl::NDRange(n_), cl::NDRange(64));
 }
 
 FreeStepStats FreeTrainer::step(const std::function<void()>& before_rounds) {
@@ -463,18 +484,7 @@ FreeStepStats FreeTrainer::step(const std::function<void()>& before_rounds) {
   st.loss = lr.loss;
 
   const DeviceGaussianGrads rg = renderer_.device_grads();
-  const size_t nb = std::max<size_t>(n_, 1) * sizeof(float);
-  v_log_scale_.reserve(nb * 3);
-  v_opacity_logit_.reserve(nb);
-  v_sh_dc_.reserve(nb * 3);
-  v_sh_rest_.reserve(nb * 3 * kRest);
-  {
-    cl::Kernel k = rt_.kernel("free_gaussians.cl", "free_activate_bwd", {});
-    set_kernel_args(k, static_cast<cl_int>(n_), log_scale_, opacity_logit_, *rg.scales, *rg.opacities, *rg.sh,
-                    static_cast<cl_int>(sh_coeffs_for_degree(rg.sh_degree)), v_log_scale_, v_opacity_logit_,
-                    v_sh_dc_, v_sh_rest_);
-    rt_.launch("free_activate_bwd", k, cl::NDRange(std::max<size_t>(n_, 1)), cl::NDRange(64));
-  }
+  activate_backward(rg);
 
   const std::vector<GroupStep> updates = {{kMeans, &mean_, rg.means, position_lr(it)},
                                           {kScaling, &log_scale_, &v_log_scale_, config_.scaling_lr},
@@ -489,12 +499,7 @@ FreeStepStats FreeTrainer::step(const std::function<void()>& before_rounds) {
                  st.loss);
   } else {
     groups_->step(adam_, updates);
-    if (st.iteration <= config_.effective_densify_until() && n_ > 0) {
-      cl::Kernel k = rt_.kernel("free_gaussians.cl", "free_densify_accumulate", {});
-      set_kernel_args(k, static_cast<cl_int>(n_), *rg.means2d, renderer_.device_radii(), 0.5f * w, 0.5f * h,
-                      grad_sum_, count_, max_radius_);
-      rt_.launch("free_densify_acc", k, cl::NDRange(n_), cl::NDRange(64));
-    }
+    if (st.iteration <= config_.effective_densify_until()) accumulate_densify_stats(rg, w, h);
   }
   if (before_rounds) before_rounds();
   iteration_ = it + 1;

@@ -11,7 +11,7 @@
 // (positions 1.6e-4 x extent decaying exponentially to 1.6e-6 x extent over
 // the run, extent = the scene's camera radius).
 //
-// Per iteration on the device: activate (kernels/free_gaussians.cl) ->
+// Per iteration on the device: activate (kernels/free_trainer.cl) ->
 // render -> 0.8 L1 + 0.2 (1 - SSIM) -> renderer backward -> activation
 // backward -> non-finite check (skip the step) -> Adam -> densification
 // statistics (NDC gradient norm sum, visible count, largest radius).
@@ -44,12 +44,12 @@
 #include <string>
 #include <vector>
 
-#include "host/adam.h"
-#include "host/cl_runtime.h"
-#include "host/gaussians.h"
-#include "host/image_loss.h"
-#include "host/renderer.h"
-#include "host/scene.h"
+#include "host/core/gaussians.h"
+#include "host/device/cl_runtime.h"
+#include "host/render/adam.h"
+#include "host/render/image_loss.h"
+#include "host/render/renderer.h"
+#include "host/scene/scene.h"
 #include "stages/param_groups.h"
 #include "stages/trainer.h"
 
@@ -202,8 +202,14 @@ class FreeTrainer {
 
  private:
   void upload_params(const FreeGaussians& g);
-  // Stored parameters -> the renderer's Gaussians (kernels/free_gaussians.cl).
+  // Stored parameters -> the renderer's Gaussians (kernels/free_trainer.cl).
   void activate(int sh_degree);
+  // The renderer's gradients through the activations (kernels/free_trainer.cl
+  // free_activate_bwd) into the stored parameters' gradient buffers.
+  void activate_backward(const DeviceGaussianGrads& rg);
+  // This view's screen-space gradient norms and radii into the densification
+  // statistics (free_densify_accumulate).
+  void accumulate_densify_stats(const DeviceGaussianGrads& rg, int width, int height);
   void reset_stats();
   void densify(FreeStepStats& st);
   void reset_opacity();

@@ -39,7 +39,7 @@ void InstanceMapper::compute(const Renderer& renderer) {
   weights_.reserve(npix * 4);
   char frac[32];
   std::snprintf(frac, sizeof frac, "((float)(%.9g))", static_cast<double>(min_fraction_));
-  cl::Kernel k = rt_.kernel("instance.cl", "instance_map", {{"MIN_FRACTION", frac}});
+  cl::Kernel k = rt_.kernel("instance_map.cl", "instance_map", {{"MIN_FRACTION", frac}});
   const int wg = 256 / rt_.vector_width();
   const int ntiles = f.tiles_x * f.tiles_y;
   set_kernel_args(k, f.width, f.height, f.tiles_x, children_, *f.ranges, *f.isect_vals, *f.isect_gid, *f.records,

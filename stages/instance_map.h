@@ -1,5 +1,5 @@
 // Stage 3, part 2: the instance maps of every anchor cluster of a view in one
-// pass over the renderer's last frame (kernels/instance.cl).
+// pass over the renderer's last frame (kernels/instance_map.cl).
 //
 // Definition. With w_i = alpha_i T_i the blending weight of Gaussian i at
 // pixel p exactly as the forward pass blends it (same occlusion by every
@@ -11,7 +11,7 @@
 // So the map of cluster c is the binary render "c white, the rest black,
 // normal occlusion" thresholded at min_fraction, for all clusters at once.
 // weight(p) is the weight of the only possible candidate (a weighted majority
-// vote along the ray, see kernels/instance.cl): W_id(p) where id >= 0, else
+// vote along the ray, see kernels/instance_map.cl): W_id(p) where id >= 0, else
 // some cluster's W_c(p) <= min_fraction (0 when no clustered Gaussian blends).
 //
 // Precision: the weights are the rendered float weights bit for bit; W_c is
@@ -28,8 +28,8 @@
 #include <cstdint>
 #include <vector>
 
-#include "host/cl_runtime.h"
-#include "host/renderer.h"
+#include "host/device/cl_runtime.h"
+#include "host/render/renderer.h"
 
 namespace ag2gs {
 

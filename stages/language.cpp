@@ -9,8 +9,8 @@
 #include <stdexcept>
 #include <string>
 
-#include "host/mask_loss.h"  // kMaskAlphaMin
-#include "host/renderer.h"
+#include "host/render/mask_loss.h"  // kMaskAlphaMin
+#include "host/render/renderer.h"
 #include "stages/expander.h"
 
 namespace ag2gs {

@@ -14,8 +14,8 @@
 #include <string>
 #include <vector>
 
-#include "host/adam.h"
-#include "host/model_io.h"
+#include "host/io/model_io.h"
+#include "host/render/adam.h"
 
 namespace ag2gs {
 

@@ -34,7 +34,7 @@ PropagationLoss::PropagationLoss(Runtime& rt, PropagationLossConfig config) : rt
   wg_ = choose_launch_shape(rt_, "propagation loss", config_.work_group, 1, [&](int wg, int) {
           size_t limit = ~size_t(0);
           for (const char* name : {"prop_edges", "prop_grad"}) {
-            cl::Kernel k = rt_.kernel("prop.cl", name, prop_defines(wg));
+            cl::Kernel k = rt_.kernel("propagation_loss.cl", name, prop_defines(wg));
             limit = std::min(limit, k.getWorkGroupInfo<CL_KERNEL_WORK_GROUP_SIZE>(rt_.info().device));
           }
           return limit;
@@ -96,13 +96,13 @@ void PropagationLoss::enqueue(const DeviceBuffer& features, DeviceBuffer* featur
   const double tau = config_.tau;
   const float inv_two_tau2 = static_cast<float>(1.0 / (2.0 * tau * tau));
   const auto defs = prop_defines(wg_);
-  cl::Kernel edges = rt_.kernel("prop.cl", "prop_edges", defs);
+  cl::Kernel edges = rt_.kernel("propagation_loss.cl", "prop_edges", defs);
   set_kernel_args(edges, edge_i_, edge_j_, features, coef_, inv_two_tau2, config_.differentiate_weights ? 1 : 0,
                   partials_);
   rt_.launch("prop_edges", edges, cl::NDRange(static_cast<size_t>(groups_) * wg_), cl::NDRange(wg_));
   if (!feature_grads) return;
   const float grad_scale = static_cast<float>(2.0 * weight / static_cast<double>(edges_));
-  cl::Kernel grad = rt_.kernel("prop.cl", "prop_grad", defs);
+  cl::Kernel grad = rt_.kernel("propagation_loss.cl", "prop_grad", defs);
   set_kernel_args(grad, static_cast<cl_int>(anchors_), row_offsets_, neighbours_, entry_edge_, features, coef_,
                   grad_scale, *feature_grads);
   rt_.launch("prop_grad", grad, cl::NDRange(anchors_), cl::NDRange(wg_));

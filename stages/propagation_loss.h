@@ -1,4 +1,4 @@
-// The propagation loss of stage 2 on the device (kernels/prop.cl): a
+// The propagation loss of stage 2 on the device (kernels/propagation_loss.cl): a
 // Dirichlet energy of the anchors' semantic features over the anchor graph
 // with bilateral weights, never forming a Laplacian:
 //
@@ -68,7 +68,7 @@
 #include <cstdint>
 #include <vector>
 
-#include "host/cl_runtime.h"
+#include "host/device/cl_runtime.h"
 #include "stages/anchor_graph.h"
 
 namespace ag2gs {

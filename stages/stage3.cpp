@@ -7,7 +7,7 @@
 #include <filesystem>
 #include <stdexcept>
 
-#include "host/model_io.h"
+#include "host/io/model_io.h"
 #include "stages/anchor_graph.h"
 #include "stages/anchor_model.h"
 #include "stages/clustering.h"

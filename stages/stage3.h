@@ -5,8 +5,8 @@
 #include <string>
 #include <vector>
 
-#include "host/cl_runtime.h"
-#include "host/scene.h"
+#include "host/device/cl_runtime.h"
+#include "host/scene/scene.h"
 #include "stages/language.h"
 
 namespace ag2gs {

@@ -6,10 +6,10 @@
 
 #include <vector>
 
-#include "host/cl_runtime.h"
-#include "host/image_loss.h"
-#include "host/renderer.h"
-#include "host/scene.h"
+#include "host/device/cl_runtime.h"
+#include "host/render/image_loss.h"
+#include "host/render/renderer.h"
+#include "host/scene/scene.h"
 
 namespace ag2gs {
 

@@ -11,8 +11,8 @@
 #include <string>
 #include <vector>
 
-#include "host/adam.h"
-#include "host/image_loss.h"
+#include "host/render/adam.h"
+#include "host/render/image_loss.h"
 #include "stages/anchor_growth.h"
 #include "stages/anchor_model.h"
 #include "stages/propagation_loss.h"
@@ -55,10 +55,10 @@ struct TrainConfig {
   // without masks. Measured in the README (query section).
   bool mask_geometry = true;
   // The pixels no SAM mask covers form one more mask in the mask losses
-  // (with_unmasked_group in host/mask_loss.h).
+  // (with_unmasked_group in host/render/mask_loss.h).
   bool mask_unmasked_group = true;
   // Project the semantic features into the unit ball after each of their
-  // steps (kernels/train.cl feature_ball).
+  // steps (kernels/anchor_regularisers.cl feature_ball).
   bool feature_ball = true;
 
   // Learning rates (docs/design.md section 5). The offset rate decays

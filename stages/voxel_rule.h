@@ -23,8 +23,8 @@
 #include <string>
 #include <vector>
 
-#include "host/gaussians.h"
-#include "host/scene.h"
+#include "host/core/gaussians.h"
+#include "host/scene/scene.h"
 #include "stages/anchor_model.h"
 
 namespace ag2gs {

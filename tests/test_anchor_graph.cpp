@@ -1,7 +1,7 @@
 // Stage 2: the anchor graph (stages/anchor_graph.h) against a brute-force
 // O(N^2) construction and a hand-made case, its archive round trip and
 // validation; the propagation loss (stages/propagation_loss.h,
-// kernels/prop.cl) against a double-precision edge-list reference, the
+// kernels/propagation_loss.cl) against a double-precision edge-list reference, the
 // reference against central finite differences, and determinism across PoCL
 // thread counts.
 #include <unistd.h>
@@ -17,7 +17,7 @@
 #include <utility>
 #include <vector>
 
-#include "host/model_io.h"
+#include "host/io/model_io.h"
 #include "stages/anchor_graph.h"
 #include "stages/anchor_model.h"
 #include "stages/propagation_loss.h"

@@ -1,5 +1,5 @@
 // The stage-1 anchor representation (stages/anchor_model.h) and the expansion
-// kernels (stages/expander.h, kernels/expand.cl): voxel grid math,
+// kernels (stages/expander.h, kernels/expander.cl): voxel grid math,
 // initialisation, growing and pruning bookkeeping, the archive, and the
 // device expansion forward and backward against double-precision references
 // and central finite differences, alone and chained through the renderer.
@@ -18,7 +18,7 @@
 #include <tuple>
 #include <vector>
 
-#include "host/model_io.h"
+#include "host/io/model_io.h"
 #include "stages/anchor_model.h"
 #include "stages/expander.h"
 #include "tests/io_test_util.h"

@@ -9,7 +9,7 @@
 #include <opencv2/imgcodecs.hpp>
 
 #include "cli_test_util.h"
-#include "host/model_io.h"
+#include "host/io/model_io.h"
 
 namespace fs = std::filesystem;
 

@@ -12,8 +12,8 @@
 #include <string>
 
 #include "cli_test_util.h"
-#include "host/atomic_file.h"
-#include "host/ply_io.h"
+#include "host/io/atomic_file.h"
+#include "host/io/ply_io.h"
 #include "io_test_util.h"
 
 namespace fs = std::filesystem;

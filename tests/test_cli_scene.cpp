@@ -8,7 +8,7 @@
 #include <filesystem>
 
 #include "cli_test_util.h"
-#include "host/model_io.h"
+#include "host/io/model_io.h"
 #include "io_test_util.h"
 
 namespace fs = std::filesystem;

@@ -16,9 +16,9 @@
 #include <tuple>
 
 #include "cli_test_util.h"
-#include "host/image_loss.h"
-#include "host/ply_io.h"
-#include "host/scene.h"
+#include "host/io/ply_io.h"
+#include "host/render/image_loss.h"
+#include "host/scene/scene.h"
 #include "io_test_util.h"
 #include "stages/free_trainer.h"
 #include "test_util.h"

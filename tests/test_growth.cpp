@@ -1,4 +1,4 @@
-// Anchor growing and pruning (stages/anchor_growth.h, kernels/growth.cl): the
+// Anchor growing and pruning (stages/anchor_growth.h, kernels/anchor_growth.cl): the
 // statistics kernel against a double-precision host computation, the
 // decision step on a hand-made model (one case per rule), the gather maps
 // with the optimiser state, determinism, and the device round trip after a
@@ -13,7 +13,7 @@
 #include <random>
 #include <vector>
 
-#include "host/adam.h"
+#include "host/render/adam.h"
 #include "stages/anchor_growth.h"
 #include "stages/anchor_model.h"
 #include "stages/expander.h"

@@ -1,4 +1,4 @@
-// Instance maps (stages/instance_map.h, kernels/instance.cl) against a
+// Instance maps (stages/instance_map.h, kernels/instance_map.cl) against a
 // double-precision CPU reference that accumulates every cluster's blending
 // weight per pixel exactly, on random scenes, deep stacks and near-0.5 ties;
 // plus agreement with the rendered alpha and determinism.

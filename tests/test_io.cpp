@@ -21,9 +21,9 @@
 #include <csignal>
 #endif
 
-#include "host/colmap_reader.h"
-#include "host/gaussians.h"
-#include "host/ply_io.h"
+#include "host/core/gaussians.h"
+#include "host/io/colmap_reader.h"
+#include "host/io/ply_io.h"
 #include "io_test_util.h"
 
 namespace fs = std::filesystem;
@@ -55,7 +55,7 @@ GaussianSet random_set(int degree, size_t n, unsigned seed) {
   return gs;
 }
 
-// What the reader makes of what the writer stores (host/ply_io.h).
+// What the reader makes of what the writer stores (host/io/ply_io.h).
 float opacity_through_file(float o) {
   const double c = std::clamp(static_cast<double>(o), 1e-7, 1.0 - 1e-7);
   const float logit = static_cast<float>(std::log(c / (1.0 - c)));

@@ -9,9 +9,9 @@
 #include <limits>
 #include <random>
 
-#include "host/model_io.h"
-#include "host/ply_io.h"
-#include "host/semantic_io.h"
+#include "host/io/model_io.h"
+#include "host/io/ply_io.h"
+#include "host/io/semantic_io.h"
 #include "io_test_util.h"
 
 namespace fs = std::filesystem;

@@ -1,5 +1,5 @@
-// Tests for the .npy reader/writer (host/npy_io.h) and the COLMAP model
-// writer (host/colmap_writer.h), plus regression cases found by the fuzzers
+// Tests for the .npy reader/writer (host/io/npy_io.h) and the COLMAP model
+// writer (host/io/colmap_writer.h), plus regression cases found by the fuzzers
 // in fuzz/ for every parser they cover (npy, PLY, COLMAP binary and text).
 #include <gtest/gtest.h>
 
@@ -27,10 +27,10 @@
 #include <csignal>
 #endif
 
-#include "host/colmap_reader.h"
-#include "host/colmap_writer.h"
-#include "host/npy_io.h"
-#include "host/ply_io.h"
+#include "host/io/colmap_reader.h"
+#include "host/io/colmap_writer.h"
+#include "host/io/npy_io.h"
+#include "host/io/ply_io.h"
 #include "io_test_util.h"
 
 namespace fs = std::filesystem;

@@ -1,5 +1,5 @@
-// Click and text queries (stages/query.h, cli/cmd_query.cpp) and their
-// evaluation (stages/query_eval.h, cli/cmd_eval.cpp) on constructed
+// Click and text queries (queries/query.h, cli/cmd_query.cpp) and their
+// evaluation (queries/query_eval.h, cli/cmd_eval.cpp) on constructed
 // models: solid boxes of anchors with known features, so the right selection
 // is known exactly and the masks have an analytic ground truth (the first box
 // a pixel-centre ray hits, computed in double by slab intersection).
@@ -16,13 +16,13 @@
 #include <random>
 
 #include "cli_test_util.h"
-#include "host/model_io.h"
-#include "host/npy_io.h"
-#include "host/ply_io.h"
-#include "host/scene.h"
+#include "host/io/model_io.h"
+#include "host/io/npy_io.h"
+#include "host/io/ply_io.h"
+#include "host/scene/scene.h"
 #include "io_test_util.h"
-#include "stages/query.h"
-#include "stages/query_eval.h"
+#include "queries/query.h"
+#include "queries/query_eval.h"
 #include "test_util.h"
 
 namespace fs = std::filesystem;

@@ -7,8 +7,8 @@
 #include <filesystem>
 #include <fstream>
 
-#include "host/cl_runtime.h"
-#include "host/kernel_source.h"
+#include "host/device/cl_runtime.h"
+#include "host/device/kernel_source.h"
 
 namespace fs = std::filesystem;
 

@@ -11,10 +11,10 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
-#include "host/colmap_writer.h"
-#include "host/image_io.h"
-#include "host/npy_io.h"
-#include "host/scene.h"
+#include "host/io/colmap_writer.h"
+#include "host/io/image_io.h"
+#include "host/io/npy_io.h"
+#include "host/scene/scene.h"
 #include "io_test_util.h"
 
 namespace fs = std::filesystem;

@@ -8,8 +8,8 @@
 #include <filesystem>
 #include <nlohmann/json.hpp>
 
-#include "host/scene.h"
-#include "stages/semantic_eval.h"
+#include "host/scene/scene.h"
+#include "queries/semantic_eval.h"
 #include "tests/io_test_util.h"
 #include "tests/test_util.h"
 

@@ -9,11 +9,11 @@
 #include <cmath>
 #include <filesystem>
 
-#include "host/colmap_reader.h"
-#include "host/scene.h"
-#include "host/sfm.h"
-#include "host/synth_scene.h"
+#include "host/io/colmap_reader.h"
+#include "host/scene/scene.h"
+#include "host/scene/sfm.h"
 #include "io_test_util.h"
+#include "synth/synth_scene.h"
 
 namespace fs = std::filesystem;
 using namespace ag2gs;

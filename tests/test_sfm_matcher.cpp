@@ -11,7 +11,7 @@
 #include <string>
 #include <vector>
 
-#include "host/sfm.h"
+#include "host/scene/sfm.h"
 #include "io_test_util.h"
 
 namespace fs = std::filesystem;

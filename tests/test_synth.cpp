@@ -1,4 +1,4 @@
-// The synthetic scene generator (host/synth_scene.h): determinism, and every
+// The synthetic scene generator (synth/synth_scene.h): determinism, and every
 // piece of ground truth checked against an independent re-computation: GT ids
 // against a ray caster written here from synth.json alone, label polygons
 // against the GT, the COLMAP model against the images, masks and features
@@ -24,11 +24,11 @@
 #include <string>
 #include <vector>
 
-#include "host/colmap_reader.h"
-#include "host/image_io.h"
-#include "host/npy_io.h"
-#include "host/semantic_io.h"
-#include "host/synth_scene.h"
+#include "host/io/colmap_reader.h"
+#include "host/io/image_io.h"
+#include "host/io/npy_io.h"
+#include "host/io/semantic_io.h"
+#include "synth/synth_scene.h"
 
 namespace fs = std::filesystem;
 using Json = nlohmann::json;

@@ -13,9 +13,9 @@
 #include <fstream>
 #include <numeric>
 
-#include "host/model_io.h"
-#include "host/ply_io.h"
-#include "host/scene.h"
+#include "host/io/model_io.h"
+#include "host/io/ply_io.h"
+#include "host/scene/scene.h"
 #include "io_test_util.h"
 #include "stages/anchor_model.h"
 #include "stages/trainer.h"

@@ -7,7 +7,7 @@
 
 #include <cmath>
 
-#include "host/scene.h"
+#include "host/scene/scene.h"
 #include "io_test_util.h"
 #include "reference/reference_renderer.h"
 #include "stages/trainer.h"

@@ -12,8 +12,8 @@
 #include <string>
 
 #include "cli_test_util.h"
-#include "host/model_io.h"
-#include "host/scene.h"
+#include "host/io/model_io.h"
+#include "host/scene/scene.h"
 #include "io_test_util.h"
 #include "stages/anchor_graph.h"
 #include "stages/clustering.h"

@@ -14,10 +14,10 @@
 #include <filesystem>
 #include <random>
 
-#include "host/model_io.h"
-#include "host/ply_io.h"
-#include "host/scene.h"
 #include "cli_test_util.h"
+#include "host/io/model_io.h"
+#include "host/io/ply_io.h"
+#include "host/scene/scene.h"
 #include "io_test_util.h"
 #include "stages/anchor_model.h"
 #include "stages/trainer.h"

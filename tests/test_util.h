@@ -12,9 +12,9 @@
 #include <string>
 #include <vector>
 
-#include "host/cl_runtime.h"
-#include "host/gaussians.h"
-#include "host/renderer.h"
+#include "host/core/gaussians.h"
+#include "host/device/cl_runtime.h"
+#include "host/render/renderer.h"
 
 namespace ag2gs::test {
 

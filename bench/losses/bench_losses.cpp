@@ -10,9 +10,9 @@
 #include <random>
 #include <vector>
 
-#include "host/adam.h"
-#include "host/cl_runtime.h"
-#include "host/image_loss.h"
+#include "host/device/cl_runtime.h"
+#include "host/render/adam.h"
+#include "host/render/image_loss.h"
 #include "tests/reference/adam_reference.h"
 #include "tests/reference/image_loss_reference.h"
 

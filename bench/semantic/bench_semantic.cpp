@@ -11,15 +11,15 @@
 #include <filesystem>
 #include <nlohmann/json.hpp>
 
-#include "host/atomic_file.h"
-#include "host/cl_runtime.h"
-#include "host/model_io.h"
-#include "host/scene.h"
-#include "host/semantic_io.h"
+#include "host/device/cl_runtime.h"
+#include "host/io/atomic_file.h"
+#include "host/io/model_io.h"
+#include "host/io/semantic_io.h"
+#include "host/scene/scene.h"
+#include "queries/semantic_eval.h"
 #include "stages/anchor_model.h"
 #include "stages/clustering.h"
 #include "stages/language.h"
-#include "stages/semantic_eval.h"
 
 using namespace ag2gs;
 namespace fs = std::filesystem;

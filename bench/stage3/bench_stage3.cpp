@@ -17,10 +17,10 @@
 #include <unordered_map>
 #include <vector>
 
-#include "host/cl_runtime.h"
-#include "host/model_io.h"
-#include "host/renderer.h"
-#include "host/scene.h"
+#include "host/device/cl_runtime.h"
+#include "host/io/model_io.h"
+#include "host/render/renderer.h"
+#include "host/scene/scene.h"
 #include "stages/anchor_model.h"
 #include "stages/clustering.h"
 #include "stages/expander.h"

@@ -14,7 +14,7 @@
 #include <cstddef>
 #include <vector>
 
-#include "host/gaussians.h"
+#include "host/core/gaussians.h"
 
 namespace ag2gs::ref {
 

@@ -1,0 +1,417 @@
+#include "host/render/renderer.h"
+
+#include <spdlog/spdlog.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdlib>
+#include <stdexcept>
+
+#include "kernels/layout.h"
+
+namespace ag2gs {
+
+namespace {
+
+constexpr int kTile = TILE;
+constexpr int kScanBlock = 1024;
+constexpr int kRadixBlock = 4096;
+
+// GPUs stage Gaussians through local memory in work-groups of a tile's
+// pixels; CPUs walk the lists without barriers. AG2GS_BLEND_STAGING=1 or 0
+// overrides (tests run the GPU layout on the CPU with it).
+bool blend_staging_for(const Runtime& rt) {
+  if (const char* e = std::getenv("AG2GS_BLEND_STAGING")) {
+    if (std::string(e) == "1") return true;
+    if (std::string(e) == "0") return false;
+    throw std::invalid_argument(std::string("AG2GS_BLEND_STAGING must be 0 or 1, got '") + e + "'");
+  }
+  return rt.info().is_gpu;
+}
+
+size_t ceil_div(size_t a, size_t b) {
+  return (a + b - 1) / b;
+}
+
+// [H,W,C] -> [C,H,W]
+std::vector<float> to_planar(const std::vector<float>& hwc, size_t npix, int c) {
+  std::vector<float> out(npix * c);
+  for (size_t p = 0; p < npix; ++p)
+    for (int k = 0; k < c; ++k) out[k * npix + p] = hwc[p * c + k];
+  return out;
+}
+std::vector<float> to_interleaved(const std::vector<float>& chw, size_t npix, int c) {
+  std::vector<float> out(npix * c);
+  for (size_t p = 0; p < npix; ++p)
+    for (int k = 0; k < c; ++k) out[p * c + k] = chw[k * npix + p];
+  return out;
+}
+
+}  // namespace
+
+DeviceGaussians::DeviceGaussians(Runtime& rt)
+    : means(&rt), scales(&rt), quats(&rt), opacities(&rt), sh(&rt), features(&rt) {}
+
+void DeviceGaussians::upload(const GaussianSet& set) {
+  set.validate();
+  n = set.size();
+  sh_degree = set.sh_degree;
+  means.upload(set.means);
+  scales.upload(set.scales);
+  quats.upload(set.quats);
+  opacities.upload(set.opacities);
+  sh.upload(set.sh);
+  features.upload(set.features);
+}
+
+Renderer::Renderer(Runtime& rt) : rt_(rt) {
+  for (DeviceBuffer* b :
+       {&cam_buf_,        &records_,     &rects_,          &tile_counts_,   &depth_keys_,     &radii_,
+        &order_keys_tmp_, &order_vals_,  &order_vals_tmp_, &counts_sorted_, &offsets_,        &block_sums_,
+        &radix_counts_,   &tile_keys_,   &tile_keys_tmp_,  &isect_vals_,    &isect_vals_tmp_, &isect_gid_,
+        &isect_start_,    &ranges_,      &out_rgb_,        &out_feat_,      &out_depth_,      &out_alpha_,
+        &out_dist_,       &out_aux_,     &out_last_,       &out_count_,     &g_rgb_,          &g_feat_,
+        &g_depth_,        &g_alpha_,     &g_dist_,         &isect_grads_,   &v_means_,        &v_scales_,
+        &v_quats_,        &v_opacities_, &v_sh_,           &v_features_,    &v_means2d_})
+    b->bind(&rt_);
+}
+
+static std::map<std::string, std::string> bin_defines() {
+  return {{"SCAN_BLOCK", std::to_string(kScanBlock)}, {"RADIX_BLOCK", std::to_string(kRadixBlock)}};
+}
+
+void Renderer::sort_pairs(DeviceBuffer*& keys, DeviceBuffer*& vals, DeviceBuffer*& keys_tmp, DeviceBuffer*& vals_tmp,
+                          size_t n, int bits) {
+  if (n == 0) return;
+  const int nblocks = static_cast<int>(ceil_div(n, kRadixBlock));
+  radix_counts_.reserve(sizeof(cl_uint) * 256 * nblocks);
+  cl::Kernel hist = rt_.kernel("bin.cl", "radix_hist", bin_defines());
+  cl::Kernel scan = rt_.kernel("bin.cl", "radix_scan", bin_defines());
+  cl::Kernel scatter = rt_.kernel("bin.cl", "radix_scatter", bin_defines());
+  const int ni = static_cast<int>(n);
+  for (int shift = 0; shift < bits; shift += 8) {
+    set_kernel_args(hist, ni, shift, *keys, radix_counts_, nblocks);
+    rt_.launch("sort", hist, cl::NDRange(nblocks));
+    set_kernel_args(scan, nblocks, radix_counts_);
+    rt_.launch("sort", scan, cl::NDRange(256), cl::NDRange(256));
+    set_kernel_args(scatter, ni, shift, *keys, *vals, *keys_tmp, *vals_tmp, radix_counts_, nblocks);
+    rt_.launch("sort", scatter, cl::NDRange(nblocks));
+    std::swap(keys, keys_tmp);
+    std::swap(vals, vals_tmp);
+  }
+}
+
+std::vector<float> pack_camera(const Camera& cam, const RenderSettings& settings) {
+  std::vector<float> cb(CAM_SIZE, 0.f);
+  for (int i = 0; i < 9; ++i) cb[CAM_R + i] = static_cast<float>(cam.R(i / 3, i % 3));
+  for (int i = 0; i < 3; ++i) cb[CAM_T + i] = static_cast<float>(cam.t[i]);
+  cb[CAM_FX] = static_cast<float>(cam.fx);
+  cb[CAM_FY] = static_cast<float>(cam.fy);
+  cb[CAM_CX] = static_cast<float>(cam.cx);
+  cb[CAM_CY] = static_cast<float>(cam.cy);
+  cb[CAM_W] = static_cast<float>(cam.width);
+  cb[CAM_H] = static_cast<float>(cam.height);
+  cb[CAM_NEAR] = settings.near_plane;
+  const Eigen::Vector3d c = cam.center();
+  for (int i = 0; i < 3; ++i) cb[CAM_POS + i] = static_cast<float>(c[i]);
+  cb[CAM_DNEAR] = settings.dist_near;
+  cb[CAM_DFAR] = settings.dist_far;
+  for (int i = 0; i < 3; ++i) cb[CAM_BG + i] = settings.background[i];
+  return cb;
+}
+
+std::vector<Renderer::PixelContribution> Renderer::pixel_contributions(int x, int y) const {
+  if (!have_frame_) throw std::logic_error("Renderer::pixel_contributions() before forward()");
+  if (x < 0 || y < 0 || x >= cam_.width || y >= cam_.height)
+    throw std::out_of_range("Renderer::pixel_contributions: pixel outside the image");
+  std::vector<PixelContribution> out;
+  const size_t M = stats_.n_intersections;
+  if (M == 0 || gaussians_->n == 0) return out;
+  const int tile = (y / kTile) * tiles_x_ + x / kTile;
+  std::vector<int32_t> ranges;
+  ranges_.download(ranges, static_cast<size_t>(tile + 1) * 2);
+  const int begin = ranges[2 * tile], end = ranges[2 * tile + 1];
+  if (end <= begin) return out;
+  std::vector<uint32_t> vals, gid;
+  std::vector<float> rec;
+  sorted_isect_vals_->download(vals, static_cast<size_t>(end));
+  isect_gid_.download(gid, M);
+  records_.download(rec, gaussians_->n * REC_SIZE);
+  const float px = x + 0.5f, py = y + 0.5f;
+  float T = 1.f;
+  for (int j = begin; j < end; ++j) {
+    const uint32_t g = gid[vals[j]];
+    const float* q = &rec[static_cast<size_t>(g) * REC_SIZE];
+    const float dx = q[REC_U] - px, dy = q[REC_V] - py;
+    const float sigma = 0.5f * (q[REC_CA] * dx * dx + q[REC_CC] * dy * dy) + q[REC_CB] * dx * dy;
+    const float alpha = std::min(ALPHA_MAX, q[REC_OPACITY] * std::exp(-std::min(sigma, 40.f)));
+    if (!(sigma >= 0.f) || !(alpha >= ALPHA_MIN)) continue;
+    const float Tn = T * (1.f - alpha);
+    if (Tn < T_MIN) break;
+    out.push_back({g, alpha * T, q[REC_Z]});
+    T = Tn;
+  }
+  return out;
+}
+
+void Renderer::forward(const DeviceGaussians& g, const Camera& cam, const RenderSettings& settings) {
+  cam.validate();
+  if (settings.sh_degree > 3) throw std::invalid_argument("render: SH degree must be 0..3");
+  if (!(settings.near_plane > 0.f) || !(settings.dist_far > settings.dist_near) || !(settings.dist_near > 0.f))
+    throw std::invalid_argument("render: near plane and distortion depth range must be positive and ordered");
+  gaussians_ = &g;
+  cam_ = cam;
+  settings_ = settings;
+  sh_active_ = settings.sh_degree < 0 ? g.sh_degree : std::min(settings.sh_degree, g.sh_degree);
+  tiles_x_ = static_cast<int>(ceil_div(cam.width, kTile));
+  tiles_y_ = static_cast<int>(ceil_div(cam.height, kTile));
+  const size_t n = g.n;
+  const int ni = static_cast<int>(n);
+  const size_t npix = static_cast<size_t>(cam.width) * cam.height;
+  const int ntiles = tiles_x_ * tiles_y_;
+  stats_ = FrameStats{n, 0, cam.width, cam.height};
+
+  cam_buf_.upload(pack_camera(cam, settings));
+
+  const size_t nn = std::max<size_t>(n, 1);
+  records_.reserve(nn * REC_SIZE * 4);
+  rects_.reserve(nn * 16);
+  tile_counts_.reserve(nn * 4);
+  depth_keys_.reserve(nn * 4);
+  radii_.reserve(nn * 4);
+  order_keys_tmp_.reserve(nn * 4);
+  order_vals_.reserve(nn * 4);
+  order_vals_tmp_.reserve(nn * 4);
+  counts_sorted_.reserve(nn * 4);
+  offsets_.reserve(nn * 4);
+  isect_start_.reserve(nn * 4);
+  const int nscan = static_cast<int>(ceil_div(nn, kScanBlock));
+  block_sums_.reserve((nscan + 1) * 4);
+
+  std::map<std::string, std::string> pdef{{"SH_K", std::to_string(sh_coeffs_for_degree(g.sh_degree))},
+                                          {"SH_ACTIVE", std::to_string(sh_active_)}};
+  size_t M = 0;
+  if (n > 0) {
+    cl::Kernel project = rt_.kernel("project.cl", "project_fwd", pdef);
+    set_kernel_args(project, ni, cam_buf_, g.means, g.scales, g.quats, g.opacities, g.sh, g.features, tiles_x_,
+                    tiles_y_, records_, rects_, tile_counts_, depth_keys_, radii_);
+    rt_.launch("project", project, cl::NDRange(n), cl::NDRange(64));
+
+    // Depth order of the Gaussians (stable: ties keep index order).
+    cl::Kernel iota = rt_.kernel("bin.cl", "iota", bin_defines());
+    set_kernel_args(iota, ni, order_vals_);
+    rt_.launch("sort", iota, cl::NDRange(n), cl::NDRange(64));
+    DeviceBuffer *keys = &depth_keys_, *vals = &order_vals_, *ktmp = &order_keys_tmp_, *vtmp = &order_vals_tmp_;
+    sort_pairs(keys, vals, ktmp, vtmp, n, 32);
+    sorted_order_ = vals;
+
+    cl::Kernel gather = rt_.kernel("bin.cl", "gather_counts", bin_defines());
+    set_kernel_args(gather, ni, *sorted_order_, tile_counts_, counts_sorted_);
+    rt_.launch("bin", gather, cl::NDRange(n), cl::NDRange(64));
+    cl::Kernel sb = rt_.kernel("bin.cl", "scan_blocks", bin_defines());
+    set_kernel_args(sb, ni, counts_sorted_, offsets_, block_sums_);
+    rt_.launch("bin", sb, cl::NDRange(nscan));
+    cl::Kernel ss = rt_.kernel("bin.cl", "scan_block_sums", bin_defines());
+    set_kernel_args(ss, nscan, block_sums_);
+    rt_.launch("bin", ss, cl::NDRange(1), cl::NDRange(1));
+    cl::Kernel sa = rt_.kernel("bin.cl", "scan_add", bin_defines());
+    set_kernel_args(sa, ni, offsets_, block_sums_);
+    rt_.launch("bin", sa, cl::NDRange(n), cl::NDRange(64));
+    cl_uint total = 0;
+    AG2GS_CL_CHECK(rt_.queue().enqueueReadBuffer(block_sums_.get(), CL_TRUE, nscan * 4, 4, &total));
+    M = total;
+  }
+  stats_.n_intersections = M;
+  if (M > 0xF0000000ull)
+    throw std::runtime_error("render: " + std::to_string(M) +
+                             " tile intersections exceed the 32-bit index range; "
+                             "render at a lower resolution (-r)");
+
+  // Intersection buffers grow with the frame; nothing is dropped.
+  const size_t mm = std::max<size_t>(M, 1);
+  tile_keys_.reserve(mm * 4);
+  tile_keys_tmp_.reserve(mm * 4);
+  isect_vals_.reserve(mm * 4);
+  isect_vals_tmp_.reserve(mm * 4);
+  isect_gid_.reserve(mm * 4);
+  ranges_.fill_zero(static_cast<size_t>(ntiles) * 8);
+  sorted_tile_keys_ = &tile_keys_;
+  sorted_isect_vals_ = &isect_vals_;
+  if (M > 0) {
+    cl::Kernel emit = rt_.kernel("bin.cl", "emit_isects", bin_defines());
+    set_kernel_args(emit, ni, *sorted_order_, rects_, offsets_, counts_sorted_, tiles_x_, tile_keys_, isect_vals_,
+                    isect_gid_, isect_start_);
+    rt_.launch("bin", emit, cl::NDRange(n), cl::NDRange(64));
+    int bits = 1;
+    while ((1 << bits) < ntiles) ++bits;
+    DeviceBuffer *keys = &tile_keys_, *vals = &isect_vals_, *ktmp = &tile_keys_tmp_, *vtmp = &isect_vals_tmp_;
+    sort_pairs(keys, vals, ktmp, vtmp, M, bits);
+    sorted_tile_keys_ = keys;
+    sorted_isect_vals_ = vals;
+    cl::Kernel tr = rt_.kernel("bin.cl", "tile_ranges", bin_defines());
+    set_kernel_args(tr, static_cast<int>(M), *sorted_tile_keys_, ranges_);
+    rt_.launch("bin", tr, cl::NDRange(M), cl::NDRange(64));
+  }
+
+  out_rgb_.reserve(npix * 12);
+  out_feat_.reserve(npix * 12);
+  out_depth_.reserve(npix * 4);
+  out_alpha_.reserve(npix * 4);
+  out_dist_.reserve(npix * 4);
+  out_aux_.reserve(npix * 16);
+  out_last_.reserve(npix * 4);
+  out_count_.reserve(npix * 4);
+  const int wg = 256 / rt_.vector_width();
+  // CPUs: no local-memory staging (records come from cache), see blend_fwd.cl.
+  cl::Kernel blend =
+      rt_.kernel("blend_fwd.cl", "blend_fwd",
+                 {{"BATCH", std::to_string(std::max(64, wg))},
+                  {"NO_STAGING", blend_staging_for(rt_) ? "0" : "1"},
+                  {"WITH_FEAT", settings.features ? "1" : "0"}});
+  set_kernel_args(blend, cam.width, cam.height, tiles_x_, cam_buf_, ranges_, *sorted_isect_vals_, isect_gid_, records_,
+                  out_rgb_, out_feat_, out_depth_, out_alpha_, out_dist_, out_aux_, out_last_, out_count_);
+  rt_.launch("blend_fwd", blend, cl::NDRange(static_cast<size_t>(ntiles) * wg), cl::NDRange(wg));
+  have_frame_ = true;
+  frame_features_ = settings.features;
+}
+
+RenderOutput Renderer::download_output() {
+  if (!have_frame_) throw std::logic_error("download_output() before forward()");
+  RenderOutput out;
+  out.width = cam_.width;
+  out.height = cam_.height;
+  const size_t npix = static_cast<size_t>(cam_.width) * cam_.height;
+  std::vector<float> tmp;
+  out_rgb_.download(tmp, npix * 3);
+  out.rgb = to_interleaved(tmp, npix, 3);
+  out_feat_.download(tmp, npix * 3);
+  out.feature = to_interleaved(tmp, npix, 3);
+  out_depth_.download(out.depth, npix);
+  out_alpha_.download(out.alpha, npix);
+  out_dist_.download(out.distortion, npix);
+  out_count_.download(out.n_contrib, npix);
+  radii_.download(out.radii, gaussians_->n);
+  return out;
+}
+
+void Renderer::upload_plane(DeviceBuffer& buf, const std::vector<float>& hwc, int channels, const char* what) {
+  const size_t npix = static_cast<size_t>(cam_.width) * cam_.height;
+  if (hwc.empty()) {
+    buf.fill_zero(npix * channels * 4);
+    return;
+  }
+  if (hwc.size() != npix * channels)
+    throw std::invalid_argument(std::string("render_backward: gradient '") + what + "' has " +
+                                std::to_string(hwc.size()) + " values, expected " + std::to_string(npix * channels) +
+                                " (H*W*" + std::to_string(channels) + ")");
+  buf.upload(channels == 1 ? hwc : to_planar(hwc, npix, channels));
+}
+
+void Renderer::backward(const OutputGrads& grads) {
+  if (!have_frame_) throw std::logic_error("backward() before forward()");
+  upload_plane(g_rgb_, grads.rgb, 3, "rgb");
+  upload_plane(g_feat_, grads.feature, 3, "feature");
+  upload_plane(g_depth_, grads.depth, 1, "depth");
+  upload_plane(g_alpha_, grads.alpha, 1, "alpha");
+  upload_plane(g_dist_, grads.distortion, 1, "distortion");
+  backward_from(g_rgb_, g_feat_, g_depth_, g_alpha_, g_dist_,
+                {!grads.rgb.empty(), !grads.feature.empty(), !grads.depth.empty(), !grads.alpha.empty(),
+                 !grads.distortion.empty()});
+}
+
+void Renderer::backward(const DeviceOutputGrads& grads) {
+  if (!have_frame_) throw std::logic_error("backward() before forward()");
+  const size_t npix = static_cast<size_t>(cam_.width) * cam_.height;
+  // A given buffer is used in place; a missing one is a zeroed internal plane.
+  auto pick = [&](const DeviceBuffer* given, DeviceBuffer& zero, int channels,
+                  const char* what) -> const DeviceBuffer& {
+    const size_t bytes = npix * channels * sizeof(float);
+    if (!given) {
+      zero.fill_zero(bytes);
+      return zero;
+    }
+    if (given->capacity() < bytes)
+      throw std::invalid_argument(std::string("render backward: device gradient '") + what + "' holds " +
+                                  std::to_string(given->capacity()) + " bytes, the frame needs " +
+                                  std::to_string(bytes));
+    return *given;
+  };
+  backward_from(pick(grads.rgb, g_rgb_, 3, "rgb"), pick(grads.feature, g_feat_, 3, "feature"),
+                pick(grads.depth, g_depth_, 1, "depth"), pick(grads.alpha, g_alpha_, 1, "alpha"),
+                pick(grads.distortion, g_dist_, 1, "distortion"),
+                {grads.rgb != nullptr, grads.feature != nullptr, grads.depth != nullptr, grads.alpha != nullptr,
+                 grads.distortion != nullptr});
+}
+
+void Renderer::backward_from(const DeviceBuffer& g_rgb, const DeviceBuffer& g_feat, const DeviceBuffer& g_depth,
+                             const DeviceBuffer& g_alpha, const DeviceBuffer& g_dist,
+                             const GradsPresent& present) {
+  if (present.feature && !frame_features_)
+    throw std::logic_error("render backward: a feature gradient for a frame rendered without features "
+                           "(RenderSettings::features false)");
+  const DeviceGaussians& g = *gaussians_;
+  const size_t M = stats_.n_intersections;
+  isect_grads_.reserve(std::max<size_t>(M, 1) * G2_SIZE * 4);
+  const int ntiles = tiles_x_ * tiles_y_;
+  const bool staging = blend_staging_for(rt_);
+  const int wg = staging ? 256 / rt_.vector_width() : 1;  // CPUs: one work-item per tile, see blend_bwd.cl
+  const int batch = std::max(1, 512 / (256 / rt_.vector_width()));
+  auto flag = [](bool b) { return std::string(b ? "1" : "0"); };
+  cl::Kernel blend = rt_.kernel("blend_bwd.cl", "blend_bwd",
+                                {{"BATCH", std::to_string(batch)},
+                                 {"NO_STAGING", staging ? "0" : "1"},
+                                 {"GRAD_RGB", flag(present.rgb)},
+                                 {"GRAD_FEAT", flag(present.feature)},
+                                 {"GRAD_DEPTH", flag(present.depth)},
+                                 {"GRAD_ALPHA", flag(present.alpha)},
+                                 {"GRAD_DIST", flag(present.distortion)}});
+  set_kernel_args(blend, cam_.width, cam_.height, tiles_x_, cam_buf_, ranges_, *sorted_isect_vals_, isect_gid_,
+                  records_, out_rgb_, out_feat_, out_depth_, out_aux_, out_last_, g_rgb, g_feat, g_depth, g_alpha,
+                  g_dist, isect_grads_);
+  rt_.launch("blend_bwd", blend, cl::NDRange(static_cast<size_t>(ntiles) * wg), cl::NDRange(wg));
+
+  const size_t n = std::max<size_t>(g.n, 1);
+  const int K = sh_coeffs_for_degree(g.sh_degree);
+  v_means_.reserve(n * 12);
+  v_scales_.reserve(n * 12);
+  v_quats_.reserve(n * 16);
+  v_opacities_.reserve(n * 4);
+  v_sh_.reserve(n * K * 12);
+  v_features_.reserve(n * 12);
+  v_means2d_.reserve(n * 8);
+  if (g.n == 0) return;
+  std::map<std::string, std::string> pdef{{"SH_K", std::to_string(K)}, {"SH_ACTIVE", std::to_string(sh_active_)}};
+  cl::Kernel pb = rt_.kernel("project_bwd.cl", "project_bwd", pdef);
+  set_kernel_args(pb, static_cast<int>(g.n), cam_buf_, g.means, g.scales, g.quats, g.sh, records_, tile_counts_,
+                  isect_start_, isect_grads_, v_means_, v_scales_, v_quats_, v_opacities_, v_sh_, v_features_,
+                  v_means2d_);
+  rt_.launch("project_bwd", pb, cl::NDRange(g.n), cl::NDRange(64));
+}
+
+GaussianGrads Renderer::download_grads() {
+  const size_t n = gaussians_->n;
+  const int K = sh_coeffs_for_degree(gaussians_->sh_degree);
+  GaussianGrads out;
+  v_means_.download(out.means, n * 3);
+  v_scales_.download(out.scales, n * 3);
+  v_quats_.download(out.quats, n * 4);
+  v_opacities_.download(out.opacities, n);
+  v_sh_.download(out.sh, n * K * 3);
+  v_features_.download(out.features, n * 3);
+  v_means2d_.download(out.means2d, n * 2);
+  return out;
+}
+
+RenderOutput Renderer::render(const GaussianSet& set, const Camera& cam, const RenderSettings& settings) {
+  if (!owned_) owned_ = std::make_unique<DeviceGaussians>(rt_);
+  owned_->upload(set);
+  forward(*owned_, cam, settings);
+  return download_output();
+}
+
+GaussianGrads Renderer::render_backward(const OutputGrads& grads) {
+  backward(grads);
+  return download_grads();
+}
+
+}  // namespace ag2gs

@@ -1,0 +1,526 @@
+#include "queries/query.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <deque>
+#include <limits>
+#include <numeric>
+#include <sstream>
+#include <stdexcept>
+#include <unordered_map>
+
+namespace ag2gs {
+
+namespace {
+
+double ms_since(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+}
+
+}  // namespace
+
+// ------------------------------------------------------------------ config
+
+void QueryConfig::validate() const {
+  auto bad = [](const std::string& what) { throw std::invalid_argument("query config: " + what); };
+  if (graph_cell_scale < 1 || graph_cell_scale > 1024) bad("graph_cell_scale must lie in 1..1024");
+  if (!(tau > 0) || !std::isfinite(tau)) bad("tau must be a positive finite number");
+  if (!(min_weight > 0 && min_weight < 1)) bad("min_weight (edge weight threshold) must lie in (0, 1)");
+  if (!(text_margin >= 0) || !std::isfinite(text_margin)) bad("text_margin must be >= 0");
+  if (!(min_click_alpha >= 0 && min_click_alpha <= 1)) bad("min_click_alpha must lie in [0, 1]");
+  if (!(mask_threshold >= 0 && mask_threshold < 1)) bad("mask_threshold must lie in [0, 1)");
+  if (click_candidates < 1 || click_candidates > 4096) bad("click_candidates must lie in 1..4096");
+  if (!(click_front_weight >= 0.f && click_front_weight < 1.f)) bad("click_front_weight must lie in [0, 1)");
+}
+
+double QueryConfig::equivalent_distance() const {
+  return static_cast<double>(tau) * std::sqrt(-2.0 * std::log(static_cast<double>(min_weight)));
+}
+
+// ------------------------------------------------------------------ k-d tree
+
+PointKdTree::PointKdTree(const std::vector<float>& points) : points_(points) {
+  if (points.size() % 3 != 0) throw std::invalid_argument("PointKdTree: points must be [n,3]");
+  const size_t n = points.size() / 3;
+  if (n > static_cast<size_t>(std::numeric_limits<int32_t>::max()))
+    throw std::invalid_argument("PointKdTree: too many points");
+  for (size_t i = 0; i < n; ++i) {
+    if (std::isfinite(points[3 * i]) && std::isfinite(points[3 * i + 1]) && std::isfinite(points[3 * i + 2]))
+      ids_.push_back(static_cast<int32_t>(i));
+  }
+  nodes_.reserve(2 * (ids_.size() / 8 + 1));
+  if (!ids_.empty()) build(0, static_cast<int>(ids_.size()));
+}
+
+int PointKdTree::build(int lo, int hi) {
+  const int me = static_cast<int>(nodes_.size());
+  nodes_.push_back({});
+  nodes_[me].lo = lo;
+  nodes_[me].hi = hi;
+  if (hi - lo <= 8) return me;
+  float mn[3] = {std::numeric_limits<float>::max(), std::numeric_limits<float>::max(),
+                 std::numeric_limits<float>::max()};
+  float mx[3] = {-mn[0], -mn[1], -mn[2]};
+  for (int k = lo; k < hi; ++k)
+    for (int c = 0; c < 3; ++c) {
+      mn[c] = std::min(mn[c], points_[3 * ids_[k] + c]);
+      mx[c] = std::max(mx[c], points_[3 * ids_[k] + c]);
+    }
+  int axis = 0;
+  for (int c = 1; c < 3; ++c)
+    if (mx[c] - mn[c] > mx[axis] - mn[axis]) axis = c;
+  if (mx[axis] == mn[axis]) return me;  // all points equal: a leaf
+  const int mid = lo + (hi - lo) / 2;
+  // Order by (coordinate, id): the split does not depend on the sort's stability.
+  std::nth_element(ids_.begin() + lo, ids_.begin() + mid, ids_.begin() + hi, [&](int32_t a, int32_t b) {
+    const float pa = points_[3 * a + axis], pb = points_[3 * b + axis];
+    return pa < pb || (pa == pb && a < b);
+  });
+  const float split = points_[3 * ids_[mid] + axis];
+  const int left = build(lo, mid);
+  const int right = build(mid, hi);
+  nodes_[me].axis = axis;
+  nodes_[me].split = split;
+  nodes_[me].left = left;
+  nodes_[me].right = right;
+  return me;
+}
+
+void PointKdTree::search(int node, const Eigen::Vector3d& p, int* best, double* best_d2) const {
+  const Node& nd = nodes_[node];
+  if (nd.axis < 0) {
+    for (int k = nd.lo; k < nd.hi; ++k) {
+      const int id = ids_[k];
+      const double dx = p[0] - points_[3 * id], dy = p[1] - points_[3 * id + 1], dz = p[2] - points_[3 * id + 2];
+      const double d2 = dx * dx + dy * dy + dz * dz;
+      if (d2 < *best_d2 || (d2 == *best_d2 && id < *best)) {
+        *best_d2 = d2;
+        *best = id;
+      }
+    }
+    return;
+  }
+  // Points left of the split have coordinate <= split, right ones >= split.
+  const double diff = p[nd.axis] - static_cast<double>(nd.split);
+  const int near = diff < 0 ? nd.left : nd.right;
+  const int far = diff < 0 ? nd.right : nd.left;
+  search(near, p, best, best_d2);
+  if (diff * diff <= *best_d2) search(far, p, best, best_d2);
+}
+
+void PointKdTree::search_k(int node, const Eigen::Vector3d& p, size_t k,
+                           std::vector<std::pair<double, int>>* heap) const {
+  const Node& nd = nodes_[node];
+  if (nd.axis < 0) {
+    for (int i = nd.lo; i < nd.hi; ++i) {
+      const int id = ids_[i];
+      const double dx = p[0] - points_[3 * id], dy = p[1] - points_[3 * id + 1], dz = p[2] - points_[3 * id + 2];
+      const std::pair<double, int> e(dx * dx + dy * dy + dz * dz, id);
+      if (heap->size() < k) {
+        heap->push_back(e);
+        std::push_heap(heap->begin(), heap->end());
+      } else if (e < heap->front()) {
+        std::pop_heap(heap->begin(), heap->end());
+        heap->back() = e;
+        std::push_heap(heap->begin(), heap->end());
+      }
+    }
+    return;
+  }
+  const double diff = p[nd.axis] - static_cast<double>(nd.split);
+  search_k(diff < 0 ? nd.left : nd.right, p, k, heap);
+  if (heap->size() < k || diff * diff <= heap->front().first) search_k(diff < 0 ? nd.right : nd.left, p, k, heap);
+}
+
+std::vector<int> PointKdTree::nearest_k(const Eigen::Vector3d& p, int k) const {
+  std::vector<std::pair<double, int>> heap;
+  if (k <= 0 || nodes_.empty()) return {};
+  search_k(0, p, static_cast<size_t>(k), &heap);
+  std::sort(heap.begin(), heap.end());
+  std::vector<int> out;
+  for (const auto& e : heap) out.push_back(e.second);
+  return out;
+}
+
+int PointKdTree::nearest(const Eigen::Vector3d& p, double* dist2) const {
+  int best = -1;
+  double best_d2 = std::numeric_limits<double>::infinity();
+  if (!ids_.empty() && p.allFinite()) search(0, p, &best, &best_d2);
+  if (dist2) *dist2 = best_d2;
+  return best;
+}
+
+// ------------------------------------------------------------------ growing
+
+std::vector<int32_t> region_grow(const AnchorGraph& graph, const std::vector<float>& features,
+                                 const std::vector<int32_t>& seeds, float tau, float min_weight) {
+  const size_t a = graph.anchors();
+  if (features.size() != 3 * a)
+    throw std::invalid_argument("region_grow: features hold " + std::to_string(features.size() / 3) +
+                                " anchors, the graph " + std::to_string(a) + " (rebuild the graph for this model)");
+  std::vector<uint8_t> in(a, 0);
+  std::vector<int32_t> sorted_seeds = seeds;
+  std::sort(sorted_seeds.begin(), sorted_seeds.end());
+  std::deque<int32_t> queue;
+  for (int32_t s : sorted_seeds) {
+    if (s < 0 || static_cast<size_t>(s) >= a)
+      throw std::invalid_argument("region_grow: seed " + std::to_string(s) + " is not an anchor id (0.." +
+                                  std::to_string(a) + ")");
+    if (!in[s]) {
+      in[s] = 1;
+      queue.push_back(s);
+    }
+  }
+  const double inv_two_tau2 = 1.0 / (2.0 * static_cast<double>(tau) * tau);
+  const auto& off = graph.row_offsets();
+  const auto& nb = graph.neighbours();
+  while (!queue.empty()) {
+    const int32_t i = queue.front();
+    queue.pop_front();
+    const float* fi = &features[3 * static_cast<size_t>(i)];
+    for (int32_t e = off[i]; e < off[i + 1]; ++e) {
+      const int32_t j = nb[e];
+      if (in[j]) continue;
+      const float* fj = &features[3 * static_cast<size_t>(j)];
+      double d2 = 0;
+      for (int c = 0; c < 3; ++c) {
+        const double d = static_cast<double>(fi[c]) - fj[c];
+        d2 += d * d;
+      }
+      if (std::exp(-d2 * inv_two_tau2) > static_cast<double>(min_weight)) {
+        in[j] = 1;
+        queue.push_back(j);
+      }
+    }
+  }
+  std::vector<int32_t> out;
+  for (size_t i = 0; i < a; ++i)
+    if (in[i]) out.push_back(static_cast<int32_t>(i));
+  return out;
+}
+
+std::vector<double> text_scores(const LanguageFeatures& language, const std::vector<float>& embedding) {
+  if (static_cast<int>(embedding.size()) != language.dim)
+    throw std::invalid_argument("the text embedding has " + std::to_string(embedding.size()) +
+                                " dimensions, the model's language features " + std::to_string(language.dim) +
+                                " (use an embedding from the CLIP model that made the scene's features)");
+  double en = 0;
+  for (float v : embedding) en += static_cast<double>(v) * v;
+  en = std::sqrt(en);
+  if (!(en > 0) || !std::isfinite(en))
+    throw std::invalid_argument("the text embedding is zero or not finite");
+  const int d = language.dim;
+  std::vector<double> scores(language.clusters(), std::numeric_limits<double>::quiet_NaN());
+  for (int c = 0; c < language.clusters(); ++c) {
+    if (language.matches[c] <= 0) continue;
+    const float* f = &language.features[static_cast<size_t>(c) * d];
+    double dot = 0, fn = 0;
+    for (int k = 0; k < d; ++k) {
+      dot += static_cast<double>(f[k]) * embedding[k];
+      fn += static_cast<double>(f[k]) * f[k];
+    }
+    if (fn > 0) scores[c] = dot / (std::sqrt(fn) * en);
+  }
+  return scores;
+}
+
+// ------------------------------------------------------------------ engine
+
+QueryEngine::QueryEngine(Runtime& rt, const AnchorModel& model, const QueryConfig& config)
+    : rt_(rt), model_(model), config_(config), renderer_(rt), device_(rt) {
+  config_.validate();
+  const auto t0 = std::chrono::steady_clock::now();
+  graph_ = AnchorGraph::build(model, config_.graph_cell_scale);
+  tree_ = PointKdTree(model.pos());
+  gaussians_ = expand_reference(model, 0);
+  device_.upload(gaussians_);
+  selection_features_ = gaussians_.features;
+  // One small render compiles the renderer's kernels now, so that the first
+  // query's latency is the query's own.
+  Camera warm;
+  warm.width = warm.height = 16;
+  warm.fx = warm.fy = 16;
+  warm.cx = warm.cy = 8;
+  renderer_.forward(device_, warm, RenderSettings{});
+  prepare_ms_ = ms_since(t0);
+}
+
+void QueryEngine::set_language(const Clustering& clustering, const LanguageFeatures& language) {
+  if (clustering.anchor_cluster.size() != model_.size())
+    throw std::invalid_argument("the clustering covers " + std::to_string(clustering.anchor_cluster.size()) +
+                                " anchors, the model has " + std::to_string(model_.size()) + " (re-run stage 3)");
+  if (language.clusters() != clustering.clusters())
+    throw std::invalid_argument("language features for " + std::to_string(language.clusters()) +
+                                " clusters, the clustering has " + std::to_string(clustering.clusters()) +
+                                " (re-run stage 3)");
+  clustering_ = clustering;
+  language_ = language;
+  have_language_ = true;
+}
+
+std::vector<int32_t> similar_anchors(const std::vector<float>& features, const std::vector<float>& seed_features,
+                                     double max_distance) {
+  if (features.size() % 3 != 0 || seed_features.size() % 3 != 0)
+    throw std::invalid_argument("similar_anchors: features and seed features must be [n,3]");
+  const double d2max = max_distance * max_distance;
+  std::vector<int32_t> out;
+  for (size_t a = 0; a < features.size() / 3; ++a) {
+    for (size_t s = 0; s < seed_features.size() / 3; ++s) {
+      double d2 = 0;
+      for (int k = 0; k < 3; ++k) {
+        const double x = static_cast<double>(features[3 * a + k]) - seed_features[3 * s + k];
+        d2 += x * x;
+      }
+      if (d2 < d2max) {
+        out.push_back(static_cast<int32_t>(a));
+        break;
+      }
+    }
+  }
+  return out;
+}
+
+Eigen::Vector2d full_size_click(const Camera& full, const Camera& camera, double x, double y) {
+  return {(std::floor(x) + 0.5) * camera.width / full.width, (std::floor(y) + 0.5) * camera.height / full.height};
+}
+
+namespace {
+
+// The feature group of anchors that holds the most of a pixel's blending
+// weight (see QueryEngine::click): anchors in order of first appearance
+// along the ray, each joining the first group whose first anchor passes the
+// growing rule with it. Ties go to the nearer group.
+struct DominantGroup {
+  int32_t anchor = -1;  // the group's heaviest anchor, -1 when nothing blends
+  double weight = 0;    // the group's blending weight
+  double depth = 0;     // its weighted mean depth
+};
+
+DominantGroup dominant_group(const std::vector<Renderer::PixelContribution>& contrib, const AnchorModel& model,
+                             float tau, float min_weight, float front_weight) {
+  const uint32_t K = static_cast<uint32_t>(model.children());
+  struct AnchorSum {
+    uint32_t anchor;
+    double weight = 0, weighted_depth = 0;
+  };
+  std::vector<AnchorSum> anchors;
+  std::unordered_map<uint32_t, size_t> index;
+  for (const auto& c : contrib) {
+    const uint32_t a = c.gaussian / K;
+    auto [it, fresh] = index.emplace(a, anchors.size());
+    if (fresh) anchors.push_back({a});
+    anchors[it->second].weight += c.weight;
+    anchors[it->second].weighted_depth += static_cast<double>(c.weight) * c.depth;
+  }
+  struct Group {
+    const float* feature;  // the first anchor's
+    double weight = 0, weighted_depth = 0;
+    const AnchorSum* heaviest = nullptr;
+  };
+  std::vector<Group> groups;
+  const double inv_2tau2 = 1.0 / (2.0 * double(tau) * tau);
+  for (const AnchorSum& e : anchors) {
+    const float* f = &model.feature()[3 * static_cast<size_t>(e.anchor)];
+    size_t home = 0;
+    for (; home < groups.size(); ++home) {
+      double d2 = 0;
+      for (int c = 0; c < 3; ++c) d2 += (double(f[c]) - groups[home].feature[c]) * (double(f[c]) - groups[home].feature[c]);
+      if (std::exp(-d2 * inv_2tau2) > min_weight) break;
+    }
+    if (home == groups.size()) groups.push_back({f});
+    Group& g = groups[home];
+    g.weight += e.weight;
+    g.weighted_depth += e.weighted_depth;
+    if (!g.heaviest || e.weight > g.heaviest->weight) g.heaviest = &e;
+  }
+  DominantGroup out;
+  const Group* top = nullptr;
+  if (front_weight > 0)
+    for (const Group& g : groups)  // in order of first appearance along the ray
+      if (g.weight >= front_weight) {
+        top = &g;
+        break;
+      }
+  if (!top)  // the heaviest (also when no group reaches front_weight)
+    for (const Group& g : groups)
+      if (!top || g.weight > top->weight) top = &g;
+  if (top && top->weight > 0) {
+    out.anchor = static_cast<int32_t>(top->heaviest->anchor);
+    out.weight = top->weight;
+    out.depth = top->weighted_depth / top->weight;
+  }
+  return out;
+}
+
+}  // namespace
+
+ClickResult QueryEngine::click(const Camera& camera, double x, double y) {
+  const auto t0 = std::chrono::steady_clock::now();
+  camera.validate();
+  if (!(x >= 0 && y >= 0 && x < camera.width && y < camera.height))
+    throw std::invalid_argument("click (" + std::to_string(x) + ", " + std::to_string(y) + ") is outside the " +
+                                std::to_string(camera.width) + "x" + std::to_string(camera.height) + " image of view " +
+                                (camera.name.empty() ? std::string("?") : camera.name) +
+                                " (x in [0, width), y in [0, height), pixels at the loaded resolution)");
+  ClickResult r;
+  r.pixel_x = static_cast<int>(std::floor(x));
+  r.pixel_y = static_cast<int>(std::floor(y));
+  RenderSettings settings;
+  settings.sh_degree = 0;
+  if (!features_are_model_) {  // mask() left selection weights there
+    device_.features.upload(gaussians_.features);
+    features_are_model_ = true;
+  }
+  renderer_.forward(device_, camera, settings);
+  const RenderOutput out = renderer_.download_output();
+  const size_t p = static_cast<size_t>(r.pixel_y) * out.width + r.pixel_x;
+  r.alpha = out.alpha[p];
+  if (!(r.alpha >= config_.min_click_alpha)) {
+    std::ostringstream msg;
+    msg << "the click at pixel (" << r.pixel_x << ", " << r.pixel_y << ") of view "
+        << (camera.name.empty() ? std::string("?") : camera.name) << " hits the background: rendered alpha "
+        << r.alpha << " < " << config_.min_click_alpha << "; click on an object";
+    throw std::runtime_error(msg.str());
+  }
+  // What the pixel shows: the anchors blended there, grouped by feature with
+  // the region-growing rule (a group's first anchor and another join when
+  // their bilateral weight exceeds min_weight), and the group holding the
+  // most blending weight; its weighted mean depth, and the feature of its
+  // heaviest anchor. Not the ray's means, which on a thin or half-transparent
+  // object (a pole in front of a wall) fall between the object and what lies
+  // behind it; and by group, since such an object's weight is spread over
+  // several anchors, none of which alone outweighs the wall.
+  r.depth = out.depth[p] / r.alpha;
+  r.pixel_feature = {out.feature[3 * p] / static_cast<float>(r.alpha), out.feature[3 * p + 1] / static_cast<float>(r.alpha),
+                     out.feature[3 * p + 2] / static_cast<float>(r.alpha)};
+  if (config_.click_dominant) {
+    const DominantGroup top =
+        dominant_group(renderer_.pixel_contributions(r.pixel_x, r.pixel_y), model_, config_.tau, config_.min_weight,
+                       config_.click_front_weight);
+    if (top.anchor >= 0) {
+      r.dominant_anchor = top.anchor;
+      r.dominant_weight = top.weight;
+      r.depth = top.depth;
+      for (int c = 0; c < 3; ++c) r.pixel_feature[c] = model_.feature()[3 * static_cast<size_t>(top.anchor) + c];
+    }
+  }
+  const double u = r.pixel_x + 0.5, v = r.pixel_y + 0.5;
+  const Eigen::Vector3d xc((u - camera.cx) / camera.fx * r.depth, (v - camera.cy) / camera.fy * r.depth, r.depth);
+  r.point = camera.R.transpose() * (xc - camera.t);
+  const std::vector<int> candidates = tree_.nearest_k(r.point, config_.click_candidates);
+  if (candidates.empty()) throw std::runtime_error("the model has no anchors to select");
+  double best = std::numeric_limits<double>::infinity();
+  for (int a : candidates) {  // nearest first: ties keep the nearer
+    double d2 = 0;
+    for (int c = 0; c < 3; ++c) {
+      const double x = static_cast<double>(model_.feature()[3 * static_cast<size_t>(a) + c]) - r.pixel_feature[c];
+      d2 += x * x;
+    }
+    if (d2 < best) {
+      best = d2;
+      r.seed = a;
+    }
+  }
+  const float* c = &model_.pos()[3 * static_cast<size_t>(r.seed)];
+  r.seed_distance = (r.point - Eigen::Vector3d(c[0], c[1], c[2])).norm();
+  if (config_.grow) {
+    r.selected = region_grow(graph_, model_.feature(), {r.seed}, config_.tau, config_.min_weight);
+  } else {
+    const float* f = &model_.feature()[3 * static_cast<size_t>(r.seed)];
+    r.selected = similar_anchors(model_.feature(), {f[0], f[1], f[2]}, config_.equivalent_distance());
+  }
+  r.ms = ms_since(t0);
+  return r;
+}
+
+TextResult QueryEngine::text(const std::vector<float>& embedding) {
+  if (!have_language_) throw std::logic_error("QueryEngine::text before set_language");
+  const auto t0 = std::chrono::steady_clock::now();
+  TextResult r;
+  r.scores = text_scores(language_, embedding);
+  r.best = -std::numeric_limits<double>::infinity();
+  for (double s : r.scores)
+    if (!std::isnan(s)) r.best = std::max(r.best, s);
+  if (!std::isfinite(r.best))
+    throw std::invalid_argument("no cluster of the model has a language feature (stage 3 found no mask matches)");
+  std::vector<uint8_t> seed_cluster(r.scores.size(), 0);
+  for (size_t c = 0; c < r.scores.size(); ++c) {
+    if (!std::isnan(r.scores[c]) && r.scores[c] >= r.best - config_.text_margin) {
+      seed_cluster[c] = 1;
+      r.seed_clusters.push_back(static_cast<int32_t>(c));
+    }
+  }
+  for (size_t a = 0; a < clustering_.anchor_cluster.size(); ++a) {
+    const int32_t c = clustering_.anchor_cluster[a];
+    if (c >= 0 && seed_cluster[c]) r.seeds.push_back(static_cast<int32_t>(a));
+  }
+  if (config_.grow) {
+    r.selected = region_grow(graph_, model_.feature(), r.seeds, config_.tau, config_.min_weight);
+  } else {
+    // Each seed cluster's mean feature (double sums, in anchor order).
+    std::vector<double> sum(3 * r.scores.size(), 0.0);
+    std::vector<int64_t> count(r.scores.size(), 0);
+    for (int32_t a : r.seeds) {
+      const int32_t c = clustering_.anchor_cluster[a];
+      for (int k = 0; k < 3; ++k) sum[3 * c + k] += model_.feature()[3 * static_cast<size_t>(a) + k];
+      ++count[c];
+    }
+    std::vector<float> means;
+    for (int32_t c : r.seed_clusters)
+      if (count[c] > 0)
+        for (int k = 0; k < 3; ++k) means.push_back(static_cast<float>(sum[3 * c + k] / count[c]));
+    r.selected = similar_anchors(model_.feature(), means, config_.equivalent_distance());
+  }
+  r.ms = ms_since(t0);
+  return r;
+}
+
+std::vector<uint8_t> QueryEngine::mask(const Camera& camera, const std::vector<int32_t>& selected) {
+  camera.validate();
+  const int k = model_.children();
+  std::fill(selection_features_.begin(), selection_features_.end(), 0.f);
+  for (int32_t a : selected) {
+    if (a < 0 || static_cast<size_t>(a) >= model_.size())
+      throw std::invalid_argument("mask: anchor id " + std::to_string(a) + " out of range");
+    for (int i = 0; i < k; ++i) selection_features_[3 * (static_cast<size_t>(a) * k + i)] = 1.f;
+  }
+  device_.features.upload(selection_features_);
+  features_are_model_ = false;
+  RenderSettings settings;
+  settings.sh_degree = 0;
+  renderer_.forward(device_, camera, settings);
+  const size_t pixels = static_cast<size_t>(camera.width) * camera.height;
+  std::vector<float> weight;
+  renderer_.device_feature().download(weight, pixels);  // planar [3,H,W]: channel 0 first
+  std::vector<uint8_t> m(pixels);
+  for (size_t p = 0; p < pixels; ++p) m[p] = weight[p] > config_.mask_threshold ? 1 : 0;
+  return m;
+}
+
+GaussianSet gaussians_of_anchors(const AnchorModel& model, int sh_degree, const std::vector<uint8_t>& in_selection,
+                                 bool want) {
+  if (in_selection.size() != model.size())
+    throw std::invalid_argument("gaussians_of_anchors: selection of " + std::to_string(in_selection.size()) +
+                                " anchors for a model of " + std::to_string(model.size()));
+  const GaussianSet all = expand_reference(model, sh_degree);
+  const int k = model.children();
+  const int sc = all.sh_coeffs() * 3;
+  GaussianSet out;
+  out.sh_degree = all.sh_degree;
+  for (size_t a = 0; a < model.size(); ++a) {
+    if ((in_selection[a] != 0) != want) continue;
+    for (int i = 0; i < k; ++i) {
+      const size_t g = a * k + i;
+      out.means.insert(out.means.end(), &all.means[3 * g], &all.means[3 * g + 3]);
+      out.scales.insert(out.scales.end(), &all.scales[3 * g], &all.scales[3 * g + 3]);
+      out.quats.insert(out.quats.end(), &all.quats[4 * g], &all.quats[4 * g + 4]);
+      out.opacities.push_back(all.opacities[g]);
+      out.sh.insert(out.sh.end(), &all.sh[sc * g], &all.sh[sc * g + sc]);
+      out.features.insert(out.features.end(), &all.features[3 * g], &all.features[3 * g + 3]);
+    }
+  }
+  return out;
+}
+
+}  // namespace ag2gs
