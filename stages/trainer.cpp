@@ -14,10 +14,11 @@
 #include <stdexcept>
 #include <system_error>
 
-#include "host/atomic_file.h"
-#include "host/counter_rng.h"
-#include "host/model_io.h"
-#include "host/ply_io.h"
+#include "host/core/counter_rng.h"
+#include "host/io/atomic_file.h"
+#include "host/io/model_io.h"
+#include "host/io/ply_io.h"
+#include "stages/anchor_regularisers.h"
 
 namespace fs = std::filesystem;
 
@@ -128,9 +129,19 @@ const AnchorModel& Trainer::model() {
 
 StepStats Trainer::step(bool compute_offset_loss, const std::function<void()>& before_rounds) {
   StepStats st;
-  const int it = iteration_;
-  st.iteration = it + 1;
-  st.stage2 = it >= config_.iterations;
+  st.iteration = iteration_ + 1;
+  st.stage2 = iteration_ >= config_.iterations;
+  const std::pair<int, int> size = render_and_losses(st, compute_offset_loss);
+  update(st, size.first, size.second);
+  if (before_rounds) before_rounds();
+  if (!st.stage2 && growth_.due(st.iteration)) growing_round(st);
+  if (opacity_reset_due(st.iteration)) reset_opacities(st);
+  iteration_ = st.iteration;
+  return st;
+}
+
+std::pair<int, int> Trainer::render_and_losses(StepStats& st, bool compute_offset_loss) {
+  const int it = st.iteration - 1;
   if (st.stage2 && !graph_ready_) {
     // Growing is over: the anchors keep their rows for the rest of the run.
     graph_ = AnchorGraph::build(model());
@@ -219,11 +230,7 @@ StepStats Trainer::step(bool compute_offset_loss, const std::function<void()>& b
 
   const size_t n = anchors_.gaussians();
   if (config_.w_offset > 0 && n > 0) {
-    reg_value_.reserve(n * 4);
-    cl::Kernel k = rt_.kernel("train.cl", "offset_reg", {});
-    set_kernel_args(k, static_cast<cl_int>(n), config_.w_offset / static_cast<float>(n), anchors_.offset.get(),
-                    grads_.offset.get(), reg_value_.get());
-    rt_.launch("offset_reg", k, cl::NDRange(n), cl::NDRange(64));
+    enqueue_offset_regulariser(rt_, n, config_.w_offset, anchors_.offset, grads_.offset, reg_value_);
     if (compute_offset_loss) {
       std::vector<float> v;
       reg_value_.download(v, n);
@@ -235,6 +242,11 @@ StepStats Trainer::step(bool compute_offset_loss, const std::function<void()>& b
     }
   }
 
+  return {w, h};
+}
+
+void Trainer::update(StepStats& st, int w, int h) {
+  const int it = st.iteration - 1;
   DeviceBuffer& feature_grad = config_.mask_geometry ? grads_.feature : feature_grads_.feature;
   // Stage 2: the features step on every iteration, with or without masks.
   const bool with_prop = st.stage2 && config_.w_prop > 0;
@@ -265,60 +277,55 @@ StepStats Trainer::step(bool compute_offset_loss, const std::function<void()>& b
                  st.loss);
   } else {
     groups_->step(adam_, updates);
-    if (step_features && config_.feature_ball && anchors_.anchors > 0) {
-      cl::Kernel k = rt_.kernel("train.cl", "feature_ball", {});
-      set_kernel_args(k, static_cast<cl_int>(anchors_.anchors), anchors_.feature.get());
-      rt_.launch("feature_ball", k, cl::NDRange((anchors_.anchors + 63) / 64 * 64), cl::NDRange(64));
-    }
+    if (step_features && config_.feature_ball) enqueue_feature_ball(rt_, anchors_.anchors, anchors_.feature);
     host_stale_ = true;
     // The renderer's gradients and radii of this view are still on the device.
     if (!st.stage2 && growth_.collecting(st.iteration))
       growth_.accumulate(*renderer_.device_grads().means2d, renderer_.device_radii(), w, h);
   }
-  if (before_rounds) before_rounds();
-  if (!st.stage2 && growth_.due(st.iteration)) {
-    model();  // host values current
-    // No opacity pruning shortly after a reset (a pure function of the
-    // iteration, so a resumed run decides the same).
-    GrowthConfig gc = config_.growth_config(train_views_.size());
-    const int every = config_.opacity_reset_every;
-    if (every > 0 && st.iteration > every) {
-      const int last_reset = (st.iteration - 1) / every * every;  // strictly before this iteration
-      if (opacity_reset_due(last_reset) && st.iteration - last_reset <= config_.opacity_reset_pause)
-        gc.prune_opacity = gc.recycle_opacity = 0;
-    }
-    gc.max_gaussians = max_gaussians_;
-    growth_.set_config(gc);
-    const GrowthResult r = growth_.step(model_, config_.seed);
-    spdlog::debug(
-        "growing round at iteration {}: {} requests, {} anchors added ({} left out by the budgets), {} pruned ({} "
-        "opacity, {} unseen)",
-        st.iteration, r.requests, r.added, r.over_budget, r.pruned, r.pruned_opacity, r.pruned_unseen);
-    st.grown = r.added;
-    st.over_budget = r.over_budget;
-    st.pruned = r.pruned;
-    st.recycled = r.recycled;
-    if (r.changed()) {
-      if (model_.size() == 0)
-        throw std::runtime_error("iteration " + std::to_string(st.iteration) + ": pruning removed every anchor (" +
-                                 std::to_string(r.pruned_opacity) + " with mean opacity below " +
-                                 std::to_string(config_.prune_opacity) + ", " + std::to_string(r.pruned_unseen) +
-                                 " unseen); lower --prune-opacity or raise --prune-unseen-window");
-      anchors_.upload(model_);
-      groups_->gather(r.child_rows, r.anchor_rows);
-    }
+}
+
+void Trainer::growing_round(StepStats& st) {
+  model();  // host values current
+  // No opacity pruning shortly after a reset (a pure function of the
+  // iteration, so a resumed run decides the same).
+  GrowthConfig gc = config_.growth_config(train_views_.size());
+  const int every = config_.opacity_reset_every;
+  if (every > 0 && st.iteration > every) {
+    const int last_reset = (st.iteration - 1) / every * every;  // strictly before this iteration
+    if (opacity_reset_due(last_reset) && st.iteration - last_reset <= config_.opacity_reset_pause)
+      gc.prune_opacity = gc.recycle_opacity = 0;
   }
-  if (opacity_reset_due(st.iteration)) {
-    // 3DGS: opacity = min(opacity, 0.01), through the logit; fresh moments.
-    model();  // host values current
-    cap_opacity_logits(model_.opacity_logit());
-    anchors_.opacity_logit.upload(model_.opacity_logit());
-    (*groups_)[kOpacity].zero_moments();
-    st.opacity_reset = true;
-    spdlog::debug("iteration {}: opacities reset to at most 0.01", st.iteration);
+  gc.max_gaussians = max_gaussians_;
+  growth_.set_config(gc);
+  const GrowthResult r = growth_.step(model_, config_.seed);
+  spdlog::debug(
+      "growing round at iteration {}: {} requests, {} anchors added ({} left out by the budgets), {} pruned ({} "
+      "opacity, {} unseen)",
+      st.iteration, r.requests, r.added, r.over_budget, r.pruned, r.pruned_opacity, r.pruned_unseen);
+  st.grown = r.added;
+  st.over_budget = r.over_budget;
+  st.pruned = r.pruned;
+  st.recycled = r.recycled;
+  if (r.changed()) {
+    if (model_.size() == 0)
+      throw std::runtime_error("iteration " + std::to_string(st.iteration) + ": pruning removed every anchor (" +
+                               std::to_string(r.pruned_opacity) + " with mean opacity below " +
+                               std::to_string(config_.prune_opacity) + ", " + std::to_string(r.pruned_unseen) +
+                               " unseen); lower --prune-opacity or raise --prune-unseen-window");
+    anchors_.upload(model_);
+    groups_->gather(r.child_rows, r.anchor_rows);
   }
-  iteration_ = it + 1;
-  return st;
+}
+
+void Trainer::reset_opacities(StepStats& st) {
+  // 3DGS: opacity = min(opacity, 0.01), through the logit; fresh moments.
+  model();  // host values current
+  cap_opacity_logits(model_.opacity_logit());
+  anchors_.opacity_logit.upload(model_.opacity_logit());
+  (*groups_)[kOpacity].zero_moments();
+  st.opacity_reset = true;
+  spdlog::debug("iteration {}: opacities reset to at most 0.01", st.iteration);
 }
 
 EvalStats Trainer::evaluate(const std::vector<int>& views) {

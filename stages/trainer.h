@@ -5,7 +5,7 @@
 //   -> renderer backward -> expander backward (+ dL_in/d offset)
 //   -> non-finite check (skip the step) -> Adam per parameter group
 //
-// with L_rgb = (1 - lambda) L1 + lambda (1 - SSIM) (host/image_loss.h),
+// with L_rgb = (1 - lambda) L1 + lambda (1 - SSIM) (host/render/image_loss.h),
 // L_in = mean over offsets of exp(relu(|o|^2 - 1)) (offsets in voxel units),
 // L_d = mean over pixels of the renderer's distortion output.
 //
@@ -20,7 +20,7 @@
 // was seen in the last prune_unseen_window views, are removed. The optimiser
 // state follows the rows (GrowthResult's gather maps).
 //
-// Mask losses (docs/design.md section 4, host/mask_loss.h): when the scene has
+// Mask losses (docs/design.md section 4, host/render/mask_loss.h): when the scene has
 // SAM masks and the iteration is at least mask_from, the view's rendered
 // feature map F (optionally divided by the accumulated alpha) gets
 // w_is L_is + w_ic L_ic; the gradient goes back through the renderer and the
@@ -72,26 +72,27 @@
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <string>
+#include <utility>
 #include <vector>
 
-#include "host/adam.h"
-#include "host/cl_runtime.h"
-#include "host/image_loss.h"
-#include "host/mask_loss.h"
-#include "host/renderer.h"
-#include "host/scene.h"
+#include "host/device/cl_runtime.h"
+#include "host/render/adam.h"
+#include "host/render/image_loss.h"
+#include "host/render/mask_loss.h"
+#include "host/render/renderer.h"
+#include "host/scene/scene.h"
 #include "stages/anchor_graph.h"
 #include "stages/anchor_growth.h"
 #include "stages/anchor_model.h"
+#include "stages/checkpoint.h"
 #include "stages/expander.h"
 #include "stages/language.h"
-#include "stages/propagation_loss.h"
-#include "stages/voxel_rule.h"
-#include "stages/train_config.h"
 #include "stages/param_groups.h"
-#include "stages/checkpoint.h"
+#include "stages/propagation_loss.h"
 #include "stages/stage3.h"
 #include "stages/train_common.h"
+#include "stages/train_config.h"
+#include "stages/voxel_rule.h"
 
 namespace ag2gs {
 
@@ -193,6 +194,15 @@ class Trainer {
   AdamGroup& adam_group(const std::string& name);
 
  private:
+  // The parts of step(), in order: render the view and enqueue every loss
+  // and its gradient down to the anchors (returns the image size); the
+  // non-finite check and the Adam updates (and growth statistics); the
+  // growing round; the opacity reset.
+  std::pair<int, int> render_and_losses(StepStats& st, bool compute_offset_loss);
+  void update(StepStats& st, int w, int h);
+  void growing_round(StepStats& st);
+  void reset_opacities(StepStats& st);
+
   Runtime& rt_;
   Scene& scene_;
   TrainConfig config_;
