@@ -492,13 +492,8 @@ FreeStepStats FreeTrainer::step(const std::function<void()>& before_rounds) {
                                           {kOpacity, &opacity_logit_, &v_opacity_logit_, config_.opacity_lr},
                                           {kShDc, &sh_dc_, &v_sh_dc_, config_.sh_dc_lr},
                                           {kShRest, &sh_rest_, &v_sh_rest_, config_.sh_rest_lr}};
-  st.nonfinite = groups_->count_nonfinite(adam_, updates);
-  if (st.nonfinite > 0 || !std::isfinite(st.loss)) {
-    st.skipped = true;
-    spdlog::warn("iteration {}: {} non-finite gradient values (loss {}); step skipped", st.iteration, st.nonfinite,
-                 st.loss);
-  } else {
-    groups_->step(adam_, updates);
+  st.skipped = !groups_->step_if_finite(adam_, updates, st.iteration, st.loss, &st.nonfinite);
+  if (!st.skipped) {
     if (st.iteration <= config_.effective_densify_until()) accumulate_densify_stats(rg, w, h);
   }
   if (before_rounds) before_rounds();

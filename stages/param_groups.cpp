@@ -1,5 +1,8 @@
 #include "stages/param_groups.h"
 
+#include <spdlog/spdlog.h>
+
+#include <cmath>
 #include <stdexcept>
 
 namespace ag2gs {
@@ -60,6 +63,17 @@ std::unique_ptr<ParamGroups> ParamGroups::from_archive(Runtime& rt, std::vector<
     g.set_steps(meta.at(g.name()).at("steps").get<int64_t>());
   }
   return groups;
+}
+
+bool ParamGroups::step_if_finite(Adam& adam, const std::vector<GroupStep>& steps, int iteration, double loss,
+                                 uint64_t* nonfinite) const {
+  *nonfinite = count_nonfinite(adam, steps);
+  if (*nonfinite > 0 || !std::isfinite(loss)) {
+    spdlog::warn("iteration {}: {} non-finite gradient values (loss {}); step skipped", iteration, *nonfinite, loss);
+    return false;
+  }
+  step(adam, steps);
+  return true;
 }
 
 }  // namespace ag2gs

@@ -53,6 +53,12 @@ class ParamGroups {
   uint64_t count_nonfinite(Adam& adam, const std::vector<GroupStep>& steps) const;
   // Every update of `steps`.
   void step(Adam& adam, const std::vector<GroupStep>& steps) const;
+  // The trainers' step rule: when a gradient of `steps` holds a non-finite
+  // value or `loss` is not finite, nothing changes and one warning names
+  // the iteration (*nonfinite: the count); else every update runs. Returns
+  // whether the parameters were stepped.
+  bool step_if_finite(Adam& adam, const std::vector<GroupStep>& steps, int iteration, double loss,
+                      uint64_t* nonfinite) const;
 
   // The moments as adam/<name>/exp_avg and exp_avg_sq, and the step counts
   // and shapes in the returned JSON object (keyed by name).

@@ -270,13 +270,8 @@ void Trainer::update(StepStats& st, int w, int h) {
       {kShDc, &anchors_.sh_dc, &grads_.sh_dc, config_.sh_dc_lr},
       {kShRest, &anchors_.sh_rest, &grads_.sh_rest, config_.sh_rest_lr}};
   if (step_features) updates.push_back({kFeature, &anchors_.feature, &feature_grad, config_.feature_lr});
-  st.nonfinite = groups_->count_nonfinite(adam_, updates);
-  if (st.nonfinite > 0 || !std::isfinite(st.loss)) {
-    st.skipped = true;
-    spdlog::warn("iteration {}: {} non-finite gradient values (loss {}); step skipped", st.iteration, st.nonfinite,
-                 st.loss);
-  } else {
-    groups_->step(adam_, updates);
+  st.skipped = !groups_->step_if_finite(adam_, updates, st.iteration, st.loss, &st.nonfinite);
+  if (!st.skipped) {
     if (step_features && config_.feature_ball) enqueue_feature_ball(rt_, anchors_.anchors, anchors_.feature);
     host_stale_ = true;
     // The renderer's gradients and radii of this view are still on the device.
