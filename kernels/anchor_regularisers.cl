@@ -1,4 +1,4 @@
-// Small kernels of the stage-1 training loop (stages/trainer.cpp).
+// The anchor trainer's two small per-row kernels (host: stages/anchor_regularisers.h).
 
 // Offset regulariser L_in = mean over the N offsets of exp(relu(|o|^2 - 1))
 // (docs/design.md section 4; offsets in voxel units). Per offset row g: writes its
