@@ -93,13 +93,8 @@ void cmd_baseline(const GlobalOptions& global, BaselineArgs& a) {
       const RunDriver::Means m = run.take_means(st.iteration);
       // The ETA from the recent steps' time and the densification still to come.
       const int growing = std::max(0, densify_until - st.iteration);
-      const int rounds_left = c.densify_every > 0 ? growing / c.densify_every : 0;
-      const double round_factor =
-          rounds_done > 0 ? std::pow(static_cast<double>(trainer.gaussians()) / std::max<size_t>(gaussians_at_start, 1),
-                                     1.0 / rounds_done)
-                          : 1.0;
-      const double eta = estimate_seconds_left(c.iterations - st.iteration, run.recent_step_ms(), trainer.gaussians(),
-                                               growing, rounds_left, round_factor, 0);
+      const double eta = run.eta_seconds(c.iterations - st.iteration, trainer.gaussians(), gaussians_at_start,
+                                         rounds_done, growing, c.densify_every, 0);
       spdlog::info(
           "it {:>6}/{}  loss {:.5f} (L1 {:.5f}, SSIM {:.4f})  PSNR {:.2f} dB  SH {}  Gaussians {}  {:.1f} it/s  "
           "ETA {}{}",

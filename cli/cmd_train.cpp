@@ -341,13 +341,8 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
       // growth still to come.
       const int grow_until = c.grow_every > 0 ? std::min(c.effective_grow_until(), c.iterations) : 0;
       const int growing = std::max(0, grow_until - st.iteration);
-      const int rounds_left = c.grow_every > 0 ? growing / c.grow_every : 0;
-      const double round_factor =
-          rounds_done > 0 ? std::pow(static_cast<double>(trainer.gaussians()) / std::max<size_t>(gaussians_at_start, 1),
-                                     1.0 / rounds_done)
-                          : 1.0;
-      const double eta = estimate_seconds_left(it_end - st.iteration, run.recent_step_ms(), trainer.gaussians(),
-                                               growing, rounds_left, round_factor, trainer.max_gaussians());
+      const double eta = run.eta_seconds(it_end - st.iteration, trainer.gaussians(), gaussians_at_start, rounds_done,
+                                         growing, c.grow_every, trainer.max_gaussians());
       const std::string eta_text =
           fmt_duration(eta) + (growing > 0 ? fmt::format(" (growing until {})", grow_until) : std::string());
       std::string mask_terms =

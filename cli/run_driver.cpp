@@ -158,6 +158,14 @@ double RunDriver::recent_step_ms() const {
                 : 0.0;
 }
 
+double RunDriver::eta_seconds(int remaining, size_t now, size_t start, int rounds_done, int growing, int every,
+                              size_t budget) const {
+  const int rounds_left = every > 0 ? growing / every : 0;
+  const double round_factor =
+      rounds_done > 0 ? std::pow(static_cast<double>(now) / std::max<size_t>(start, 1), 1.0 / rounds_done) : 1.0;
+  return estimate_seconds_left(remaining, recent_step_ms(), now, growing, rounds_left, round_factor, budget);
+}
+
 void RunDriver::add_sample(double loss, double psnr, double l1, double ssim) {
   sum_loss_ += loss;
   sum_psnr_ += psnr;

@@ -85,6 +85,11 @@ class RunDriver {
   // in the summary names which).
   void record_step_ms(double ms, bool fixed);
   double recent_step_ms() const;  // median of the last 100
+  // estimate_seconds_left at the recent step time, for a model that grew
+  // from `start` to `now` Gaussians in `rounds_done` rounds and has `growing`
+  // steps of rounds every `every` iterations still to come (budget 0 = none).
+  double eta_seconds(int remaining, size_t now, size_t start, int rounds_done, int growing, int every,
+                     size_t budget) const;
 
   // Running means of the progress line.
   void add_sample(double loss, double psnr, double l1, double ssim);
