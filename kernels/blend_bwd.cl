@@ -5,52 +5,12 @@
 // lane, then lanes) and written to that intersection's own slot: no atomics,
 // so the result is bit-identical run to run on a device.
 //
-// Per blended Gaussian j of a pixel, with forward totals O, A_T, mu_T, M2_T,
-// T_final and prefix sums that include j (docs/rasterizer.md, "Backward"):
-//   dO/dalpha_j = T_j c_j - (O - P_j)/(1 - alpha_j) for every linear channel;
-//   folded over channels with the upstream gradients g: gc = g . c_j,
-//   G_O = g . O, G_P = sum_{k<=j} w_k gc_k.
-//   alpha output: T_final/(1 - alpha_j).
-//   distortion D = A M2: e_j = M2_T + A_T (m_j - mu_T)^2,
-//     dD/dalpha_j = T_j e_j - (M2_T (A_T - A_j) + A_T (M2_T - Q_j))/(1 - alpha_j),
-//     dD/dm_j = 2 w_j A_T (m_j - mu_T).
+// The per-Gaussian gradient itself is blend_vjp in common.cl, which both
+// layouts below call.
 // Defines: BATCH, NO_STAGING (CPU layout below); GRAD_RGB, GRAD_FEAT,
 // GRAD_DEPTH, GRAD_ALPHA, GRAD_DIST: 0 when that upstream gradient is zero
-// everywhere (not given), so the CPU layout leaves its terms out (a zero
-// term adds nothing; float rules forbid the compiler to drop x * 0 itself).
-
-// Forward totals and upstream gradients of one work-item's pixels.
-typedef struct {
-  vfloat gr, gg, gb, gf0, gf1, gf2, gd, ga, gD;
-  vfloat G_O, T_final, A_T, mu_T, M2_T;
-  vint last;
-} RowTotals;
-
-inline RowTotals load_totals(PixelRow pr, int width, size_t npix,
-                             __global const float* out_rgb, __global const float* out_feat,
-                             __global const float* out_depth, __global const float* out_aux,
-                             __global const int* out_last, __global const float* v_rgb,
-                             __global const float* v_feat, __global const float* v_depth,
-                             __global const float* v_alpha, __global const float* v_dist) {
-  RowTotals t;
-  t.gr = GRAD_RGB ? load_row(v_rgb, pr, width) : 0.f;
-  t.gg = GRAD_RGB ? load_row(v_rgb + npix, pr, width) : 0.f;
-  t.gb = GRAD_RGB ? load_row(v_rgb + 2 * npix, pr, width) : 0.f;
-  t.gf0 = GRAD_FEAT ? load_row(v_feat, pr, width) : 0.f;
-  t.gf1 = GRAD_FEAT ? load_row(v_feat + npix, pr, width) : 0.f;
-  t.gf2 = GRAD_FEAT ? load_row(v_feat + 2 * npix, pr, width) : 0.f;
-  t.gd = GRAD_DEPTH ? load_row(v_depth, pr, width) : 0.f;
-  t.ga = GRAD_ALPHA ? load_row(v_alpha, pr, width) : 0.f;
-  t.gD = GRAD_DIST ? load_row(v_dist, pr, width) : 0.f;
-  t.G_O = t.gr * load_row(out_rgb, pr, width) + t.gg * load_row(out_rgb + npix, pr, width) +
-          t.gb * load_row(out_rgb + 2 * npix, pr, width) + t.gf0 * load_row(out_feat, pr, width) +
-          t.gf1 * load_row(out_feat + npix, pr, width) + t.gf2 * load_row(out_feat + 2 * npix, pr, width) +
-          t.gd * load_row(out_depth, pr, width);
-  t.T_final = load_row(out_aux, pr, width); t.A_T = load_row(out_aux + npix, pr, width);
-  t.mu_T = load_row(out_aux + 2 * npix, pr, width); t.M2_T = load_row(out_aux + 3 * npix, pr, width);
-  t.last = load_row_int(out_last, pr, width);
-  return t;
-}
+// everywhere (not given), so blend_vjp leaves their terms out (a zero term
+// adds nothing; float rules forbid the compiler to drop x * 0 itself).
 
 #if NO_STAGING
 // CPU layout: one work-item per tile. The Gaussians are the outer loop and the
@@ -86,7 +46,7 @@ void blend_bwd(int width, int height, int tiles_x,
   __global const uint* vals = isect_vals + range.x;
 
   RowTotals tot[WG_SIZE];
-  vfloat Ts[WG_SIZE], GPs[WG_SIZE], As[WG_SIZE], Qs[WG_SIZE];
+  BlendRun runs[WG_SIZE];
   vfloat pxs[WG_SIZE];
   float pys[WG_SIZE], dx0s[WG_SIZE], dx1s[WG_SIZE];
   int bounds[WG_SIZE];
@@ -98,8 +58,8 @@ void blend_bwd(int width, int height, int tiles_x,
     pys[row] = pr.py;
     dx0s[row] = -(pr.x0 + 0.5f);
     dx1s[row] = -(pr.x0 + (VW - 0.5f));
-    Ts[row] = 1.f;
-    GPs[row] = As[row] = Qs[row] = 0.f;
+    runs[row].T = 1.f;
+    runs[row].G_P = runs[row].A = runs[row].Q = 0.f;
     if (!ANY(pr.inside)) continue;
     tot[row] = load_totals(pr, width, npix, out_rgb, out_feat, out_depth, out_aux, out_last, v_rgb, v_feat, v_depth,
                            v_alpha, v_dist);
@@ -125,78 +85,37 @@ void blend_bwd(int width, int height, int tiles_x,
     int touched = 0;
     if (j < bound) {
       __global const float* q = records + (size_t)isect_gid[slot] * REC_SIZE;
-      const float u = q[REC_U], v = q[REC_V];
-      const float cA = q[REC_CA], cB = q[REC_CB], cC = q[REC_CC], o = q[REC_OPACITY];
-      const float cr = q[REC_RGB], cg = q[REC_RGB + 1], cb = q[REC_RGB + 2];
-      const float c0 = q[REC_FEAT], c1 = q[REC_FEAT + 1], c2 = q[REC_FEAT + 2], z = q[REC_Z], m = q[REC_M];
-      const float zj = dist_depth_vjp(z, dnear, dfar);
+      const BlendRec rec = BLEND_REC_LOAD(q);
+      const float zj = dist_depth_vjp(rec.z, dnear, dfar);
       for (int row = 0; row < WG_SIZE; ++row) {
         if (j >= bounds[row]) continue;
-        const float dy = v - pys[row];
-        if (row_culled(q, dy, u + dx0s[row], u + dx1s[row])) continue;
-        const vfloat dx = u - pxs[row];
-        const vfloat sigma = blend_sigma(cA, cB, cC, dx, dy);
-        const vfloat G = blend_falloff(sigma);
-        const vfloat oG = o * G;
-        const vfloat alpha = fmin(ALPHA_MAX, oG);
-        const RowTotals t = tot[row];
-        const vint ok = (vint)j < t.last && sigma >= 0.f && alpha >= ALPHA_MIN;
-        if (!ANY(ok)) continue;
+        const float dy = rec.v - pys[row];
+        if (row_culled(q, dy, rec.u + dx0s[row], rec.u + dx1s[row])) continue;
+        BlendVjp d;
+        if (!blend_vjp(rec, rec.u - pxs[row], dy, (vint)j < tot[row].last, zj, &tot[row], &runs[row], &d)) continue;
         touched = 1;
-        const vfloat T = Ts[row];
-        const vfloat w = select((vfloat)0.f, alpha * T, ok);
-        vfloat gc = 0.f;
+        s_u += d.u;
+        s_v += d.v;
+        s_ca += d.ca;
+        s_cb += d.cb;
+        s_cc += d.cc;
+        s_op += d.op;
 #if GRAD_RGB
-        gc = t.gr * cr + t.gg * cg + t.gb * cb;
+        s_r += d.r;
+        s_g += d.g;
+        s_b += d.b;
 #endif
 #if GRAD_FEAT
-        gc += t.gf0 * c0 + t.gf1 * c1 + t.gf2 * c2;
+        s_f0 += d.f0;
+        s_f1 += d.f1;
+        s_f2 += d.f2;
 #endif
 #if GRAD_DEPTH
-        gc += t.gd * z;
-#endif
-        const vfloat G_P = GPs[row] + w * gc;
-        const vfloat inv = 1.f / (1.f - alpha);
-        vfloat v_a = gc * T - (t.G_O - G_P) * inv;
-#if GRAD_ALPHA
-        v_a += t.ga * t.T_final * inv;
+        s_z += d.z_depth;
 #endif
 #if GRAD_DIST
-        const vfloat dm = m - t.mu_T;
-        const vfloat A = As[row] + w;
-        const vfloat Q = Qs[row] + w * dm * dm;
-        const vfloat e = t.M2_T + t.A_T * dm * dm;
-        const vfloat S = t.M2_T * (t.A_T - A) + t.A_T * (t.M2_T - Q);
-        v_a += t.gD * (T * e - S * inv);
+        s_z += d.z_dist;
 #endif
-        const vfloat v_oG = select((vfloat)0.f, v_a, ok && oG <= ALPHA_MAX);
-        const vfloat v_sigma = -v_oG * oG;
-        s_u += v_sigma * (cA * dx + cB * dy);
-        s_v += v_sigma * (cB * dx + cC * dy);
-        s_ca += 0.5f * v_sigma * dx * dx;
-        s_cb += v_sigma * dx * dy;
-        s_cc += 0.5f * v_sigma * dy * dy;
-        s_op += v_oG * G;
-#if GRAD_RGB
-        s_r += t.gr * w;
-        s_g += t.gg * w;
-        s_b += t.gb * w;
-#endif
-#if GRAD_FEAT
-        s_f0 += t.gf0 * w;
-        s_f1 += t.gf1 * w;
-        s_f2 += t.gf2 * w;
-#endif
-#if GRAD_DEPTH
-        s_z += t.gd * w;
-#endif
-#if GRAD_DIST
-        s_z += t.gD * 2.f * w * t.A_T * dm * zj;
-        As[row] = A;
-        Qs[row] = Q;
-#endif
-        GPs[row] = G_P;
-        Ts[row] = select(T, T * (1.f - alpha), ok);
       }
     }
     if (!touched) {
@@ -246,18 +165,9 @@ void blend_bwd(int width, int height, int tiles_x,
   const size_t npix = (size_t)width * height;
 
   // Upstream gradients and forward totals of this row's pixels.
-  vfloat gr = load_row(v_rgb, pr, width), gg = load_row(v_rgb + npix, pr, width),
-         gb = load_row(v_rgb + 2 * npix, pr, width);
-  vfloat gf0 = load_row(v_feat, pr, width), gf1 = load_row(v_feat + npix, pr, width),
-         gf2 = load_row(v_feat + 2 * npix, pr, width);
-  vfloat gd = load_row(v_depth, pr, width), ga = load_row(v_alpha, pr, width), gD = load_row(v_dist, pr, width);
-  vfloat G_O = gr * load_row(out_rgb, pr, width) + gg * load_row(out_rgb + npix, pr, width) +
-               gb * load_row(out_rgb + 2 * npix, pr, width) + gf0 * load_row(out_feat, pr, width) +
-               gf1 * load_row(out_feat + npix, pr, width) + gf2 * load_row(out_feat + 2 * npix, pr, width) +
-               gd * load_row(out_depth, pr, width);
-  vfloat T_final = load_row(out_aux, pr, width), A_T = load_row(out_aux + npix, pr, width),
-         mu_T = load_row(out_aux + 2 * npix, pr, width), M2_T = load_row(out_aux + 3 * npix, pr, width);
-  vint last = load_row_int(out_last, pr, width);
+  const RowTotals tot = load_totals(pr, width, npix, out_rgb, out_feat, out_depth, out_aux, out_last, v_rgb, v_feat,
+                                    v_depth, v_alpha, v_dist);
+  const vint last = tot.last;
   const float dnear = cam[CAM_DNEAR], dfar = cam[CAM_DFAR];
 
   int2 range = ranges[pr.tile];
@@ -278,7 +188,9 @@ void blend_bwd(int width, int height, int tiles_x,
   barrier(CLK_LOCAL_MEM_FENCE);
   const int bound = min(s_bound, n);
 
-  vfloat T = 1.f, G_P = 0.f, A = 0.f, Q = 0.f;
+  BlendRun run;
+  run.T = 1.f;
+  run.G_P = run.A = run.Q = 0.f;
   for (int b0 = 0; b0 < bound; b0 += BATCH) {
     int nb = min(BATCH, bound - b0);
     barrier(CLK_LOCAL_MEM_FENCE);
@@ -291,52 +203,27 @@ void blend_bwd(int width, int height, int tiles_x,
     barrier(CLK_LOCAL_MEM_FENCE);
     for (int j = 0; j < nb; ++j) {
       __local float* part = s_part + (j * WG_SIZE + lid) * G2_SIZE;
-      vint active = (vint)(b0 + j) < last;
-      if (!ANY(active)) {
+      __local const float* q = s_rec + j * REC_SIZE;
+      const BlendRec rec = BLEND_REC_LOAD(q);
+      BlendVjp d;
+      if (!blend_vjp(rec, rec.u - pr.px, rec.v - pr.py, (vint)(b0 + j) < last, dist_depth_vjp(rec.z, dnear, dfar),
+                     &tot, &run, &d)) {
         for (int c = 0; c < G2_SIZE; ++c) part[c] = 0.f;
         continue;
       }
-      __local const float* q = s_rec + j * REC_SIZE;
-      const float cA = q[REC_CA], cB = q[REC_CB], cC = q[REC_CC], o = q[REC_OPACITY];
-      vfloat dx = q[REC_U] - pr.px;
-      float dy = q[REC_V] - pr.py;
-      vfloat sigma = blend_sigma(cA, cB, cC, dx, dy);
-      vfloat G = blend_falloff(sigma);
-      vfloat oG = o * G;
-      vfloat alpha = fmin(ALPHA_MAX, oG);
-      vint ok = active && sigma >= 0.f && alpha >= ALPHA_MIN;
-      vfloat w = select((vfloat)0.f, alpha * T, ok);
-
-      const float cr = q[REC_RGB], cg = q[REC_RGB + 1], cb = q[REC_RGB + 2];
-      const float c0 = q[REC_FEAT], c1 = q[REC_FEAT + 1], c2 = q[REC_FEAT + 2], z = q[REC_Z], m = q[REC_M];
-      vfloat gc = gr * cr + gg * cg + gb * cb + gf0 * c0 + gf1 * c1 + gf2 * c2 + gd * z;
-      G_P += w * gc;
-      vfloat dm = m - mu_T;
-      A += w;
-      Q += w * dm * dm;
-      vfloat e = M2_T + A_T * dm * dm;
-      vfloat S = M2_T * (A_T - A) + A_T * (M2_T - Q);
-      vfloat inv = 1.f / (1.f - alpha);
-      vfloat v_a = gc * T - (G_O - G_P) * inv + ga * T_final * inv + gD * (T * e - S * inv);
-      // alpha = min(0.99, o G): no gradient through the clamp.
-      vfloat v_oG = select((vfloat)0.f, v_a, ok && oG <= ALPHA_MAX);
-      vfloat v_sigma = -v_oG * oG;
-      vfloat v_z = gd * w + gD * 2.f * w * A_T * dm * dist_depth_vjp(z, dnear, dfar);
-
-      part[G2_U] = HSUM(v_sigma * (cA * dx + cB * dy));
-      part[G2_V] = HSUM(v_sigma * (cB * dx + cC * dy));
-      part[G2_CA] = HSUM(0.5f * v_sigma * dx * dx);
-      part[G2_CB] = HSUM(v_sigma * dx * dy);
-      part[G2_CC] = HSUM(0.5f * v_sigma * dy * dy);
-      part[G2_OPACITY] = HSUM(v_oG * G);
-      part[G2_RGB] = HSUM(gr * w);
-      part[G2_RGB + 1] = HSUM(gg * w);
-      part[G2_RGB + 2] = HSUM(gb * w);
-      part[G2_FEAT] = HSUM(gf0 * w);
-      part[G2_FEAT + 1] = HSUM(gf1 * w);
-      part[G2_FEAT + 2] = HSUM(gf2 * w);
-      part[G2_Z] = HSUM(v_z);
-      T = select(T, T * (1.f - alpha), ok);
+      part[G2_U] = HSUM(d.u);
+      part[G2_V] = HSUM(d.v);
+      part[G2_CA] = HSUM(d.ca);
+      part[G2_CB] = HSUM(d.cb);
+      part[G2_CC] = HSUM(d.cc);
+      part[G2_OPACITY] = HSUM(d.op);
+      part[G2_RGB] = HSUM(d.r);
+      part[G2_RGB + 1] = HSUM(d.g);
+      part[G2_RGB + 2] = HSUM(d.b);
+      part[G2_FEAT] = HSUM(d.f0);
+      part[G2_FEAT + 1] = HSUM(d.f1);
+      part[G2_FEAT + 2] = HSUM(d.f2);
+      part[G2_Z] = HSUM(d.z_depth + d.z_dist);
     }
     barrier(CLK_LOCAL_MEM_FENCE);
     // Sum the work-items' partials in index order into each intersection's slot.

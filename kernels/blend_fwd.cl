@@ -30,7 +30,7 @@ void blend_fwd(int width, int height, int tiles_x,
   vfloat T = 1.f, r = 0.f, g = 0.f, b = 0.f, f0 = 0.f, f1 = 0.f, f2 = 0.f, dsum = 0.f;
   vfloat A = 0.f, mu = 0.f, M2 = 0.f;
   vint last = 0, count = 0;
-  vint done = !pr.inside;
+  vint done = NOT(pr.inside);
 
   int2 range = ranges[pr.tile];
   int n = range.y - range.x;
@@ -55,22 +55,22 @@ void blend_fwd(int width, int height, int tiles_x,
       for (int c = 0; c < REC_SIZE; ++c) s_rec[i * REC_SIZE + c] = records[(size_t)gid * REC_SIZE + c];
     }
     barrier(CLK_LOCAL_MEM_FENCE);
-    if (ANY(!done)) atomic_or(&s_alive, 1);
+    if (ANY(NOT(done))) atomic_or(&s_alive, 1);
     barrier(CLK_LOCAL_MEM_FENCE);
     if (!s_alive) break;
-    if (!ANY(!done)) continue;
+    if (!ANY(NOT(done))) continue;
     for (int j = 0; j < nb; ++j) {
       __local const float* q = s_rec + j * REC_SIZE;
 #endif
       vfloat dx = q[REC_U] - pr.px;
       float dy = q[REC_V] - pr.py;
       vfloat sigma = blend_sigma(q[REC_CA], q[REC_CB], q[REC_CC], dx, dy);
-      vfloat alpha = fmin(ALPHA_MAX, q[REC_OPACITY] * blend_falloff(sigma));
-      vint ok = !done && sigma >= 0.f && alpha >= ALPHA_MIN;
+      vfloat alpha = fmin(q[REC_OPACITY] * blend_falloff(sigma), ALPHA_MAX);
+      vint ok = NOT(done) & (sigma >= 0.f) & (alpha >= ALPHA_MIN);
       vfloat Tn = T * (1.f - alpha);
-      vint stop = ok && Tn < T_MIN;
-      done = done || stop;
-      ok = ok && !stop;
+      vint stop = ok & (Tn < T_MIN);
+      done = done | stop;
+      ok = ok & NOT(stop);
       vfloat w = select((vfloat)0.f, alpha * T, ok);
       r += w * q[REC_RGB]; g += w * q[REC_RGB + 1]; b += w * q[REC_RGB + 2];
 #if WITH_FEAT
@@ -87,7 +87,7 @@ void blend_fwd(int width, int height, int tiles_x,
       T = select(T, Tn, ok);
       last = select(last, (vint)(b0 + j + 1), ok);
       count = select(count, count + (vint)1, ok);
-      if (!ANY(!done)) break;
+      if (!ANY(NOT(done))) break;
     }
   }
   store_row(r + T * cam[CAM_BG], out_rgb, pr, width);

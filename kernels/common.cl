@@ -44,6 +44,17 @@ typedef CAT(int, VW) vint;
 #endif
 #endif
 #define WG_SIZE (TILE_PIXELS / VW)
+// Lane masks (vint) come from comparisons (all bits set where true in
+// vectors, 1 in scalars), are combined with & and |, and negated with NOT
+// (~ on vectors). The spec gives vector !, && and || all-bits results too,
+// but Oclgrind computes them as 1 (its interpreter's logic on vectors of
+// comparison bits), which any() and select() read as false: the kernels use
+// those operators on scalars only, so every device reads the masks alike.
+#if VW == 1
+#define NOT(m) (!(m))
+#else
+#define NOT(m) (~(m))
+#endif
 
 // A fixed summation order: deterministic and the same on every device.
 inline float hsum4(float4 v) { return (v.s0 + v.s1) + (v.s2 + v.s3); }
@@ -302,6 +313,155 @@ inline void store_row_int(vint v, __global int* plane, PixelRow r, int width) {
   int tmp[VW];
   VSTORE(v, tmp);
   for (int l = 0; l < VW && r.x0 + l < width; ++l) p[l] = tmp[l];
+}
+
+// --------------------------------------------------------------- blend backward
+// Which upstream gradients a blend backward program is given (the host says
+// 0 for those that are zero everywhere, and their terms are left out).
+#ifndef GRAD_RGB
+#define GRAD_RGB 1
+#endif
+#ifndef GRAD_FEAT
+#define GRAD_FEAT 1
+#endif
+#ifndef GRAD_DEPTH
+#define GRAD_DEPTH 1
+#endif
+#ifndef GRAD_ALPHA
+#define GRAD_ALPHA 1
+#endif
+#ifndef GRAD_DIST
+#define GRAD_DIST 1
+#endif
+
+// Forward totals and upstream gradients of one row's pixels.
+typedef struct {
+  vfloat gr, gg, gb, gf0, gf1, gf2, gd, ga, gD;
+  vfloat G_O, T_final, A_T, mu_T, M2_T;
+  vint last;
+} RowTotals;
+
+inline RowTotals load_totals(PixelRow pr, int width, size_t npix,
+                             __global const float* out_rgb, __global const float* out_feat,
+                             __global const float* out_depth, __global const float* out_aux,
+                             __global const int* out_last, __global const float* v_rgb,
+                             __global const float* v_feat, __global const float* v_depth,
+                             __global const float* v_alpha, __global const float* v_dist) {
+  RowTotals t;
+  t.gr = GRAD_RGB ? load_row(v_rgb, pr, width) : 0.f;
+  t.gg = GRAD_RGB ? load_row(v_rgb + npix, pr, width) : 0.f;
+  t.gb = GRAD_RGB ? load_row(v_rgb + 2 * npix, pr, width) : 0.f;
+  t.gf0 = GRAD_FEAT ? load_row(v_feat, pr, width) : 0.f;
+  t.gf1 = GRAD_FEAT ? load_row(v_feat + npix, pr, width) : 0.f;
+  t.gf2 = GRAD_FEAT ? load_row(v_feat + 2 * npix, pr, width) : 0.f;
+  t.gd = GRAD_DEPTH ? load_row(v_depth, pr, width) : 0.f;
+  t.ga = GRAD_ALPHA ? load_row(v_alpha, pr, width) : 0.f;
+  t.gD = GRAD_DIST ? load_row(v_dist, pr, width) : 0.f;
+  t.G_O = t.gr * load_row(out_rgb, pr, width) + t.gg * load_row(out_rgb + npix, pr, width) +
+          t.gb * load_row(out_rgb + 2 * npix, pr, width) + t.gf0 * load_row(out_feat, pr, width) +
+          t.gf1 * load_row(out_feat + npix, pr, width) + t.gf2 * load_row(out_feat + 2 * npix, pr, width) +
+          t.gd * load_row(out_depth, pr, width);
+  t.T_final = load_row(out_aux, pr, width); t.A_T = load_row(out_aux + npix, pr, width);
+  t.mu_T = load_row(out_aux + 2 * npix, pr, width); t.M2_T = load_row(out_aux + 3 * npix, pr, width);
+  t.last = load_row_int(out_last, pr, width);
+  return t;
+}
+
+// A blended Gaussian's record fields, read by the caller from global
+// (CPU layout) or local (GPU layout) memory.
+typedef struct {
+  float u, v, cA, cB, cC, o, cr, cg, cb, c0, c1, c2, z, m;
+} BlendRec;
+
+#define BLEND_REC_LOAD(q) \
+  {(q)[REC_U], (q)[REC_V], (q)[REC_CA], (q)[REC_CB], (q)[REC_CC], (q)[REC_OPACITY], (q)[REC_RGB], \
+   (q)[REC_RGB + 1], (q)[REC_RGB + 2], (q)[REC_FEAT], (q)[REC_FEAT + 1], (q)[REC_FEAT + 2], (q)[REC_Z], (q)[REC_M]}
+
+// A row's running sums, front to back: transmittance, the weighted colour
+// prefix G_P = sum_{k<=j} w_k gc_k, and the distortion prefixes A and Q.
+typedef struct {
+  vfloat T, G_P, A, Q;
+} BlendRun;
+
+// One Gaussian's contribution to a row's gradients (summed over the row's
+// pixels by the caller): screen mean, conic, opacity, colour, feature, depth.
+typedef struct {
+  vfloat u, v, ca, cb, cc, op, r, g, b, f0, f1, f2, z_depth, z_dist;
+} BlendVjp;
+
+// The vector-Jacobian product of the blend for Gaussian j at one row, the one
+// copy both blend_bwd layouts call (the forward is blend_fwd's loop body, with
+// blend_sigma and blend_falloff above). active: lanes with j before their last
+// blended Gaussian; dx = u - pixel centres, dy = v - row centre; zj: dm/dz at
+// the Gaussian's depth. Returns 0, touching nothing, when no lane blended j;
+// else fills *d and advances *run. Derivation: docs/rasterizer.md, "Backward".
+// With forward totals O, A_T, mu_T, M2_T,
+// T_final, and prefix sums that include j:
+//   dO/dalpha_j = T_j c_j - (O - P_j)/(1 - alpha_j) for every linear channel;
+//   folded over channels with the upstream gradients g: gc = g . c_j,
+//   G_O = g . O, G_P = sum_{k<=j} w_k gc_k.
+//   alpha output: T_final/(1 - alpha_j).
+//   distortion D = A M2: e_j = M2_T + A_T (m_j - mu_T)^2,
+//     dD/dalpha_j = T_j e_j - (M2_T (A_T - A_j) + A_T (M2_T - Q_j))/(1 - alpha_j),
+//     dD/dm_j = 2 w_j A_T (m_j - mu_T).
+// alpha = min(ALPHA_MAX, o G) passes no gradient through the clamp.
+inline int blend_vjp(BlendRec q, vfloat dx, float dy, vint active, float zj, const RowTotals* t, BlendRun* run,
+                     BlendVjp* d) {
+  const vfloat sigma = blend_sigma(q.cA, q.cB, q.cC, dx, dy);
+  const vfloat G = blend_falloff(sigma);
+  const vfloat oG = q.o * G;
+  const vfloat alpha = fmin(oG, ALPHA_MAX);
+  const vint ok = active & (sigma >= 0.f) & (alpha >= ALPHA_MIN);
+  if (!ANY(ok)) return 0;
+  const vfloat T = run->T;
+  const vfloat w = select((vfloat)0.f, alpha * T, ok);
+  vfloat gc = 0.f;
+#if GRAD_RGB
+  gc = t->gr * q.cr + t->gg * q.cg + t->gb * q.cb;
+#endif
+#if GRAD_FEAT
+  gc += t->gf0 * q.c0 + t->gf1 * q.c1 + t->gf2 * q.c2;
+#endif
+#if GRAD_DEPTH
+  gc += t->gd * q.z;
+#endif
+  const vfloat G_P = run->G_P + w * gc;
+  const vfloat inv = 1.f / (1.f - alpha);
+  vfloat v_a = gc * T - (t->G_O - G_P) * inv;
+#if GRAD_ALPHA
+  v_a += t->ga * t->T_final * inv;
+#endif
+#if GRAD_DIST
+  const vfloat dm = q.m - t->mu_T;
+  const vfloat A = run->A + w;
+  const vfloat Q = run->Q + w * dm * dm;
+  const vfloat e = t->M2_T + t->A_T * dm * dm;
+  const vfloat S = t->M2_T * (t->A_T - A) + t->A_T * (t->M2_T - Q);
+  v_a += t->gD * (T * e - S * inv);
+  run->A = A;
+  run->Q = Q;
+  d->z_dist = t->gD * 2.f * w * t->A_T * dm * zj;
+#else
+  d->z_dist = 0.f;
+#endif
+  const vfloat v_oG = select((vfloat)0.f, v_a, ok & (oG <= ALPHA_MAX));
+  const vfloat v_sigma = -v_oG * oG;
+  d->u = v_sigma * (q.cA * dx + q.cB * dy);
+  d->v = v_sigma * (q.cB * dx + q.cC * dy);
+  d->ca = 0.5f * v_sigma * dx * dx;
+  d->cb = v_sigma * dx * dy;
+  d->cc = 0.5f * v_sigma * dy * dy;
+  d->op = v_oG * G;
+  d->r = GRAD_RGB ? t->gr * w : 0.f;
+  d->g = GRAD_RGB ? t->gg * w : 0.f;
+  d->b = GRAD_RGB ? t->gb * w : 0.f;
+  d->f0 = GRAD_FEAT ? t->gf0 * w : 0.f;
+  d->f1 = GRAD_FEAT ? t->gf1 * w : 0.f;
+  d->f2 = GRAD_FEAT ? t->gf2 * w : 0.f;
+  d->z_depth = GRAD_DEPTH ? t->gd * w : 0.f;
+  run->G_P = G_P;
+  run->T = select(T, T * (1.f - alpha), ok);
+  return 1;
 }
 
 #ifdef WG

@@ -26,12 +26,12 @@
   vfloat dx = q[REC_U] - pr.px;                                                        \
   float dy = q[REC_V] - pr.py;                                                         \
   vfloat sigma = blend_sigma(q[REC_CA], q[REC_CB], q[REC_CC], dx, dy);                 \
-  vfloat alpha = fmin(ALPHA_MAX, q[REC_OPACITY] * blend_falloff(sigma));               \
-  vint ok = !done && sigma >= 0.f && alpha >= ALPHA_MIN;                               \
+  vfloat alpha = fmin(q[REC_OPACITY] * blend_falloff(sigma), ALPHA_MAX);               \
+  vint ok = NOT(done) & (sigma >= 0.f) & (alpha >= ALPHA_MIN);                         \
   vfloat Tn = T * (1.f - alpha);                                                       \
-  vint stop = ok && Tn < T_MIN;                                                        \
-  done = done || stop;                                                                 \
-  ok = ok && !stop;                                                                    \
+  vint stop = ok & (Tn < T_MIN);                                                       \
+  done = done | stop;                                                                  \
+  ok = ok & NOT(stop);                                                                 \
   vfloat w = select((vfloat)0.f, alpha * T, ok);                                       \
   T = select(T, Tn, ok);
 
@@ -55,18 +55,18 @@ void instance_map(int width, int height, int tiles_x, int children,
   vint last_cand = -1;  // last list entry that added to the final candidate
   {
     vfloat T = 1.f;
-    vint done = !pr.inside;
+    vint done = NOT(pr.inside);
     for (int j = 0; j < n; ++j) {
       INSTANCE_STEP
       if (k >= 0) {
         vint same = cand == k;
-        vint wins = !same && w > surplus;
+        vint wins = NOT(same) & (w > surplus);
         vfloat next = select(select(surplus - w, w - surplus, wins), surplus + w, same);
         surplus = select(surplus, next, ok);
-        cand = select(cand, (vint)k, ok && wins);
-        last_cand = select(last_cand, (vint)j, ok && (same || wins));
+        cand = select(cand, (vint)k, ok & wins);
+        last_cand = select(last_cand, (vint)j, ok & (same | wins));
       }
-      if (!ANY(!done)) break;
+      if (!ANY(NOT(done))) break;
     }
   }
   // Walk 2: the candidate's total weight, summed in blending order. After
@@ -85,14 +85,14 @@ void instance_map(int width, int height, int tiles_x, int children,
   vfloat weight = 0.f;
   {
     vfloat T = 1.f;
-    vint done = !pr.inside || cand < 0;
+    vint done = NOT(pr.inside) | (cand < 0);
     for (int j = 0; j < end; ++j) {
       INSTANCE_STEP
-      weight += select((vfloat)0.f, w, ok && cand == k);
-      if (!ANY(!done)) break;
+      weight += select((vfloat)0.f, w, ok & (cand == k));
+      if (!ANY(NOT(done))) break;
     }
   }
-  vint id = select((vint)-1, cand, cand >= 0 && weight > MIN_FRACTION);
+  vint id = select((vint)-1, cand, (cand >= 0) & (weight > MIN_FRACTION));
   store_row_int(id, out_id, pr, width);
   store_row(weight, out_weight, pr, width);
 }

@@ -10,10 +10,11 @@ PACKAGES=(
   libcli11-dev nlohmann-json3-dev
   colmap
 )
-# --test: also what the test suite's fuzz smoke test needs (clang with its
-# libFuzzer and sanitizer runtimes).
+# --test: also what the test suite needs beyond the build: clang with its
+# libFuzzer and sanitizer runtimes (the fuzz smoke test) and Oclgrind (the
+# simulated GPU the oclgrind tests run every kernel on).
 if [ "${1:-}" = "--test" ]; then
-  PACKAGES+=(clang libclang-rt-14-dev)
+  PACKAGES+=(clang libclang-rt-14-dev oclgrind)
 fi
 
 missing=()

@@ -48,20 +48,16 @@ void check_array(const char* what, const std::vector<float>& dev, const std::vec
   EXPECT_EQ(r.nan_mismatch, 0u) << what;
 }
 
-void check_backward(int w, int h, size_t n, int sh, uint32_t seed, const OutputGrads& og,
-                    const RenderSettings& settings = {}) {
-  test::SceneSpec spec;
-  spec.n = n;
-  spec.sh_degree = sh;
-  spec.opacity_hi = 0.9;
-  GaussianSet g = test::random_scene(spec, seed);
-  Camera cam = test::look_at_origin(w, h);
+// Device against reference for scene g seen by cam; returns the intersections.
+size_t check_backward_on(const GaussianSet& g, const Camera& cam, const OutputGrads& og,
+                         const RenderSettings& settings = {}) {
   Renderer r(test::runtime());
   r.render(g, cam, settings);
   GaussianGrads dg = r.render_backward(og);
   ref::RefGrads rg = ref::render_backward(g, cam, settings, og);
-  std::printf("%dx%d, %zu Gaussians, %zu intersections\n", w, h, n, r.stats().n_intersections);
-  ASSERT_GT(max_abs(rg.means), 0.0) << "no gradient at all: the test would be vacuous";
+  std::printf("%dx%d, %zu Gaussians, %zu intersections\n", cam.width, cam.height, g.size(),
+              r.stats().n_intersections);
+  EXPECT_GT(max_abs(rg.means), 0.0) << "no gradient at all: the test would be vacuous";
   check_array("means", dg.means, rg.means);
   check_array("scales", dg.scales, rg.scales);
   check_array("quats", dg.quats, rg.quats);
@@ -69,6 +65,16 @@ void check_backward(int w, int h, size_t n, int sh, uint32_t seed, const OutputG
   check_array("sh", dg.sh, rg.sh);
   check_array("features", dg.features, rg.features);
   check_array("means2d", dg.means2d, rg.means2d);
+  return r.stats().n_intersections;
+}
+
+void check_backward(int w, int h, size_t n, int sh, uint32_t seed, const OutputGrads& og,
+                    const RenderSettings& settings = {}) {
+  test::SceneSpec spec;
+  spec.n = n;
+  spec.sh_degree = sh;
+  spec.opacity_hi = 0.9;
+  check_backward_on(test::random_scene(spec, seed), test::look_at_origin(w, h), og, settings);
 }
 
 TEST(RenderBackward, AllOutputs) {
@@ -92,6 +98,26 @@ TEST(RenderBackward, BackgroundAndActiveDegree) {
   s.sh_degree = 2;
   check_backward(40, 40, 40, 3, 16, random_output_grads(40, 40, 6), s);
 }
+// One crowded tile and five empty ones: 400 faint, small Gaussians around the
+// centre of tile (1, 0) of a 48x32 image (within 7 pixels of it), so the GPU layout's forward pass
+// stages more records than one batch (256) holds and its backward pass runs
+// many batches, while the other tiles have no Gaussian at all.
+TEST(RenderBackward, CrowdedTileAndEmptyTiles) {
+  test::SceneSpec spec;
+  spec.n = 400;
+  spec.sh_degree = 1;
+  spec.extent = 0.4;
+  spec.log_scale_lo = -4.5;
+  spec.log_scale_hi = -3.0;
+  spec.opacity_lo = 0.01;
+  spec.opacity_hi = 0.05;
+  Camera cam = test::look_at_origin(48, 32);
+  cam.cx = 24.0;  // the origin projects to the centre of tile (1, 0)
+  cam.cy = 8.0;
+  const size_t m = check_backward_on(test::random_scene(spec, 21), cam, random_output_grads(48, 32, 8));
+  EXPECT_EQ(m, spec.n) << "every Gaussian should touch exactly the one crowded tile";
+}
+
 TEST(RenderBackward, ThousandGaussians) {
   check_backward(160, 120, 1000, 1, 17, random_output_grads(160, 120, 7));
 }

@@ -1,6 +1,8 @@
 // The hard cases of docs/design.md section 11, each a named test: outputs finite,
 // culling right, no NaN anywhere, hidden Gaussians leave the image unchanged,
 // and (where the case is smooth) agreement with the double reference.
+#include <algorithm>
+
 #include "reference/reference_renderer.h"
 #include "test_util.h"
 
@@ -83,9 +85,20 @@ void expect_matches_reference(const GaussianSet& g, const Camera& cam, const Run
   c = test::compare(r.out.alpha, ref.alpha, tol, tol);
   EXPECT_EQ(c.violations, 0u) << "alpha max abs error " << c.max_abs;
   ref::RefGrads rg = ref::render_backward(g, cam, {}, ones(cam.width, cam.height));
+  // Errors are measured against the largest gradient of the group, and at
+  // least against 1e-3 of the largest of all groups: a gradient that is zero
+  // in exact arithmetic (the rotation of an isotropic Gaussian) comes out as
+  // float rounding of the covariance terms it is summed from, whose size the
+  // other groups show.
+  auto max_abs = [](const std::vector<double>& e) {
+    double m = 0;
+    for (double x : e) m = std::max(m, std::abs(x));
+    return m;
+  };
+  const double overall =
+      std::max({max_abs(rg.means), max_abs(rg.scales), max_abs(rg.quats), max_abs(rg.opacities)});
   auto grad_ok = [&](const char* what, const std::vector<float>& d, const std::vector<double>& e) {
-    double scale = 0;
-    for (double x : e) scale = std::max(scale, std::abs(x));
+    const double scale = std::max(max_abs(e), 1e-3 * overall);
     auto cr = test::compare(d, e, 1e-4 * scale + 1e-9, 3e-3);
     EXPECT_EQ(cr.violations, 0u) << what << ": max abs error " << cr.max_abs << " at scale " << scale;
   };

@@ -18,9 +18,13 @@
 
 namespace ag2gs::test {
 
+// One runtime per test program, never destroyed: static destructors run in an
+// order the OpenCL implementation does not know about, and releasing a context
+// after the implementation's own statics are gone corrupts its heap (Oclgrind
+// aborts at exit that way). The process exit frees it.
 inline Runtime& runtime() {
-  static Runtime rt(-1);
-  return rt;
+  static Runtime* rt = new Runtime(-1);
+  return *rt;
 }
 
 inline std::string source_dir() {

@@ -165,7 +165,15 @@ Runtime::Runtime(int device_index) {
       throw std::runtime_error(std::string("AG2GS_VECTOR_WIDTH='") + env + "' must be 1, 2, 4, 8 or 16");
     vector_width_ = v;
   }
+  if (const char* log = std::getenv("AG2GS_LAUNCH_LOG"); log && *log) {
+    launch_log_ = std::fopen(log, "a");
+    if (!launch_log_) throw std::runtime_error(std::string("AG2GS_LAUNCH_LOG='") + log + "' cannot be opened for appending");
+  }
   spdlog::debug("OpenCL device {}: {} ({}), vector width {}", info_.index, info_.name, info_.platform, vector_width_);
+}
+
+Runtime::~Runtime() {
+  if (launch_log_) std::fclose(launch_log_);
 }
 
 std::string Runtime::cache_dir() {
@@ -317,6 +325,10 @@ void Runtime::launch(const std::string& label, cl::Kernel& k, const cl::NDRange&
   cl_int err = queue_.enqueueNDRangeKernel(k, cl::NullRange, g, local, nullptr, profiling_ ? &ev : nullptr);
   if (err != CL_SUCCESS) throw ClError(err, "enqueueNDRangeKernel(" + label + ")", __FILE__, __LINE__);
   if (profiling_) pending_events_.emplace_back(label, ev);
+  if (launch_log_) {
+    std::fprintf(launch_log_, "%s vw=%d\n", k.getInfo<CL_KERNEL_FUNCTION_NAME>().c_str(), vector_width_);
+    std::fflush(launch_log_);
+  }
 }
 
 std::map<std::string, double> Runtime::take_timings() {

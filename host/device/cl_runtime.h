@@ -5,6 +5,7 @@
 
 #include <CL/opencl.hpp>
 #include <cstdint>
+#include <cstdio>
 #include <functional>
 #include <map>
 #include <memory>
@@ -61,6 +62,9 @@ class Runtime {
  public:
   // device_index -1: $AG2GS_DEVICE or the default device.
   explicit Runtime(int device_index = -1);
+  ~Runtime();
+  Runtime(const Runtime&) = delete;
+  Runtime& operator=(const Runtime&) = delete;
 
   const DeviceInfo& info() const { return info_; }
   cl::Context& context() { return context_; }
@@ -76,6 +80,8 @@ class Runtime {
                     const std::map<std::string, std::string>& defines);
 
   // Enqueue with optional timing; global size rounded up to the local size.
+  // With $AG2GS_LAUNCH_LOG set, every launch appends "<kernel> vw=<width>" to
+  // that file (the oclgrind tests check from it that every kernel ran).
   void launch(const std::string& label, cl::Kernel& k, const cl::NDRange& global,
               const cl::NDRange& local = cl::NullRange);
 
@@ -103,6 +109,7 @@ class Runtime {
   std::map<std::string, double> timings_;
   uint64_t allocated_ = 0, peak_ = 0;
   std::mutex mutex_;
+  std::FILE* launch_log_ = nullptr;  // $AG2GS_LAUNCH_LOG, opened for appending
 };
 
 // A device buffer that grows on demand (never shrinks); contents are not

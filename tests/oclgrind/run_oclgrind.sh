@@ -1,0 +1,150 @@
+#!/usr/bin/env bash
+# Every kernel of kernels/*.cl under Oclgrind, a simulated OpenCL device that
+# runs work-groups with real barrier semantics and reports out-of-bounds
+# accesses, data races between work-items (--data-races), API misuse
+# (--check-api) and barriers reached by only part of a work-group.
+#
+#   tests/oclgrind/run_oclgrind.sh gpu|cpu|selfcheck BUILD_DIR
+#
+# gpu: the GPU layout (one pixel per work-item, 256-wide work-groups,
+#      records staged through local memory), as on a real GPU.
+# cpu: the CPU layout (16-pixel vectors, one work-item per tile, no staging).
+# selfcheck: plants an out-of-bounds access and a local-memory race in copies
+#      of our kernels and passes only if both are reported: the check can fail.
+#
+# Each step runs a program under Oclgrind with its messages sent to a log; a
+# step fails when the program fails or the log has anything in it. At the
+# end every __kernel in kernels/*.cl must have been launched (the runtime
+# writes each launch to $AG2GS_LAUNCH_LOG). Exit 2 (CTest: skipped) when
+# oclgrind is not installed.
+set -uo pipefail
+
+layout=${1:?usage: run_oclgrind.sh gpu|cpu|selfcheck BUILD_DIR}
+build=$(cd "${2:?usage: run_oclgrind.sh gpu|cpu|selfcheck BUILD_DIR}" && pwd)
+here=$(cd "$(dirname "$0")" && pwd)
+src=$(cd "$here/../.." && pwd)
+
+if ! command -v oclgrind >/dev/null; then
+  echo "oclgrind is not installed (Debian: apt-get install oclgrind; scripts/install_deps.sh --test does it): skipped"
+  exit 2
+fi
+
+work="$build/oclgrind_$layout"
+rm -rf "$work"
+mkdir -p "$work"
+failures=0
+t_start=$(date +%s)
+
+# step NAME COMMAND...: COMMAND under Oclgrind; its output in $work/NAME.out.
+step() {
+  local name=$1
+  shift
+  local t0=$(date +%s)
+  oclgrind --data-races --check-api --log "$work/$name.log" "$@" >"$work/$name.out" 2>&1
+  local rc=$?
+  local secs=$(($(date +%s) - t0))
+  if [ $rc -ne 0 ]; then
+    echo "FAIL  $name (exit $rc, ${secs} s): $*"
+    tail -n 30 "$work/$name.out" | sed 's/^/      /'
+    failures=$((failures + 1))
+  elif [ -s "$work/$name.log" ]; then
+    echo "FAIL  $name (${secs} s): Oclgrind reported:"
+    head -n 40 "$work/$name.log" | sed 's/^/      /'
+    failures=$((failures + 1))
+  else
+    echo "ok    $name (${secs} s)"
+  fi
+}
+
+if [ "$layout" = selfcheck ]; then
+  # Our own kernels with two bugs put in: adam_step without its bounds check
+  # (the padding work-items of the last group read and write past the
+  # buffers), and the GPU layout's blend_bwd without the barrier before its
+  # partial sums are read (a race on local memory). Each step must fail, with
+  # the report in its log.
+  mutated="$work/kernels"
+  cp -r "$src/kernels" "$mutated"
+  perl -0pi -e 's/if \(i >= n\) return;//' "$mutated/adam.cl"
+  perl -0pi -e 's/barrier\(CLK_LOCAL_MEM_FENCE\);(\s*\/\/ Sum the work-items)/$1/' "$mutated/blend_bwd.cl"
+  if cmp -s "$src/kernels/adam.cl" "$mutated/adam.cl" || cmp -s "$src/kernels/blend_bwd.cl" "$mutated/blend_bwd.cl"; then
+    echo "FAIL  the selfcheck's mutations no longer apply to kernels/adam.cl and kernels/blend_bwd.cl: update them"
+    exit 1
+  fi
+  export AG2GS_KERNEL_DIR="$mutated" AG2GS_VECTOR_WIDTH=1 AG2GS_BLEND_STAGING=1 AG2GS_DEVICE=0
+  export AG2GS_SOURCE_DIR="$src" AG2GS_FILL_SENTINEL=1
+  # Both steps must fail; what they print goes to steps.txt, not to the test's output.
+  step adam_without_bounds_check "$build/test_adam" --gtest_filter='Adam.ConstantGradientMovesByLearningRate' \
+    >>"$work/steps.txt"
+  step blend_bwd_without_barrier "$build/test_render_backward" --gtest_filter='RenderBackward.OddSize' \
+    >>"$work/steps.txt"
+  ok=1
+  grep -q "Invalid \(read\|write\)" "$work/adam_without_bounds_check.log" ||
+    { echo "FAIL  the out-of-bounds accesses were not reported"; ok=0; }
+  grep -qi "data race" "$work/blend_bwd_without_barrier.log" || { echo "FAIL  the data race was not reported"; ok=0; }
+  [ $ok = 1 ] || exit 1
+  echo "ok    both planted bugs were reported: $(grep -c "^Invalid" "$work/adam_without_bounds_check.log") \
+invalid accesses, $(grep -ci "data race" "$work/blend_bwd_without_barrier.log") data races"
+  exit 0
+fi
+
+case "$layout" in
+  gpu) export AG2GS_VECTOR_WIDTH=1 AG2GS_BLEND_STAGING=1 ;;
+  cpu) export AG2GS_VECTOR_WIDTH=16 AG2GS_BLEND_STAGING=0 ;;
+  *) echo "unknown layout '$layout' (gpu, cpu or selfcheck)" >&2; exit 1 ;;
+esac
+export AG2GS_SOURCE_DIR="$src" AG2GS_BINARY="$build/ag2gs" AG2GS_FILL_SENTINEL=1
+export AG2GS_LAUNCH_LOG="$work/launches.txt"
+export AG2GS_DEVICE=0  # Oclgrind is the only platform its loader shows
+echo "Oclgrind, $layout layout (vector width $AG2GS_VECTOR_WIDTH, staging $AG2GS_BLEND_STAGING), in $work"
+
+# Renderer forward and backward against the double-precision reference:
+# odd sizes, partial tiles, background, SH degrees, every output gradient,
+# a tile with more Gaussians than a staging batch next to empty tiles.
+step render_forward "$build/test_render_forward" \
+  --gtest_filter='RenderForward.OnePixel:RenderForward.OddSize17x9:RenderForward.Background:RenderForward.LowerActiveShDegree'
+step render_backward "$build/test_render_backward" \
+  --gtest_filter='RenderBackward.OddSize:RenderBackward.BackgroundAndActiveDegree:RenderBackward.CrowdedTileAndEmptyTiles'
+# Culling, clamps, NaN and infinite parameters, empty scenes, bad input.
+step hard_cases "$build/test_render_hard_cases" --gtest_filter='-HardCases.DeepStackSaturatesTransmittance'
+# Losses, optimiser and the graph-stage kernels, each against its reference.
+step image_loss "$build/test_image_loss" \
+  --gtest_filter='ImageLoss.WeightedMatchesReference:ImageLoss.DeviceApiPlanarLayout'
+step mask_loss "$build/test_mask_loss" \
+  --gtest_filter='MaskLoss.Weights:MaskLoss.DegenerateViews:MaskLoss.AlphaNormalisation:MaskLoss.DeviceApiAndMaskCache'
+step adam "$build/test_adam" \
+  --gtest_filter='Adam.ConstantGradientMovesByLearningRate:Adam.VisibleRowsOnly:Adam.CountsNonFiniteValues:Adam.GatherRows'
+step instance_map "$build/test_instance_map" --gtest_filter='InstanceMap.NearHalfTies'
+step propagation "$build/test_anchor_graph" --gtest_filter='PropagationLoss.DeviceMatchesReference'
+step expander "$build/test_anchors" --gtest_filter='Expander.ForwardMatchesReference:Expander.ExtremeLogitsStayFinite'
+
+# The program end to end on a 32x32 generated scene with masks and features:
+# stage 1 with growth, the mask losses and the regularisers, stage 2's
+# propagation loss, stage 3's instance maps, and the free-Gaussian baseline
+# with densification.
+scene="$work/scene"
+if "$build/ag2gs" synth "$scene" --width 32 --height 32 --views 4 --objects 2 --points 200 --feature-dim 84 \
+  --samples 1 >"$work/synth.out" 2>&1; then
+  step train "$build/ag2gs" train "$scene" -o "$work/model" --iters 2 --grow-from 1 --grow-every 1 --mask-from 1 \
+    --prop-iters 1
+  step baseline "$build/ag2gs" baseline "$scene" -o "$work/baseline" --iters 2 --densify-from 1 --densify-every 1
+else
+  echo "FAIL  ag2gs synth:"
+  tail -n 20 "$work/synth.out" | sed 's/^/      /'
+  failures=$((failures + 1))
+fi
+
+# Coverage: every kernel of kernels/*.cl launched at least once.
+perl -0777 -ne 'while (/__kernel\b[^{;]*?\bvoid\s+(\w+)\s*\(/sg) { print "$1\n" }' "$src"/kernels/*.cl | sort -u \
+  >"$work/kernels.txt"
+touch "$work/launches.txt"
+awk '{print $1}' "$work/launches.txt" | sort -u >"$work/launched.txt"
+missing=$(comm -23 "$work/kernels.txt" "$work/launched.txt")
+n_kernels=$(wc -l <"$work/kernels.txt")
+n_covered=$(comm -12 "$work/kernels.txt" "$work/launched.txt" | wc -l)
+n_launches=$(wc -l <"$work/launches.txt")
+echo "coverage: $n_covered of $n_kernels kernels, $n_launches launches, $(($(date +%s) - t_start)) s"
+if [ -n "$missing" ]; then
+  echo "FAIL  never launched: $(echo $missing)"
+  failures=$((failures + 1))
+fi
+[ $failures -eq 0 ] || { echo "$failures failure(s)"; exit 1; }
