@@ -91,6 +91,9 @@ void register_synth(CLI::App& app, GlobalOptions& /*global*/) {
   sub->add_flag("--background-masks", o.background_masks,
                 "SAM-like masks on the background too (floor quarters cut differently in each view, wall halves, "
                 "ceiling), as SAM's automatic mode gives them on real photos");
+  sub->add_flag("--removal-gt", o.removal_gt,
+                "Also trace every test view without each category's objects: removal_gt/<category>/<view>.png, the "
+                "exact ground truth of removing that object");
   sub->add_flag("--text-model", o.text_model, "Write the COLMAP model as .txt instead of .bin");
   sub->add_flag_callback(
       "--no-backdrop", [a] { a->options.backdrop = false; },

@@ -358,6 +358,7 @@ struct Object {
   Pattern pattern = Pattern::kNoise;
   double pattern_param = 0;  // stripes: bands over the height; checks: cell size (m)
   uint64_t texture_key = 0;
+  bool removed = false;  // left out of every ray (the removal ground truth)
 
   void set_yaw(double y) {
     yaw = y;
@@ -566,6 +567,7 @@ struct Scene {
       }
     }
     for (size_t k = 0; k < objects.size(); ++k) {
+      if (objects[k].removed) continue;
       double t;
       int face;
       Vec3 lp, ln;
@@ -587,6 +589,7 @@ struct Scene {
   bool shadowed(const Vec3& p, const Vec3& n) const {
     Ray r{p + kShadowOffset * n, light.direction};
     for (const auto& obj : objects) {
+      if (obj.removed) continue;
       double t;
       int face;
       Vec3 lp, ln;
@@ -1252,6 +1255,9 @@ void write_synth_scene(const std::string& out_dir, const SynthOptions& opt) {
       if (is_test_view(i)) labels.insert(view_stem(i) + ".json");
     }
     for (const auto& d : {images, masks_dir, gt_dir}) remove_stale(d, png);
+    // An earlier run's removal ground truth would describe other objects.
+    std::error_code ec;
+    fs::remove_all(root / "removal_gt", ec);
     remove_stale(lf, npy);
     remove_stale(label_dir, labels);
     // The reader prefers .bin: a model of the other format from an earlier run must go.
@@ -1356,6 +1362,32 @@ void write_synth_scene(const std::string& out_dir, const SynthOptions& opt) {
                  is_test_view(i) ? " (test)" : "", pixels.size(), vm.masks.size());
   }
   if (opt.hard && occlusion_total.empty()) spdlog::warn("synth: hard scene without any occlusion between objects");
+
+  // ---- removal ground truth: every test view traced again without each
+  // category's objects (all objects of a category go together, as a text
+  // query selects them together).
+  if (opt.removal_gt) {
+    std::set<std::string> categories;
+    for (const auto& o : scene.objects) categories.insert(o.category);
+    for (const std::string& category : categories) {
+      Scene without = scene;
+      for (auto& o : without.objects) o.removed = o.category == category;
+      const fs::path dir = root / "removal_gt" / category;
+      try {
+        fs::create_directories(dir);
+      } catch (const fs::filesystem_error& e) {
+        throw std::runtime_error(dir.string() + ": cannot create the folder: " + e.what());
+      }
+      for (int i = 0; i < opt.views; ++i) {
+        if (!is_test_view(i)) continue;
+        const std::string stem = view_stem(i);
+        ViewRender vr = render_view(without, cams[i], opt.samples);
+        write_rgb_png((dir / (stem + ".png")).string(), vr.rgb, W, H);
+        files.push_back("removal_gt/" + category + "/" + stem + ".png");
+      }
+      spdlog::info("synth: removal ground truth without \"{}\"", category);
+    }
+  }
 
   // ---- sparse points on visible surfaces: rays through random pixels of random views.
   std::vector<Eigen::Vector3d> points;
@@ -1533,6 +1565,7 @@ void write_synth_scene(const std::string& out_dir, const SynthOptions& opt) {
              {"files", files}};
   // Written only when on, so scenes generated without it keep their bytes.
   if (opt.background_masks) synth["options"]["background_masks"] = true;
+  if (opt.removal_gt) synth["options"]["removal_gt"] = true;
   write_text_atomic(root / "synth.json", synth.dump(1) + "\n");
   spdlog::info("synth: wrote {} views, {} objects, {} points to {}", opt.views, scene.objects.size(), points.size(),
                out_dir);

@@ -20,6 +20,8 @@
 //   gt/view_NNN.png                     16-bit exact object ids (0 = ground,
 //                                       backdrop or sky; no masks there either)
 //   label/view_NNN.json                 LERF-style labelme polygons, test views
+//   removal_gt/<category>/view_NNN.png  (--removal-gt) test views without the
+//                                       objects of that category, exact
 //   vocab.json                          {"phrase": [512 floats]} per category
 //   clicks.json                         [{"frame","x","y","category"}] test views
 //   synth.json                          the objects (id, category, primitive,
@@ -58,6 +60,9 @@ struct SynthOptions {
   // each view, the floor ring, wall halves, the ceiling), as SAM's automatic
   // mode gives them on real photos. Off: no masks on the background.
   bool background_masks = false;
+  // Exact removal ground truth: each test view traced again without each
+  // category's objects, as removal_gt/<category>/view_NNN.png.
+  bool removal_gt = false;
 };
 
 // Writes the scene into `out_dir` (created if missing; existing files of the

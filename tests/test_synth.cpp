@@ -76,6 +76,9 @@ const fs::path& scene(const std::string& which) {
   } else if (which == "background") {
     o = small_options(3);
     o.background_masks = true;
+  } else if (which == "removal") {
+    o = small_options(3);
+    o.removal_gt = true;
   } else if (which == "half_masks") {
     o = small_options(5);
     o.mask_factor = 2;
@@ -510,6 +513,60 @@ TEST(Synth, LargeMasksFollowTheObjectsAndCarryTheirCategoryFeature) {
 // --background-masks: the object masks stay exactly as without it, and the
 // background (GT id 0) gets masks of its own, cut differently from view to
 // view, whose features match no phrase of the scene.
+// --removal-gt adds removal_gt/<category>/<test view>.png and changes no other
+// file. Inside the removed objects' exact masks the image changes (the ray now
+// meets what was behind them); elsewhere only their shadows may change.
+TEST(Synth, RemovalGroundTruthTracesTheTestViewsWithoutEachCategory) {
+  const fs::path& plain = scene("small");
+  const fs::path& dir = scene("removal");
+  Synth s = load(dir);
+  ASSERT_TRUE(s.json["options"].value("removal_gt", false));
+  EXPECT_FALSE(fs::exists(plain / "removal_gt"));
+  for (const auto& cam : s.cams) {
+    EXPECT_EQ(read_bytes(dir / "images" / cam.name), read_bytes(plain / "images" / cam.name)) << cam.name;
+    EXPECT_EQ(read_bytes(dir / "gt" / cam.name), read_bytes(plain / "gt" / cam.name)) << cam.name;
+  }
+  std::set<std::string> categories;
+  for (const auto& o : s.objs) categories.insert(o.category);
+  int checked = 0;
+  for (const std::string& category : categories) {
+    std::set<int> ids;
+    for (const auto& o : s.objs)
+      if (o.category == category) ids.insert(o.id);
+    for (const auto& cam : s.cams) {
+      const fs::path gt_file = dir / "removal_gt" / category / cam.name;
+      if (!cam.test) {
+        EXPECT_FALSE(fs::exists(gt_file)) << gt_file;
+        continue;
+      }
+      cv::Mat removed = cv::imread(gt_file.string(), cv::IMREAD_COLOR);
+      cv::Mat image = cv::imread((dir / "images" / cam.name).string(), cv::IMREAD_COLOR);
+      cv::Mat gt = read16(dir / "gt" / cam.name);
+      ASSERT_FALSE(removed.empty()) << gt_file;
+      ASSERT_EQ(removed.size(), image.size()) << gt_file;
+      size_t inside = 0, inside_changed = 0, outside_changed = 0;
+      for (int y = 0; y < image.rows; ++y)
+        for (int x = 0; x < image.cols; ++x) {
+          const cv::Vec3b a = image.at<cv::Vec3b>(y, x), b = removed.at<cv::Vec3b>(y, x);
+          const bool changed = a != b;
+          if (ids.count(gt.at<uint16_t>(y, x))) {
+            ++inside;
+            inside_changed += changed;
+          } else {
+            outside_changed += changed;
+          }
+        }
+      if (inside >= 20) {
+        ++checked;
+        EXPECT_GE(inside_changed, 0.9 * inside) << gt_file;
+      }
+      // Outside the object only its shadow, cast on the ground, can change.
+      EXPECT_LE(outside_changed, std::max<size_t>(3 * inside, 40)) << gt_file;
+    }
+  }
+  EXPECT_GT(checked, 0) << "no removed object is visible in a test view: the test would be vacuous";
+}
+
 TEST(Synth, BackgroundMasksCoverTheBackgroundOnly) {
   const fs::path& plain = scene("small");
   const fs::path& dir = scene("background");

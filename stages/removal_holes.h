@@ -1,0 +1,66 @@
+// Holes left by removing an object (docs/design.md section 15): the pixels of
+// a view that the object covered and that the rest of the model cannot show,
+// because no view saw what lay behind it. These are what the removal must
+// fill; the object's other pixels already show the background the model
+// knows from other views.
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "host/core/gaussians.h"
+#include "host/render/renderer.h"
+
+namespace ag2gs {
+
+struct HoleSettings {
+  // A pixel is the object's when its Gaussians hold at least this share of
+  // the pixel's blending weight in the full model.
+  float object_weight = 0.5f;
+  // After deletion, an object pixel is a hole when its opacity is below this
+  float alpha_min = 0.8f;
+  // ... or when the first surface it shows lies more than this many object
+  // diameters behind the object's surface at that pixel (a far wall seen
+  // through unseen ground).
+  float behind = 2.0f;
+  // Dilation of the hole mask in pixels (a 3x3 cross per step), so the fill
+  // covers the object's blurred rim.
+  int dilate = 2;
+
+  // Throws std::invalid_argument naming the field.
+  void validate() const;
+};
+
+struct ViewHole {
+  int width = 0, height = 0;
+  std::vector<uint8_t> object;   // [H,W] 1 where the removed Gaussians held >= object_weight
+  std::vector<uint8_t> hole;     // [H,W] 1 in the (dilated) hole
+  std::vector<float> rgb_after;  // [H,W,3] the render after deletion
+  size_t object_pixels = 0, hole_pixels = 0, undilated_hole_pixels = 0;
+};
+
+// Diameter of the removed Gaussians: twice the 95th percentile of their
+// means' distances from the median point (robust to a few stray Gaussians).
+double object_diameter(const GaussianSet& removed);
+
+// The hole of one view. `kept` and `removed` split one model; `diameter` is
+// object_diameter(removed). Two renders: the full model with each Gaussian's
+// feature set to (1, camera depth, 0) for removed ones and 0 for kept ones
+// (so the blended feature gives the object's weight and mean depth per
+// pixel), and the kept model alone.
+ViewHole find_hole(Renderer& renderer, const GaussianSet& kept, const GaussianSet& removed, double diameter,
+                   const Camera& cam, const HoleSettings& settings, const RenderSettings& render = {});
+
+enum class InpaintMethod { kTelea, kNavierStokes, kNone };
+
+// "telea" | "ns" | "none"; throws std::invalid_argument otherwise.
+InpaintMethod parse_inpaint_method(const std::string& name);
+
+// Fills the hole of `rgb` ([H,W,3], linear 0..1) by classical inpainting
+// (OpenCV's Telea or Navier-Stokes, radius 3 pixels) and returns the filled
+// image; kNone returns rgb unchanged. Pixels outside the hole keep their values.
+std::vector<float> inpaint_hole(const std::vector<float>& rgb, const std::vector<uint8_t>& hole, int width,
+                                int height, InpaintMethod method);
+
+}  // namespace ag2gs

@@ -1,0 +1,206 @@
+// Holes of an object removal (stages/removal_holes.h) on a constructed scene:
+// a box standing on a textured floor that has no Gaussians under the box (no
+// view saw that ground), seen from four sides. The hole of each view must be
+// the box's footprint as the view's rays meet the floor plane, within a pixel;
+// the rest of the box's silhouette shows floor the model knows.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <string>
+
+#include "stages/removal_holes.h"
+#include "test_util.h"
+
+namespace ag2gs {
+namespace {
+
+constexpr double kHalf = 0.2;  // the box: [-0.2, 0.2]^2 x [0, 0.4]
+
+void add(GaussianSet& g, double x, double y, double z, double sx, double sy, double sz, float r, float gr, float b) {
+  const size_t i = g.size();
+  g.resize(i + 1);
+  g.means[3 * i] = static_cast<float>(x);
+  g.means[3 * i + 1] = static_cast<float>(y);
+  g.means[3 * i + 2] = static_cast<float>(z);
+  g.scales[3 * i] = static_cast<float>(sx);
+  g.scales[3 * i + 1] = static_cast<float>(sy);
+  g.scales[3 * i + 2] = static_cast<float>(sz);
+  g.quats[4 * i] = 1.f;
+  g.opacities[i] = 0.95f;
+  const float c0 = 0.28209479f;  // SH band 0: colour = 0.5 + c0 * sh
+  g.sh[3 * i] = (r - 0.5f) / c0;
+  g.sh[3 * i + 1] = (gr - 0.5f) / c0;
+  g.sh[3 * i + 2] = (b - 0.5f) / c0;
+}
+
+GaussianSet floor_without_footprint() {
+  GaussianSet g;
+  g.sh_degree = 0;
+  // Small Gaussians, so that the floor's edge around the footprint is sharp
+  // to well within a pixel (0.04 world units here).
+  const double step = 0.04;
+  for (int i = -38; i <= 38; ++i)
+    for (int j = -38; j <= 38; ++j) {
+      const double x = i * step, y = j * step;
+      if (std::abs(x) < kHalf && std::abs(y) < kHalf) continue;  // unseen under the box
+      const float checker = (((i + 40) / 5 + (j + 40) / 5) & 1) ? 0.8f : 0.3f;
+      add(g, x, y, 0.0, 0.02, 0.02, 0.002, checker, 0.5f, 1.f - checker);
+    }
+  return g;
+}
+
+GaussianSet box() {
+  GaussianSet g;
+  g.sh_degree = 0;
+  const double step = 0.04, h = 2 * kHalf;
+  for (int i = 0; i <= 10; ++i)
+    for (int j = 0; j <= 10; ++j) {
+      const double a = -kHalf + i * step, b = j * step, c = -kHalf + j * step;
+      add(g, a, c, h, 0.025, 0.025, 0.002, 0.9f, 0.1f, 0.1f);      // top
+      add(g, a, -kHalf, b, 0.025, 0.002, 0.025, 0.9f, 0.2f, 0.1f);  // four sides
+      add(g, a, kHalf, b, 0.025, 0.002, 0.025, 0.9f, 0.2f, 0.1f);
+      add(g, -kHalf, a, b, 0.002, 0.025, 0.025, 0.9f, 0.3f, 0.1f);
+      add(g, kHalf, a, b, 0.002, 0.025, 0.025, 0.9f, 0.3f, 0.1f);
+    }
+  return g;
+}
+
+// A camera on a circle of radius 3 at 40 degrees elevation, looking at the origin.
+Camera view_from(double azimuth) {
+  Camera cam;
+  cam.width = 64;
+  cam.height = 48;
+  cam.fx = cam.fy = 70;
+  cam.cx = 32;
+  cam.cy = 24;
+  const double el = 40.0 * M_PI / 180.0;
+  const Eigen::Vector3d c(3 * std::cos(el) * std::cos(azimuth), 3 * std::cos(el) * std::sin(azimuth), 3 * std::sin(el));
+  const Eigen::Vector3d z = (-c).normalized();
+  const Eigen::Vector3d x = z.cross(Eigen::Vector3d::UnitZ()).normalized();
+  const Eigen::Vector3d y = z.cross(x);
+  cam.R.row(0) = x;
+  cam.R.row(1) = y;
+  cam.R.row(2) = z;
+  cam.t = -cam.R * c;
+  return cam;
+}
+
+// 1 where the pixel centre's ray meets the floor plane inside the footprint.
+std::vector<uint8_t> expected_hole(const Camera& cam) {
+  std::vector<uint8_t> m(static_cast<size_t>(cam.width) * cam.height, 0);
+  const Eigen::Vector3d c = cam.center();
+  for (int v = 0; v < cam.height; ++v)
+    for (int u = 0; u < cam.width; ++u) {
+      const Eigen::Vector3d dc((u + 0.5 - cam.cx) / cam.fx, (v + 0.5 - cam.cy) / cam.fy, 1.0);
+      const Eigen::Vector3d d = cam.R.transpose() * dc;
+      if (d.z() >= 0) continue;
+      const Eigen::Vector3d p = c - c.z() / d.z() * d;
+      m[static_cast<size_t>(v) * cam.width + u] = std::abs(p.x()) < kHalf && std::abs(p.y()) < kHalf;
+    }
+  return m;
+}
+
+// Pixels where a and b differ and no 8-neighbour of the pixel has b's other value.
+size_t mismatches_beyond_a_pixel(const std::vector<uint8_t>& a, const std::vector<uint8_t>& b, int w, int h) {
+  size_t bad = 0;
+  for (int y = 0; y < h; ++y)
+    for (int x = 0; x < w; ++x) {
+      const size_t p = static_cast<size_t>(y) * w + x;
+      if (a[p] == b[p]) continue;
+      bool near_edge = false;
+      for (int dy = -1; dy <= 1 && !near_edge; ++dy)
+        for (int dx = -1; dx <= 1; ++dx) {
+          const int xx = x + dx, yy = y + dy;
+          if (xx < 0 || yy < 0 || xx >= w || yy >= h) continue;
+          if (b[static_cast<size_t>(yy) * w + xx] != b[p]) near_edge = true;
+        }
+      bad += !near_edge;
+    }
+  return bad;
+}
+
+TEST(RemovalHoles, HoleIsTheFootprintSeenFromEachView) {
+  const GaussianSet kept = floor_without_footprint(), removed = box();
+  const double diameter = object_diameter(removed);
+  EXPECT_NEAR(diameter, 2 * std::sqrt(3.0) * kHalf, 0.15);
+  Renderer renderer(test::runtime());
+  HoleSettings s;
+  s.dilate = 0;
+  for (double az : {0.3, 1.9, 3.4, 5.0}) {
+    const Camera cam = view_from(az);
+    const ViewHole h = find_hole(renderer, kept, removed, diameter, cam, s);
+    const std::vector<uint8_t> want = expected_hole(cam);
+    size_t want_pixels = 0;
+    for (uint8_t b : want) want_pixels += b;
+    std::printf("azimuth %.1f: object %zu px, hole %zu px, footprint %zu px\n", az, h.object_pixels, h.hole_pixels,
+                want_pixels);
+    ASSERT_GT(want_pixels, 30u) << "the footprint should be visible through the box";
+    if (std::getenv("AG2GS_DEBUG_HOLES"))
+      for (int y = 0; y < cam.height; ++y) {
+        std::string row;
+        for (int x = 0; x < cam.width; ++x) {
+          const size_t p = static_cast<size_t>(y) * cam.width + x;
+          row += h.hole[p] ? (want[p] ? '#' : '+') : want[p] ? '-' : h.object[p] ? 'o' : '.';
+        }
+        std::printf("%s\n", row.c_str());
+      }
+    EXPECT_GT(h.object_pixels, 2 * want_pixels) << "the box's silhouette is larger than its footprint";
+    EXPECT_EQ(mismatches_beyond_a_pixel(h.hole, want, cam.width, cam.height), 0u) << "azimuth " << az;
+    // Every hole pixel is an object pixel.
+    for (size_t p = 0; p < h.hole.size(); ++p)
+      if (h.hole[p]) EXPECT_TRUE(h.object[p]);
+  }
+}
+
+TEST(RemovalHoles, DilationGrowsTheHoleAndNothingRemovedMeansNoHole) {
+  const GaussianSet kept = floor_without_footprint(), removed = box();
+  Renderer renderer(test::runtime());
+  const Camera cam = view_from(0.7);
+  HoleSettings s;
+  s.dilate = 0;
+  const ViewHole h0 = find_hole(renderer, kept, removed, object_diameter(removed), cam, s);
+  s.dilate = 2;
+  const ViewHole h2 = find_hole(renderer, kept, removed, object_diameter(removed), cam, s);
+  EXPECT_EQ(h2.undilated_hole_pixels, h0.hole_pixels);
+  EXPECT_GT(h2.hole_pixels, h0.hole_pixels);
+  for (size_t p = 0; p < h0.hole.size(); ++p)
+    if (h0.hole[p]) EXPECT_TRUE(h2.hole[p]);
+  GaussianSet none;
+  none.sh_degree = 0;
+  const ViewHole hn = find_hole(renderer, kept, none, 0.0, cam, s);
+  EXPECT_EQ(hn.object_pixels, 0u);
+  EXPECT_EQ(hn.hole_pixels, 0u);
+  s.dilate = -1;
+  EXPECT_THROW(find_hole(renderer, kept, removed, 1.0, cam, s), std::invalid_argument);
+}
+
+TEST(RemovalHoles, InpaintingFillsOnlyTheHole) {
+  const int w = 40, h = 30;
+  std::vector<float> rgb(static_cast<size_t>(w) * h * 3);
+  std::vector<uint8_t> hole(static_cast<size_t>(w) * h, 0);
+  for (int y = 0; y < h; ++y)
+    for (int x = 0; x < w; ++x) {
+      const size_t p = static_cast<size_t>(y) * w + x;
+      const bool in = x >= 15 && x < 25 && y >= 10 && y < 20;
+      hole[p] = in;
+      for (int c = 0; c < 3; ++c) rgb[3 * p + c] = in ? 0.f : 0.2f + 0.3f * c;  // a flat colour around a black hole
+    }
+  for (const char* name : {"telea", "ns"}) {
+    const std::vector<float> out = inpaint_hole(rgb, hole, w, h, parse_inpaint_method(name));
+    for (size_t p = 0; p < hole.size(); ++p)
+      for (int c = 0; c < 3; ++c) {
+        if (!hole[p])
+          EXPECT_EQ(out[3 * p + c], rgb[3 * p + c]);
+        else
+          EXPECT_NEAR(out[3 * p + c], 0.2f + 0.3f * c, 2.5f / 255.f) << name;
+      }
+  }
+  EXPECT_EQ(inpaint_hole(rgb, hole, w, h, InpaintMethod::kNone), rgb);
+  EXPECT_THROW(parse_inpaint_method("lama"), std::invalid_argument);
+  EXPECT_THROW(inpaint_hole(rgb, hole, w + 1, h, InpaintMethod::kTelea), std::invalid_argument);
+}
+
+}  // namespace
+}  // namespace ag2gs
