@@ -69,22 +69,10 @@ GaussianSet box() {
 
 // A camera on a circle of radius 3 at 40 degrees elevation, looking at the origin.
 Camera view_from(double azimuth) {
-  Camera cam;
-  cam.width = 64;
-  cam.height = 48;
-  cam.fx = cam.fy = 70;
-  cam.cx = 32;
-  cam.cy = 24;
   const double el = 40.0 * M_PI / 180.0;
-  const Eigen::Vector3d c(3 * std::cos(el) * std::cos(azimuth), 3 * std::cos(el) * std::sin(azimuth), 3 * std::sin(el));
-  const Eigen::Vector3d z = (-c).normalized();
-  const Eigen::Vector3d x = z.cross(Eigen::Vector3d::UnitZ()).normalized();
-  const Eigen::Vector3d y = z.cross(x);
-  cam.R.row(0) = x;
-  cam.R.row(1) = y;
-  cam.R.row(2) = z;
-  cam.t = -cam.R * c;
-  return cam;
+  const Eigen::Vector3d eye(3 * std::cos(el) * std::cos(azimuth), 3 * std::cos(el) * std::sin(azimuth),
+                            3 * std::sin(el));
+  return test::look_at(eye, Eigen::Vector3d::Zero(), 64, 48, 70);
 }
 
 // 1 where the pixel centre's ray meets the floor plane inside the footprint.

@@ -16,6 +16,7 @@
 #include "host/io/npy_io.h"
 #include "host/scene/scene.h"
 #include "io_test_util.h"
+#include "test_util.h"
 
 namespace fs = std::filesystem;
 using namespace ag2gs;
@@ -52,21 +53,9 @@ int mask_local(int level, int x, int y, int w, int h) {
 std::vector<Camera> fixture_cameras(const FixtureOptions& o) {
   std::vector<Camera> cams;
   for (int v = 0; v < o.views; ++v) {
-    Camera c;
-    c.width = o.width;
-    c.height = o.height;
-    c.fx = c.fy = 0.8 * o.width;
-    c.cx = 0.5 * o.width;
-    c.cy = 0.5 * o.height;
     const double a = 2 * M_PI * v / o.views;
     const Eigen::Vector3d eye(4 * std::cos(a), 4 * std::sin(a), 1.0);
-    const Eigen::Vector3d fwd = (-eye).normalized();
-    const Eigen::Vector3d right = fwd.cross(Eigen::Vector3d::UnitZ()).normalized();
-    const Eigen::Vector3d down = fwd.cross(right);
-    c.R.row(0) = right;
-    c.R.row(1) = down;
-    c.R.row(2) = fwd;
-    c.t = -c.R * eye;
+    Camera c = test::look_at(eye, Eigen::Vector3d::Zero(), o.width, o.height, 0.8 * o.width);
     char name[32];
     std::snprintf(name, sizeof name, "img_%02d.png", v);
     c.name = name;

@@ -46,6 +46,24 @@ inline Camera look_at_origin(int w, int h, double dist = 4.0, double fov_scale =
   return c;
 }
 
+// A camera at `eye` looking at `target` with world +z up (x right, y down),
+// principal point at the image centre.
+inline Camera look_at(const Eigen::Vector3d& eye, const Eigen::Vector3d& target, int w, int h, double focal) {
+  Camera c;
+  c.width = w;
+  c.height = h;
+  c.fx = c.fy = focal;
+  c.cx = 0.5 * w;
+  c.cy = 0.5 * h;
+  const Eigen::Vector3d fwd = (target - eye).normalized();
+  const Eigen::Vector3d right = fwd.cross(Eigen::Vector3d::UnitZ()).normalized();
+  c.R.row(0) = right;
+  c.R.row(1) = fwd.cross(right);
+  c.R.row(2) = fwd;
+  c.t = -c.R * eye;
+  return c;
+}
+
 struct SceneSpec {
   size_t n = 100;
   int sh_degree = 1;
