@@ -33,7 +33,8 @@ namespace ag2gs::cli {
 namespace {
 
 struct QueryArgs {
-  std::string model, scene, view, click, text, vocab, text_embedding, out, views;
+  QueryRequest request;
+  std::string model, scene, out, views;
   std::string sparse;  // --sparse; empty = the scene-folder rule (host/scene/scene.h)
   int resolution = 0;  // 0 = the resolution the model was trained at
   QueryConfig config;
@@ -43,8 +44,10 @@ double ms_since(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
 }
 
+}  // namespace
+
 // "X,Y" -> two numbers.
-void parse_click(const std::string& s, double* x, double* y) {
+static void parse_click(const std::string& s, double* x, double* y) {
   const size_t comma = s.find(',');
   bool ok = comma != std::string::npos;
   if (ok) {
@@ -64,7 +67,7 @@ void parse_click(const std::string& s, double* x, double* y) {
 }
 
 // --views: train | test | all | comma-separated names (Scene::find_view).
-std::vector<int> pick_scene_views(const Scene& scene, const std::string& views) {
+static std::vector<int> pick_scene_views(const Scene& scene, const std::string& views) {
   if (views.empty()) return {};
   if (views == "all") {
     std::vector<int> v(scene.views().size());
@@ -84,7 +87,7 @@ std::vector<int> pick_scene_views(const Scene& scene, const std::string& views) 
   return out;
 }
 
-std::vector<float> load_embedding(const QueryArgs& a, const std::string& model_file, int expected_dim) {
+std::vector<float> load_query_embedding(const QueryRequest& a, const std::string& model_file, int expected_dim) {
   if (!a.text_embedding.empty()) {
     const NpyArray arr = read_npy(a.text_embedding);
     const bool vec = arr.shape.size() == 1 || (arr.shape.size() == 2 && arr.shape[0] == 1);
@@ -132,22 +135,94 @@ void write_mask_png(const std::string& path, const std::vector<uint8_t>& mask, i
   f.commit();
 }
 
-nlohmann::json finite_or_null(double v) {
+static nlohmann::json finite_or_null(double v) {
   return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json(nullptr);
 }
 
-void cmd_query(const GlobalOptions& global, QueryArgs a) {
-  const bool by_click = !a.click.empty();
-  const bool by_text = !a.text.empty() || !a.text_embedding.empty();
-  if (by_click == by_text)
+void check_query_request(const QueryRequest& r) {
+  if (r.by_click() == r.by_text())
     throw std::invalid_argument(
         "give exactly one query: --view NAME --click X,Y, or --text PHRASE --vocab FILE.json, "
         "or --text-embedding FILE.npy");
-  if (by_click && a.view.empty()) throw std::invalid_argument("--click needs --view NAME (the clicked image)");
-  if (!a.text.empty() && !a.text_embedding.empty())
+  if (r.by_click() && r.view.empty()) throw std::invalid_argument("--click needs --view NAME (the clicked image)");
+  if (!r.text.empty() && !r.text_embedding.empty())
     throw std::invalid_argument("give either --text (with --vocab) or --text-embedding, not both");
-  if (!a.text.empty() && a.vocab.empty())
+  if (!r.text.empty() && r.vocab.empty())
     throw std::invalid_argument("--text needs --vocab FILE.json (phrase -> CLIP embedding)");
+  if (r.by_click()) {
+    double x = 0, y = 0;
+    parse_click(r.click, &x, &y);
+  }
+}
+
+std::vector<int32_t> run_query(QueryEngine& engine, const Scene& scene, const QueryRequest& r,
+                               const std::vector<float>& embedding, int resolution, double text_margin,
+                               nlohmann::json& j, double* ms) {
+  std::vector<int32_t> selected;
+  if (r.by_click()) {
+    double cx = 0, cy = 0;
+    parse_click(r.click, &cx, &cy);
+    const int click_view = scene.find_view(r.view);
+    // The click is in the pixels of the image file (full resolution); the
+    // loaded camera may be smaller (-r): map the clicked pixel's centre.
+    const SceneView& cv = scene.views()[click_view];
+    const Camera& cam = cv.camera;
+    if (!(cx >= 0 && cy >= 0 && cx < cv.full_camera.width && cy < cv.full_camera.height))
+      throw std::invalid_argument("--click " + r.click + " is outside the " + std::to_string(cv.full_camera.width) +
+                                  "x" + std::to_string(cv.full_camera.height) + " image " + cv.name +
+                                  " (x is the column in [0, width), y the row in [0, height))");
+    const Eigen::Vector2d px = full_size_click(cv.full_camera, cam, cx, cy);
+    ClickResult c;
+    try {
+      c = engine.click(cam, px.x(), px.y());
+    } catch (const std::runtime_error& e) {
+      throw std::runtime_error("--click " + r.click + " (full-size pixel; rendered at -r " +
+                               std::to_string(resolution) + "): " + e.what());
+    }
+    selected = c.selected;
+    *ms = c.ms;
+    j["query"] = {{"type", "click"},
+                  {"view", scene.views()[click_view].name},
+                  {"x", cx},
+                  {"y", cy},
+                  {"pixel", {c.pixel_x, c.pixel_y}},
+                  {"alpha", c.alpha},
+                  {"depth", c.depth},
+                  {"point", {c.point.x(), c.point.y(), c.point.z()}},
+                  {"seed_distance", c.seed_distance},
+                  {"dominant_anchor", c.dominant_anchor},
+                  {"dominant_weight", c.dominant_weight}};
+    j["seeds"] = {c.seed};
+    spdlog::info("click ({}, {}) on {}: alpha {:.3f}, depth {:.4f}, seed anchor {} at {:.4f} from the point", cx, cy,
+                 scene.views()[click_view].name, c.alpha, c.depth, c.seed, c.seed_distance);
+  } else {
+    const TextResult t = engine.text(embedding);
+    selected = t.selected;
+    *ms = t.ms;
+    j["query"] = {{"type", "text"}};
+    if (!r.text.empty()) {
+      j["query"]["text"] = r.text;
+      j["query"]["vocab"] = r.vocab;
+    } else {
+      j["query"]["text_embedding"] = r.text_embedding;
+    }
+    j["seeds"] = t.seeds;
+    j["seed_clusters"] = t.seed_clusters;
+    j["best_score"] = t.best;
+    nlohmann::json scores = nlohmann::json::array();
+    for (double s : t.scores) scores.push_back(finite_or_null(s));
+    j["scores"] = scores;
+    spdlog::info("text: best cosine {:.4f}; {} seed cluster(s) within {}, {} seed anchors", t.best,
+                 t.seed_clusters.size(), text_margin, t.seeds.size());
+  }
+  return selected;
+}
+
+namespace {
+
+void cmd_query(const GlobalOptions& global, QueryArgs a) {
+  check_query_request(a.request);
+  const bool by_click = a.request.by_click(), by_text = a.request.by_text();
   a.config.validate();
 
   const auto t_load = std::chrono::steady_clock::now();
@@ -178,14 +253,12 @@ void cmd_query(const GlobalOptions& global, QueryArgs a) {
   so.sparse = a.sparse;
   std::unique_ptr<Scene> scene = Scene::open(a.scene, so);
   int click_view = -1;
-  if (by_click) click_view = scene->find_view(a.view);
+  if (by_click) click_view = scene->find_view(a.request.view);
   std::vector<int> views = pick_scene_views(*scene, a.views);
   if (by_click && std::find(views.begin(), views.end(), click_view) == views.end())
     views.insert(views.begin(), click_view);
-  double cx = 0, cy = 0;
-  if (by_click) parse_click(a.click, &cx, &cy);
   std::vector<float> embedding;
-  if (by_text) embedding = load_embedding(a, model_file, language.dim);
+  if (by_text) embedding = load_query_embedding(a.request, model_file, language.dim);
 
   Runtime rt(global.device);
   QueryEngine engine(rt, model, a.config);
@@ -211,61 +284,9 @@ void cmd_query(const GlobalOptions& global, QueryArgs a) {
                      {"click_dominant", a.config.click_dominant},
                      {"click_front_weight", a.config.click_front_weight},
                      {"mask_threshold", a.config.mask_threshold}};
-  std::vector<int32_t> selected;
   double query_ms = 0;
-  if (by_click) {
-    // The click is in the pixels of the image file (full resolution); the
-    // loaded camera may be smaller (-r): map the clicked pixel's centre.
-    const SceneView& cv = scene->views()[click_view];
-    const Camera& cam = cv.camera;
-    if (!(cx >= 0 && cy >= 0 && cx < cv.full_camera.width && cy < cv.full_camera.height))
-      throw std::invalid_argument("--click " + a.click + " is outside the " + std::to_string(cv.full_camera.width) +
-                                  "x" + std::to_string(cv.full_camera.height) + " image " + cv.name +
-                                  " (x is the column in [0, width), y the row in [0, height))");
-    const Eigen::Vector2d px = full_size_click(cv.full_camera, cam, cx, cy);
-    ClickResult r;
-    try {
-      r = engine.click(cam, px.x(), px.y());
-    } catch (const std::runtime_error& e) {
-      throw std::runtime_error("--click " + a.click + " (full-size pixel; rendered at -r " +
-                               std::to_string(a.resolution) + "): " + e.what());
-    }
-    selected = r.selected;
-    query_ms = r.ms;
-    j["query"] = {{"type", "click"},
-                  {"view", scene->views()[click_view].name},
-                  {"x", cx},
-                  {"y", cy},
-                  {"pixel", {r.pixel_x, r.pixel_y}},
-                  {"alpha", r.alpha},
-                  {"depth", r.depth},
-                  {"point", {r.point.x(), r.point.y(), r.point.z()}},
-                  {"seed_distance", r.seed_distance},
-                  {"dominant_anchor", r.dominant_anchor},
-                  {"dominant_weight", r.dominant_weight}};
-    j["seeds"] = {r.seed};
-    spdlog::info("click ({}, {}) on {}: alpha {:.3f}, depth {:.4f}, seed anchor {} at {:.4f} from the point", cx, cy,
-                 scene->views()[click_view].name, r.alpha, r.depth, r.seed, r.seed_distance);
-  } else {
-    const TextResult r = engine.text(embedding);
-    selected = r.selected;
-    query_ms = r.ms;
-    j["query"] = {{"type", "text"}};
-    if (!a.text.empty()) {
-      j["query"]["text"] = a.text;
-      j["query"]["vocab"] = a.vocab;
-    } else {
-      j["query"]["text_embedding"] = a.text_embedding;
-    }
-    j["seeds"] = r.seeds;
-    j["seed_clusters"] = r.seed_clusters;
-    j["best_score"] = r.best;
-    nlohmann::json scores = nlohmann::json::array();
-    for (double s : r.scores) scores.push_back(finite_or_null(s));
-    j["scores"] = scores;
-    spdlog::info("text: best cosine {:.4f}; {} seed cluster(s) within {}, {} seed anchors", r.best,
-                 r.seed_clusters.size(), a.config.text_margin, r.seeds.size());
-  }
+  const std::vector<int32_t> selected =
+      run_query(engine, *scene, a.request, embedding, a.resolution, a.config.text_margin, j, &query_ms);
   std::printf("query latency: %.1f ms (after the model was loaded); %zu of %zu anchors selected\n", query_ms,
               selected.size(), model.size());
 
@@ -332,17 +353,21 @@ void add_query_config_options(CLI::App* sub, QueryConfig& c) {
       ->check(CLI::Range(0.0, 0.999));
 }
 
+void add_query_request_options(CLI::App* sub, QueryRequest& r) {
+  sub->add_option("--view", r.view, "Click query: the clicked image (name, name without extension or stem)");
+  sub->add_option("--click", r.click, "Click query: X,Y pixel (column,row) of the full-size image file");
+  sub->add_option("--text", r.text, "Text query: a phrase of the --vocab file");
+  sub->add_option("--vocab", r.vocab, "Text vocabulary JSON {\"phrase\": [D floats], ...}");
+  sub->add_option("--text-embedding", r.text_embedding, "Text query by a float vector .npy of shape [D] or [1,D]");
+}
+
 void register_query(CLI::App& app, GlobalOptions& global) {
   auto a = std::make_shared<QueryArgs>();
   auto* q = app.add_subcommand("query", "Select an object by a click or by text; write its Gaussians and masks");
   q->add_option("model", a->model, "Model folder written by `ag2gs train` (MODEL_DIR/model.ag2gs)")->required();
   q->add_option("--scene", a->scene, "Scene directory (images/, sparse/0/) the model was trained on")->required();
   q->add_option("-o,--out", a->out, "Output folder: selection.ply, remainder.ply, selection.json, masks/")->required();
-  q->add_option("--view", a->view, "Click query: the clicked image (name, name without extension or stem)");
-  q->add_option("--click", a->click, "Click query: X,Y pixel (column,row) of the full-size image file");
-  q->add_option("--text", a->text, "Text query: a phrase of the --vocab file");
-  q->add_option("--vocab", a->vocab, "Text vocabulary JSON {\"phrase\": [D floats], ...}");
-  q->add_option("--text-embedding", a->text_embedding, "Text query by a float vector .npy of shape [D] or [1,D]");
+  add_query_request_options(q, a->request);
   q->add_option("--views", a->views,
                 "Also write masks for: train, test (every 8th image in name order), all, or comma-separated names");
   q->add_option("--sparse", a->sparse,
@@ -350,7 +375,7 @@ void register_query(CLI::App& app, GlobalOptions& global) {
   q->add_option("-r,--resolution", a->resolution, "Divide the cameras by R (default: the model's training -r)");
   add_query_config_options(q, a->config);
   set_action(q, [&global, a, q] {
-    if (q->count("--text") > 0 && a->text.find_first_not_of(" \t") == std::string::npos)
+    if (q->count("--text") > 0 && a->request.text.find_first_not_of(" \t") == std::string::npos)
       throw std::invalid_argument("--text is empty: give a phrase listed in the --vocab file, e.g. --text "
                                   "\"red mug\"");
     cmd_query(global, *a);

@@ -28,6 +28,7 @@ void register_commands(CLI::App& app, GlobalOptions& global) {
   register_baseline(app, global);
   register_query(app, global);
   register_eval(app, global);
+  register_remove(app, global);
 }
 
 namespace {

@@ -2,6 +2,11 @@
 
 #include <CLI/CLI.hpp>
 #include <functional>
+#include <nlohmann/json.hpp>
+#include <string>
+#include <vector>
+
+#include "host/scene/scene.h"
 
 #include "queries/query.h"
 
@@ -35,8 +40,31 @@ void register_train(CLI::App& app, GlobalOptions& global);          // train (cm
 void register_baseline(CLI::App& app, GlobalOptions& global);       // baseline (cmd_baseline.cpp)
 void register_query(CLI::App& app, GlobalOptions& global);          // query (cmd_query.cpp)
 void register_eval(CLI::App& app, GlobalOptions& global);           // eval (cmd_eval.cpp)
+void register_remove(CLI::App& app, GlobalOptions& global);         // remove (cmd_remove.cpp)
 // The QueryConfig flags shared by query and eval (cmd_query.cpp).
 void add_query_config_options(CLI::App* sub, QueryConfig& config);
+
+// A click or text query as `query` and `remove` take it (cmd_query.cpp).
+struct QueryRequest {
+  std::string view, click, text, vocab, text_embedding;
+  bool by_click() const { return !click.empty(); }
+  bool by_text() const { return !text.empty() || !text_embedding.empty(); }
+};
+// --view, --click, --text, --vocab, --text-embedding.
+void add_query_request_options(CLI::App* sub, QueryRequest& request);
+// Throws std::invalid_argument unless exactly one well-formed query is given.
+void check_query_request(const QueryRequest& request);
+// The text query's embedding: --text-embedding's .npy or --text's phrase of
+// --vocab; throws naming the file and the fix when it does not fit `dim`.
+std::vector<float> load_query_embedding(const QueryRequest& request, const std::string& model_file, int dim);
+// Runs the query (a click maps its full-size pixel to the view's camera at
+// -r `resolution`) and records it in j ("query", "seeds", text scores);
+// *ms gets the query's latency. Returns the selected anchors.
+std::vector<int32_t> run_query(QueryEngine& engine, const Scene& scene, const QueryRequest& request,
+                               const std::vector<float>& embedding, int resolution, double text_margin,
+                               nlohmann::json& j, double* ms);
+// A 0/1 mask [H,W] as an 8-bit PNG (0/255), written atomically.
+void write_mask_png(const std::string& path, const std::vector<uint8_t>& mask, int width, int height);
 // Runs the parsed subcommand; returns the process exit code.
 int run_selected(CLI::App& app, const GlobalOptions& global);
 

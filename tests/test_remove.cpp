@@ -1,0 +1,205 @@
+// `ag2gs remove` end to end on a small generated scene and a short stage-1
+// model: the output is a complete model folder without the selected anchors,
+// every kept anchor keeps its bytes, holes and targets cover every training
+// view, an external inpainter's images are used as they are, and bad input is
+// refused before anything is written.
+#include <gtest/gtest.h>
+#include <unistd.h>
+
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <opencv2/imgcodecs.hpp>
+#include <set>
+#include <string>
+
+#include "cli_test_util.h"
+#include "host/io/model_io.h"
+#include "stages/anchor_model.h"
+#include "synth/synth_scene.h"
+
+namespace fs = std::filesystem;
+using nlohmann::json;
+
+namespace ag2gs {
+namespace {
+
+struct Fixture {
+  fs::path root, scene, model;
+};
+
+// A 64x48 scene (8 views, one held out) and 150 iterations of stage 1,
+// made once per process.
+const Fixture& fixture() {
+  static const Fixture f = [] {
+    Fixture x;
+    x.root = fs::path(testing::TempDir()) / ("ag2gs_remove_" + std::to_string(::getpid()));
+    fs::remove_all(x.root);
+    x.scene = x.root / "scene";
+    x.model = x.root / "model";
+    SynthOptions o;
+    o.seed = 4;
+    o.width = 64;
+    o.height = 48;
+    o.views = 8;
+    o.points = 800;
+    o.feature_dim = 84;
+    write_synth_scene(x.scene.string(), o);
+    const auto r = test::run_cli("train " + x.scene.string() + " -o " + x.model.string() +
+                                 " --iters 150 --stages 1 --eval --seed 1 --quiet");
+    EXPECT_EQ(r.code, 0) << r.output;
+    return x;
+  }();
+  return f;
+}
+
+std::string remove_cmd(const std::string& out, const std::string& extra) {
+  const Fixture& f = fixture();
+  return "remove " + f.model.string() + " --scene " + f.scene.string() + " -o " + out + " " + extra + " --quiet";
+}
+
+fs::path fresh(const std::string& name) {
+  const fs::path p = fixture().root / name;
+  fs::remove_all(p);
+  return p;
+}
+
+void write_selection(const fs::path& path, const std::vector<int>& anchors) {
+  std::ofstream(path) << json{{"anchors", anchors}}.dump();
+}
+
+std::vector<std::string> train_stems() {
+  std::vector<std::string> stems;
+  for (int i = 1; i < 8; ++i) stems.push_back("view_00" + std::to_string(i));  // view_000 is the test view
+  return stems;
+}
+
+TEST(Remove, ClickWritesACompleteModelFolderWithoutTheObject) {
+  const fs::path out = fresh("by_click");
+  const auto r = test::run_cli(remove_cmd(out.string(), "--view view_001 --click 32,30"));
+  ASSERT_EQ(r.code, 0) << r.output;
+  for (const char* f : {"model.ag2gs", "point_cloud.ply", "removal.json"}) EXPECT_TRUE(fs::exists(out / f)) << f;
+  for (const std::string& s : train_stems()) {
+    EXPECT_TRUE(fs::exists(out / "holes" / (s + ".png"))) << s;
+    EXPECT_TRUE(fs::exists(out / "targets" / (s + ".png"))) << s;
+  }
+  EXPECT_FALSE(fs::exists(out / "holes" / "view_000.png")) << "the test view is not a training view";
+  json rep = json::parse(std::ifstream(out / "removal.json"));
+  const AnchorModel before = AnchorModel::from_archive(read_model_archive((fixture().model / "model.ag2gs").string()));
+  const AnchorModel after = AnchorModel::from_archive(read_model_archive((out / "model.ag2gs").string()));
+  EXPECT_GT(rep["anchors_removed"].get<size_t>(), 0u);
+  EXPECT_EQ(rep["anchors_removed"].get<size_t>() + after.size(), before.size());
+  EXPECT_EQ(rep["gaussians_kept"].get<size_t>(), after.gaussians());
+  EXPECT_EQ(rep["query"]["type"], "click");
+  EXPECT_EQ(rep["holes"]["views"].size(), 7u);
+  // Other subcommands take the folder.
+  const auto info = test::run_cli("info " + out.string());
+  EXPECT_EQ(info.code, 0) << info.output;
+  const auto render =
+      test::run_cli("render " + out.string() + " --scene " + fixture().scene.string() + " --views test -o " +
+                    (fixture().root / "by_click_renders").string() + " --quiet");
+  EXPECT_EQ(render.code, 0) << render.output;
+}
+
+TEST(Remove, KeptAnchorsKeepTheirBytesAndHolesStayInTheObject) {
+  const fs::path out = fresh("by_selection"), sel = fixture().root / "selection.json";
+  const ModelArchive in = read_model_archive((fixture().model / "model.ag2gs").string());
+  const AnchorModel before = AnchorModel::from_archive(in);
+  std::vector<int> chosen;
+  for (int a = 3; a < static_cast<int>(before.size()); a += 7) chosen.push_back(a);
+  write_selection(sel, chosen);
+  const auto r = test::run_cli(remove_cmd(out.string(), "--selection " + sel.string() + " --dilate 0"));
+  ASSERT_EQ(r.code, 0) << r.output;
+  const ModelArchive res = read_model_archive((out / "model.ag2gs").string());
+  const std::set<int> gone(chosen.begin(), chosen.end());
+  for (const auto& [name, t] : in.arrays()) {
+    if (name.rfind("anchors/", 0) != 0) continue;
+    ASSERT_TRUE(res.has(name)) << name;
+    const Tensor& u = res.tensor(name);
+    const size_t row = t.bytes.size() / before.size();
+    size_t k = 0;
+    for (size_t a = 0; a < before.size(); ++a) {
+      if (gone.count(static_cast<int>(a))) continue;
+      ASSERT_EQ(0, std::memcmp(&t.bytes[a * row], &u.bytes[k * row], row)) << name << " anchor " << a;
+      ++k;
+    }
+    EXPECT_EQ(k * row, u.bytes.size()) << name;
+  }
+  // Undilated, a hole lies inside the object's pixels.
+  json rep = json::parse(std::ifstream(out / "removal.json"));
+  EXPECT_EQ(rep["anchors_removed"].get<size_t>(), chosen.size());
+  for (const auto& v : rep["holes"]["views"]) EXPECT_LE(v["hole_pixels"].get<size_t>(), v["object_pixels"].get<size_t>());
+}
+
+TEST(Remove, ExternalInpaintingIsUsedAsItIs) {
+  const fs::path out = fresh("external"), dir = fresh("inpainted"), sel = fixture().root / "selection_small.json";
+  write_selection(sel, {1, 2, 3, 4, 5});
+  fs::create_directories(dir);
+  for (const std::string& s : train_stems()) {
+    cv::Mat img(48, 64, CV_8UC3);
+    for (int y = 0; y < 48; ++y)
+      for (int x = 0; x < 64; ++x) img.at<cv::Vec3b>(y, x) = cv::Vec3b(x * 4, y * 5, (x + y + s.back()) % 256);
+    cv::imwrite((dir / (s + ".png")).string(), img);
+  }
+  const auto r = test::run_cli(remove_cmd(out.string(), "--selection " + sel.string() + " --inpainted " + dir.string()));
+  ASSERT_EQ(r.code, 0) << r.output;
+  for (const std::string& s : train_stems()) {
+    const cv::Mat a = cv::imread((dir / (s + ".png")).string()), b = cv::imread((out / "targets" / (s + ".png")).string());
+    ASSERT_EQ(a.size(), b.size()) << s;
+    EXPECT_EQ(cv::norm(a, b, cv::NORM_INF), 0.0) << s;
+  }
+  // A missing image and a wrong size are named before any work.
+  fs::remove(dir / "view_003.png");
+  const fs::path out2 = fresh("external2");
+  auto bad = test::run_cli(remove_cmd(out2.string(), "--selection " + sel.string() + " --inpainted " + dir.string()));
+  EXPECT_NE(bad.code, 0);
+  EXPECT_NE(bad.output.find("view_003.png is missing"), std::string::npos) << bad.output;
+  cv::imwrite((dir / "view_003.png").string(), cv::Mat(10, 10, CV_8UC3, cv::Scalar(1, 2, 3)));
+  bad = test::run_cli(remove_cmd(out2.string(), "--selection " + sel.string() + " --inpainted " + dir.string()));
+  EXPECT_NE(bad.code, 0);
+  EXPECT_NE(bad.output.find("10x10, expected 64x48"), std::string::npos) << bad.output;
+  EXPECT_FALSE(fs::exists(out2));
+}
+
+TEST(Remove, BadInputIsRefusedBeforeAnythingIsWritten) {
+  const Fixture& f = fixture();
+  const AnchorModel m = AnchorModel::from_archive(read_model_archive((f.model / "model.ag2gs").string()));
+  const fs::path empty = f.root / "empty_sel.json", all = f.root / "all_sel.json", sel = f.root / "one_sel.json";
+  write_selection(empty, {});
+  std::vector<int> every(m.size());
+  for (size_t a = 0; a < m.size(); ++a) every[a] = static_cast<int>(a);
+  write_selection(all, every);
+  write_selection(sel, {0});
+  const fs::path out = fresh("refused");
+  const std::string vocab = (f.scene / "vocab.json").string();
+  const std::vector<std::pair<std::string, std::string>> cases = {
+      {"--selection " + empty.string(), "selected no anchor"},
+      {"--selection " + all.string(), "empty model"},
+      {"--selection " + sel.string() + " --iters 5", "not built yet"},
+      {"--selection " + sel.string() + " --inpaint lama", "expected telea, ns or none"},
+      {"--text thing --vocab " + vocab, "no clusters/language features"},
+      {"", "give exactly one query"},
+      {"--selection " + sel.string() + " --view view_001 --click 3,4", "not both"},
+  };
+  for (const auto& [extra, message] : cases) {
+    const auto r = test::run_cli(remove_cmd(out.string(), extra));
+    EXPECT_NE(r.code, 0) << extra;
+    EXPECT_NE(r.output.find(message), std::string::npos) << extra << "\n" << r.output;
+    EXPECT_FALSE(fs::exists(out)) << extra;
+  }
+  // Never into the model folder, never over a folder with something in it.
+  auto r = test::run_cli("remove " + f.model.string() + " --scene " + f.scene.string() + " -o " + f.model.string() +
+                         " --selection " + sel.string() + " --quiet");
+  EXPECT_NE(r.code, 0);
+  EXPECT_NE(r.output.find("is the model folder itself"), std::string::npos) << r.output;
+  fs::create_directories(out);
+  std::ofstream(out / "keep.txt") << "mine";
+  r = test::run_cli(remove_cmd(out.string(), "--selection " + sel.string()));
+  EXPECT_NE(r.code, 0);
+  EXPECT_NE(r.output.find("not empty"), std::string::npos) << r.output;
+  EXPECT_TRUE(fs::exists(out / "keep.txt"));
+}
+
+}  // namespace
+}  // namespace ag2gs
