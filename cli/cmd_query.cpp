@@ -356,7 +356,15 @@ void add_query_config_options(CLI::App* sub, QueryConfig& c) {
 void add_query_request_options(CLI::App* sub, QueryRequest& r) {
   sub->add_option("--view", r.view, "Click query: the clicked image (name, name without extension or stem)");
   sub->add_option("--click", r.click, "Click query: X,Y pixel (column,row) of the full-size image file");
-  sub->add_option("--text", r.text, "Text query: a phrase of the --vocab file");
+  sub->add_option("--text", r.text, "Text query: a phrase of the --vocab file")
+      ->check(CLI::Validator(
+          [](std::string& v) {
+            return v.find_first_not_of(" \t") == std::string::npos
+                       ? std::string("the phrase is empty; give one listed in the --vocab file, e.g. --text "
+                                     "\"red mug\"")
+                       : std::string();
+          },
+          "PHRASE"));
   sub->add_option("--vocab", r.vocab, "Text vocabulary JSON {\"phrase\": [D floats], ...}");
   sub->add_option("--text-embedding", r.text_embedding, "Text query by a float vector .npy of shape [D] or [1,D]");
 }
@@ -374,12 +382,7 @@ void register_query(CLI::App& app, GlobalOptions& global) {
                 "COLMAP model folder inside the scene (default: sparse/0/, else sparse/ when it holds the model)");
   q->add_option("-r,--resolution", a->resolution, "Divide the cameras by R (default: the model's training -r)");
   add_query_config_options(q, a->config);
-  set_action(q, [&global, a, q] {
-    if (q->count("--text") > 0 && a->request.text.find_first_not_of(" \t") == std::string::npos)
-      throw std::invalid_argument("--text is empty: give a phrase listed in the --vocab file, e.g. --text "
-                                  "\"red mug\"");
-    cmd_query(global, *a);
-  });
+  set_action(q, [&global, a] { cmd_query(global, *a); });
 }
 
 }  // namespace ag2gs::cli

@@ -163,10 +163,21 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
         "inpainted targets (--iters 0)");
   a.config.validate();
   std::error_code ec;
-  if (fs::exists(a.out) && fs::equivalent(a.out, a.model, ec))
-    throw std::invalid_argument("-o " + a.out + " is the model folder itself; write the result to a new folder");
-  if (fs::exists(a.out) && !(fs::is_directory(a.out) && fs::is_empty(a.out)))
+  // "out/", "out/." and "out" are one folder; it must lie outside the model folder.
+  fs::path out = fs::absolute(a.out).lexically_normal();
+  if (!out.has_filename()) out = out.parent_path();
+  const fs::path model_dir = fs::weakly_canonical(fs::absolute(a.model));
+  const fs::path out_real = fs::weakly_canonical(out);
+  for (fs::path p = out_real; !p.empty(); p = p.parent_path()) {
+    if (p == model_dir)
+      throw std::invalid_argument("-o " + a.out + (p == out_real ? " is the model folder itself" : " lies inside the model folder") +
+                                  "; write the result to a new folder outside it");
+    if (p == p.parent_path()) break;
+  }
+  if (fs::exists(out) && !(fs::is_directory(out) && fs::is_empty(out)))
     throw std::invalid_argument("-o " + a.out + " exists and is not empty; give a new folder (nothing was written)");
+  if (by_selection && !(a.request.view.empty() && a.request.vocab.empty()))
+    throw std::invalid_argument("--view and --vocab belong to a click or text query, not to --selection");
   if (!a.inpainted.empty() && !fs::is_directory(a.inpainted))
     throw std::invalid_argument("--inpainted " + a.inpainted + " is not a folder");
 
@@ -229,12 +240,11 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
                n_sel * static_cast<size_t>(model.children()));
 
   // ---- holes and targets, written into a folder beside OUT_DIR first
-  const fs::path out(a.out);
   const fs::path tmp = out.parent_path() / (out.filename().string() + ".partial." + std::to_string(::getpid()));
   fs::remove_all(tmp, ec);
-  fs::create_directories(tmp / "holes");
-  fs::create_directories(tmp / "targets");
   try {
+    fs::create_directories(tmp / "holes");
+    fs::create_directories(tmp / "targets");
     const GaussianSet removed = gaussians_of_anchors(model, sh_degree, in_sel, true);
     const GaussianSet kept = gaussians_of_anchors(model, sh_degree, in_sel, false);
     const double diameter = object_diameter(removed);

@@ -23,7 +23,6 @@
 #   suite: a smoke run of the script itself.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-root=$(pwd)
 
 gpu="" cpu="" scene="" res="" iters=2000 out="out/gpu_check" quick=0 tests=1
 while [ $# -gt 0 ]; do
@@ -36,7 +35,7 @@ while [ $# -gt 0 ]; do
     --out) out=$2; shift 2 ;;
     --quick) quick=1; tests=0; shift ;;
     --no-tests) tests=0; shift ;;
-    -h|--help) sed -n '2,25p' "$0"; exit 0 ;;
+    -h|--help) sed -n '2,23p' "$0"; exit 0 ;;
     *) echo "gpu_check: unknown argument '$1' (see --help)" >&2; exit 1 ;;
   esac
 done

@@ -15,8 +15,8 @@
 namespace ag2gs {
 
 struct HoleSettings {
-  // A pixel is the object's when its Gaussians hold at least this share of
-  // the pixel's blending weight in the full model.
+  // A pixel is the object's when its Gaussians' blending weights (alpha T)
+  // sum to at least this in the full model: at least half its colour.
   float object_weight = 0.5f;
   // After deletion, an object pixel is a hole when its opacity is below this
   float alpha_min = 0.8f;
@@ -34,7 +34,7 @@ struct HoleSettings {
 
 struct ViewHole {
   int width = 0, height = 0;
-  std::vector<uint8_t> object;   // [H,W] 1 where the removed Gaussians held >= object_weight
+  std::vector<uint8_t> object;   // [H,W] 1 where the removed Gaussians' weights sum to >= object_weight
   std::vector<uint8_t> hole;     // [H,W] 1 in the (dilated) hole
   std::vector<float> rgb_after;  // [H,W,3] the render after deletion
   size_t object_pixels = 0, hole_pixels = 0, undilated_hole_pixels = 0;
@@ -47,8 +47,8 @@ double object_diameter(const GaussianSet& removed);
 // The hole of one view. `kept` and `removed` split one model; `diameter` is
 // object_diameter(removed). Two renders: the full model with each Gaussian's
 // feature set to (1, camera depth, 0) for removed ones and 0 for kept ones
-// (so the blended feature gives the object's weight and mean depth per
-// pixel), and the kept model alone.
+// (so the blended feature gives the object's summed weight and mean depth
+// per pixel), and the kept model alone.
 ViewHole find_hole(Renderer& renderer, const GaussianSet& kept, const GaussianSet& removed, double diameter,
                    const Camera& cam, const HoleSettings& settings, const RenderSettings& render = {});
 

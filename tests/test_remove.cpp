@@ -9,6 +9,8 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <iterator>
+#include <map>
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <set>
@@ -63,6 +65,11 @@ fs::path fresh(const std::string& name) {
   const fs::path p = fixture().root / name;
   fs::remove_all(p);
   return p;
+}
+
+std::string read_file(const fs::path& p) {
+  std::ifstream f(p, std::ios::binary);
+  return std::string(std::istreambuf_iterator<char>(f), {});
 }
 
 void write_selection(const fs::path& path, const std::vector<int>& anchors) {
@@ -126,10 +133,29 @@ TEST(Remove, KeptAnchorsKeepTheirBytesAndHolesStayInTheObject) {
     }
     EXPECT_EQ(k * row, u.bytes.size()) << name;
   }
-  // Undilated, a hole lies inside the object's pixels.
+  // The report's hole counts are the masks written to holes/.
   json rep = json::parse(std::ifstream(out / "removal.json"));
   EXPECT_EQ(rep["anchors_removed"].get<size_t>(), chosen.size());
-  for (const auto& v : rep["holes"]["views"]) EXPECT_LE(v["hole_pixels"].get<size_t>(), v["object_pixels"].get<size_t>());
+  size_t total = 0;
+  for (const auto& v : rep["holes"]["views"]) {
+    const std::string stem = fs::path(v["view"].get<std::string>()).stem().string();
+    const cv::Mat m = cv::imread((out / "holes" / (stem + ".png")).string(), cv::IMREAD_UNCHANGED);
+    ASSERT_FALSE(m.empty()) << stem;
+    EXPECT_EQ(static_cast<size_t>(cv::countNonZero(m)), v["hole_pixels"].get<size_t>()) << stem;
+    total += v["hole_pixels"].get<size_t>();
+  }
+  EXPECT_EQ(rep["holes"]["pixels"].get<size_t>(), total);
+}
+
+// "-o OUT/" is the folder OUT; the partial folder is built beside it and gone after.
+TEST(Remove, TrailingSlashAndNoPartialFolderLeft) {
+  const fs::path out = fresh("slash"), sel = fixture().root / "selection_slash.json";
+  write_selection(sel, {2, 9});
+  const auto r = test::run_cli(remove_cmd(out.string() + "/", "--selection " + sel.string()));
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_TRUE(fs::exists(out / "model.ag2gs"));
+  for (const auto& e : fs::directory_iterator(fixture().root))
+    EXPECT_EQ(e.path().filename().string().find(".partial."), std::string::npos) << e.path();
 }
 
 TEST(Remove, ExternalInpaintingIsUsedAsItIs) {
@@ -188,11 +214,24 @@ TEST(Remove, BadInputIsRefusedBeforeAnythingIsWritten) {
     EXPECT_NE(r.output.find(message), std::string::npos) << extra << "\n" << r.output;
     EXPECT_FALSE(fs::exists(out)) << extra;
   }
-  // Never into the model folder, never over a folder with something in it.
+  // Never into the model folder or below it, never over a folder with
+  // something in it; the model folder's files keep their bytes.
+  std::map<std::string, std::string> model_bytes;
+  for (const auto& e : fs::directory_iterator(f.model))
+    if (e.is_regular_file()) model_bytes[e.path().filename().string()] = read_file(e.path());
   auto r = test::run_cli("remove " + f.model.string() + " --scene " + f.scene.string() + " -o " + f.model.string() +
-                         " --selection " + sel.string() + " --quiet");
+                         "/ --selection " + sel.string() + " --quiet");
   EXPECT_NE(r.code, 0);
   EXPECT_NE(r.output.find("is the model folder itself"), std::string::npos) << r.output;
+  r = test::run_cli("remove " + f.model.string() + " --scene " + f.scene.string() + " -o " +
+                    (f.model / "removed").string() + " --selection " + sel.string() + " --quiet");
+  EXPECT_NE(r.code, 0);
+  EXPECT_NE(r.output.find("lies inside the model folder"), std::string::npos) << r.output;
+  r = test::run_cli(remove_cmd(out.string(), "--text \"  \" --vocab " + vocab));
+  EXPECT_NE(r.code, 0);
+  EXPECT_NE(r.output.find("--text: the phrase is empty"), std::string::npos) << r.output;
+  for (const auto& [name, bytes] : model_bytes) EXPECT_EQ(read_file(f.model / name), bytes) << name;
+  EXPECT_FALSE(fs::exists(f.model / "removed"));
   fs::create_directories(out);
   std::ofstream(out / "keep.txt") << "mine";
   r = test::run_cli(remove_cmd(out.string(), "--selection " + sel.string()));

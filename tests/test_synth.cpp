@@ -510,9 +510,6 @@ TEST(Synth, LargeMasksFollowTheObjectsAndCarryTheirCategoryFeature) {
   EXPECT_GT(checked, 20);
 }
 
-// --background-masks: the object masks stay exactly as without it, and the
-// background (GT id 0) gets masks of its own, cut differently from view to
-// view, whose features match no phrase of the scene.
 // --removal-gt adds removal_gt/<category>/<test view>.png and changes no other
 // file. Inside the removed objects' exact masks the image changes (the ray now
 // meets what was behind them); elsewhere only their shadows may change.
@@ -567,6 +564,9 @@ TEST(Synth, RemovalGroundTruthTracesTheTestViewsWithoutEachCategory) {
   EXPECT_GT(checked, 0) << "no removed object is visible in a test view: the test would be vacuous";
 }
 
+// --background-masks: the object masks stay exactly as without it, and the
+// background (GT id 0) gets masks of its own, cut differently from view to
+// view, whose features match no phrase of the scene.
 TEST(Synth, BackgroundMasksCoverTheBackgroundOnly) {
   const fs::path& plain = scene("small");
   const fs::path& dir = scene("background");

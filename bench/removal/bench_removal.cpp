@@ -5,7 +5,7 @@
 //
 //   ag2gs_bench_removal SCENE_DIR --category C --original RENDERS --removed RENDERS [--json OUT.json]
 //
-// RENDERS: folders written by `ag2gs render --views test --outputs rgb,depth`
+// RENDERS: folders written by `ag2gs render --views test --outputs rgb,depth,alpha`
 // at full size (-r 1). Per method and view, with M the category's exact mask
 // (gt/ ids of its objects):
 //   hole PSNR: inside M, against removal_gt/C/;
