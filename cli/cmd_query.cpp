@@ -218,6 +218,29 @@ std::vector<int32_t> run_query(QueryEngine& engine, const Scene& scene, const Qu
   return selected;
 }
 
+TrainedModel load_trained_model(const std::string& model_dir, bool with_language) {
+  TrainedModel t;
+  t.file = (fs::path(model_dir) / "model.ag2gs").string();
+  if (!fs::exists(t.file))
+    throw std::runtime_error(model_dir + ": no model.ag2gs; give a model folder written by `ag2gs train`");
+  t.archive = read_model_archive(t.file);
+  t.model = AnchorModel::from_archive(t.archive);
+  const nlohmann::json train = t.archive.meta.value("train", nlohmann::json::object());
+  t.sh_degree = std::min(train.value("active_sh_degree", t.model.config().sh_degree), t.model.config().sh_degree);
+  t.resolution = train.value("resolution", 1);
+  t.eval_split = train.value("eval_split", true);
+  if (with_language) {
+    if (!t.archive.meta.contains("clusters") || !t.archive.meta.contains("language"))
+      throw std::runtime_error(t.file +
+                               " has no clusters/language features, which a text query needs and stage 3 "
+                               "attaches: run stages 2 and 3 on it (`ag2gs train SCENE_DIR -o MODEL_DIR --stages "
+                               "2,3`), or select by a click");
+    t.clustering = clustering_from_archive(t.archive, t.model.size());
+    t.language = language_from_archive(t.archive, t.clustering.clusters());
+  }
+  return t;
+}
+
 namespace {
 
 void cmd_query(const GlobalOptions& global, QueryArgs a) {
@@ -226,26 +249,12 @@ void cmd_query(const GlobalOptions& global, QueryArgs a) {
   a.config.validate();
 
   const auto t_load = std::chrono::steady_clock::now();
-  const std::string model_file = (fs::path(a.model) / "model.ag2gs").string();
-  if (!fs::exists(model_file))
-    throw std::runtime_error(a.model + ": no model.ag2gs; give a model folder written by `ag2gs train`");
-  const ModelArchive archive = read_model_archive(model_file);
-  const AnchorModel model = AnchorModel::from_archive(archive);
-  const nlohmann::json train = archive.meta.value("train", nlohmann::json::object());
-  const int sh_degree = std::min(train.value("active_sh_degree", model.config().sh_degree), model.config().sh_degree);
-  if (a.resolution == 0) a.resolution = train.value("resolution", 1);
-
-  Clustering clustering;
-  LanguageFeatures language;
-  if (by_text) {
-    if (!archive.meta.contains("clusters") || !archive.meta.contains("language"))
-      throw std::runtime_error(model_file +
-                               " has no clusters/language features, which a text query needs: run stage 3 on the "
-                               "model (`ag2gs train` with stages 2 and 3, or ag2gs_bench_stage3 MODEL_DIR SCENE_DIR "
-                               "--out MODEL_DIR/model.ag2gs)");
-    clustering = clustering_from_archive(archive, model.size());
-    language = language_from_archive(archive, clustering.clusters());
-  }
+  const TrainedModel tm = load_trained_model(a.model, by_text);
+  const std::string& model_file = tm.file;
+  const AnchorModel& model = tm.model;
+  const int sh_degree = tm.sh_degree;
+  const LanguageFeatures& language = tm.language;
+  if (a.resolution == 0) a.resolution = tm.resolution;
 
   SceneOptions so;
   so.resolution = a.resolution;
@@ -262,7 +271,7 @@ void cmd_query(const GlobalOptions& global, QueryArgs a) {
 
   Runtime rt(global.device);
   QueryEngine engine(rt, model, a.config);
-  if (by_text) engine.set_language(clustering, language);
+  if (by_text) engine.set_language(tm.clustering, language);
   const double load_ms = ms_since(t_load);
   spdlog::info(
       "model {}: {} anchors, {} Gaussians; query graph (cell scale {}) {} edges; loaded and prepared in "

@@ -181,28 +181,17 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
   if (!a.inpainted.empty() && !fs::is_directory(a.inpainted))
     throw std::invalid_argument("--inpainted " + a.inpainted + " is not a folder");
 
-  const std::string model_file = (fs::path(a.model) / "model.ag2gs").string();
-  if (!fs::exists(model_file))
-    throw std::runtime_error(a.model + ": no model.ag2gs; give a model folder written by `ag2gs train`");
-  const ModelArchive archive = read_model_archive(model_file);
-  const AnchorModel model = AnchorModel::from_archive(archive);
-  const nlohmann::json train = archive.meta.value("train", nlohmann::json::object());
-  const int sh_degree = std::min(train.value("active_sh_degree", model.config().sh_degree), model.config().sh_degree);
-  if (a.resolution == 0) a.resolution = train.value("resolution", 1);
-  Clustering clustering;
-  LanguageFeatures language;
   const bool by_text = !by_selection && a.request.by_text();
-  if (by_text) {
-    if (!archive.meta.contains("clusters") || !archive.meta.contains("language"))
-      throw std::runtime_error(model_file +
-                               " has no clusters/language features, which a text query needs: train it with "
-                               "stages 2 and 3 (`ag2gs train ... --stages 1,2,3`), or select by --click");
-    clustering = clustering_from_archive(archive, model.size());
-    language = language_from_archive(archive, clustering.clusters());
-  }
+  const TrainedModel tm = load_trained_model(a.model, by_text);
+  const std::string& model_file = tm.file;
+  const ModelArchive& archive = tm.archive;
+  const AnchorModel& model = tm.model;
+  const int sh_degree = tm.sh_degree;
+  const LanguageFeatures& language = tm.language;
+  if (a.resolution == 0) a.resolution = tm.resolution;
   SceneOptions so;
   so.resolution = a.resolution;
-  so.eval = train.value("eval_split", true);
+  so.eval = tm.eval_split;
   so.sparse = a.sparse;
   std::unique_ptr<Scene> scene = Scene::open(a.scene, so);
   std::vector<float> embedding;
@@ -223,7 +212,7 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
     report["query"] = {{"type", "selection"}, {"file", a.selection}};
   } else {
     QueryEngine engine(rt, model, a.config);
-    if (by_text) engine.set_language(clustering, language);
+    if (by_text) engine.set_language(tm.clustering, language);
     selected = run_query(engine, *scene, a.request, embedding, a.resolution, a.config.text_margin, report, &query_ms);
   }
   std::vector<uint8_t> in_sel(model.size(), 0);

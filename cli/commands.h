@@ -6,9 +6,13 @@
 #include <string>
 #include <vector>
 
+#include "host/io/model_io.h"
 #include "host/scene/scene.h"
 
 #include "queries/query.h"
+#include "stages/anchor_model.h"
+#include "stages/clustering.h"
+#include "stages/language.h"
 
 namespace ag2gs::cli {
 
@@ -63,6 +67,21 @@ std::vector<float> load_query_embedding(const QueryRequest& request, const std::
 std::vector<int32_t> run_query(QueryEngine& engine, const Scene& scene, const QueryRequest& request,
                                const std::vector<float>& embedding, int resolution, double text_margin,
                                nlohmann::json& j, double* ms);
+// A trained model folder as `query` and `remove` read it (cmd_query.cpp).
+struct TrainedModel {
+  std::string file;  // MODEL_DIR/model.ag2gs
+  ModelArchive archive;
+  AnchorModel model;
+  int sh_degree = 0;   // the SH degree training had reached
+  int resolution = 1;  // the training -r
+  bool eval_split = true;
+  Clustering clustering;  // with_language only
+  LanguageFeatures language;
+};
+// Reads MODEL_DIR/model.ag2gs; with_language also its stage-3 clusters and
+// language features, which a text query needs. Throws naming the file and
+// the fix.
+TrainedModel load_trained_model(const std::string& model_dir, bool with_language);
 // A 0/1 mask [H,W] as an 8-bit PNG (0/255), written atomically.
 void write_mask_png(const std::string& path, const std::vector<uint8_t>& mask, int width, int height);
 // Runs the parsed subcommand; returns the process exit code.
