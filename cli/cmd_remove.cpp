@@ -236,7 +236,7 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
     fs::create_directories(tmp / "targets");
     const GaussianSet removed = gaussians_of_anchors(model, sh_degree, in_sel, true);
     const GaussianSet kept = gaussians_of_anchors(model, sh_degree, in_sel, false);
-    const double diameter = object_diameter(removed);
+    HoleFinder holes(kept, removed);
     Renderer renderer(rt);
     nlohmann::json views = nlohmann::json::array();
     size_t hole_total = 0;
@@ -244,7 +244,7 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
     const auto t_holes = std::chrono::steady_clock::now();
     for (size_t i = 0; i < train_views.size(); ++i) {
       const SceneView& sv = scene->views()[train_views[i]];
-      const ViewHole h = find_hole(renderer, kept, removed, diameter, sv.camera, a.holes);
+      const ViewHole h = holes.find(renderer, sv.camera, a.holes);
       const std::vector<float> target =
           a.inpainted.empty() ? inpaint_hole(h.rgb_after, h.hole, h.width, h.height, method)
                               : read_inpainted(a.inpainted, sv);
@@ -281,7 +281,7 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
     report["holes"] = {{"object_weight", a.holes.object_weight},
                        {"alpha_min", a.holes.alpha_min},
                        {"behind_diameters", a.holes.behind},
-                       {"object_diameter", diameter},
+                       {"object_diameter", holes.diameter()},
                        {"dilate", a.holes.dilate},
                        {"pixels", hole_total},
                        {"views", views}};

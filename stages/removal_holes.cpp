@@ -43,38 +43,40 @@ double object_diameter(const GaussianSet& removed) {
   return 2.0 * v[q];
 }
 
-ViewHole find_hole(Renderer& renderer, const GaussianSet& kept, const GaussianSet& removed, double diameter,
-                   const Camera& cam, const HoleSettings& s, const RenderSettings& render) {
-  s.validate();
+HoleFinder::HoleFinder(const GaussianSet& kept, const GaussianSet& removed)
+    : kept_(kept), removed_(removed), diameter_(object_diameter(removed)) {
   if (kept.sh_degree != removed.sh_degree)
-    throw std::invalid_argument("find_hole: kept and removed Gaussians have different SH degrees");
+    throw std::invalid_argument("HoleFinder: kept and removed Gaussians have different SH degrees");
+  full_ = kept;
+  const size_t nk = kept.size(), nr = removed.size();
+  full_.resize(nk + nr);
+  std::copy(removed.means.begin(), removed.means.end(), full_.means.begin() + 3 * nk);
+  std::copy(removed.scales.begin(), removed.scales.end(), full_.scales.begin() + 3 * nk);
+  std::copy(removed.quats.begin(), removed.quats.end(), full_.quats.begin() + 4 * nk);
+  std::copy(removed.opacities.begin(), removed.opacities.end(), full_.opacities.begin() + nk);
+  std::copy(removed.sh.begin(), removed.sh.end(), full_.sh.begin() + nk * full_.sh_coeffs() * 3);
+  std::fill(full_.features.begin(), full_.features.end(), 0.f);
+  for (size_t i = 0; i < nr; ++i) full_.features[3 * (nk + i)] = 1.f;
+}
+
+ViewHole HoleFinder::find(Renderer& renderer, const Camera& cam, const HoleSettings& s, const RenderSettings& render) {
+  s.validate();
   ViewHole h;
   h.width = cam.width;
   h.height = cam.height;
   const size_t npix = static_cast<size_t>(cam.width) * cam.height;
-
-  // The full model, its features marking the removed Gaussians and their depth.
-  GaussianSet full = kept;
-  const size_t nk = kept.size(), nr = removed.size();
-  full.resize(nk + nr);
-  std::copy(removed.means.begin(), removed.means.end(), full.means.begin() + 3 * nk);
-  std::copy(removed.scales.begin(), removed.scales.end(), full.scales.begin() + 3 * nk);
-  std::copy(removed.quats.begin(), removed.quats.end(), full.quats.begin() + 4 * nk);
-  std::copy(removed.opacities.begin(), removed.opacities.end(), full.opacities.begin() + nk);
-  std::copy(removed.sh.begin(), removed.sh.end(), full.sh.begin() + nk * full.sh_coeffs() * 3);
-  std::fill(full.features.begin(), full.features.end(), 0.f);
+  const size_t nk = kept_.size(), nr = removed_.size();
   for (size_t i = 0; i < nr; ++i) {
-    const Eigen::Vector3d m(removed.means[3 * i], removed.means[3 * i + 1], removed.means[3 * i + 2]);
-    full.features[3 * (nk + i)] = 1.f;
-    full.features[3 * (nk + i) + 1] = static_cast<float>((cam.R * m + cam.t).z());
+    const Eigen::Vector3d m(removed_.means[3 * i], removed_.means[3 * i + 1], removed_.means[3 * i + 2]);
+    full_.features[3 * (nk + i) + 1] = static_cast<float>((cam.R * m + cam.t).z());
   }
   RenderSettings with_features = render;
   with_features.features = true;
-  const RenderOutput before = renderer.render(full, cam, with_features);
+  const RenderOutput before = renderer.render(full_, cam, with_features);
 
   RenderSettings plain = render;
   plain.features = false;
-  const RenderOutput after = renderer.render(kept, cam, plain);
+  const RenderOutput after = renderer.render(kept_, cam, plain);
   h.rgb_after = after.rgb;
 
   h.object.assign(npix, 0);
@@ -89,7 +91,7 @@ ViewHole find_hole(Renderer& renderer, const GaussianSet& kept, const GaussianSe
     bool is_hole = a < s.alpha_min;
     if (!is_hole) {
       const double depth = after.depth[p] / a;
-      is_hole = depth > object_depth + s.behind * diameter;
+      is_hole = depth > object_depth + s.behind * diameter_;
     }
     if (is_hole) {
       hole.data[p] = 1;

@@ -44,13 +44,26 @@ struct ViewHole {
 // means' distances from the median point (robust to a few stray Gaussians).
 double object_diameter(const GaussianSet& removed);
 
-// The hole of one view. `kept` and `removed` split one model; `diameter` is
-// object_diameter(removed). Two renders: the full model with each Gaussian's
+// The holes of one removal, view by view. `kept` and `removed` split one
+// model (same SH degree; std::invalid_argument otherwise); both must outlive
+// the finder. Per view, two renders: the full model with each Gaussian's
 // feature set to (1, camera depth, 0) for removed ones and 0 for kept ones
 // (so the blended feature gives the object's summed weight and mean depth
-// per pixel), and the kept model alone.
-ViewHole find_hole(Renderer& renderer, const GaussianSet& kept, const GaussianSet& removed, double diameter,
-                   const Camera& cam, const HoleSettings& settings, const RenderSettings& render = {});
+// per pixel), and the kept model alone. The full set is assembled once; a
+// view only rewrites the removed Gaussians' depths.
+class HoleFinder {
+ public:
+  HoleFinder(const GaussianSet& kept, const GaussianSet& removed);
+  ViewHole find(Renderer& renderer, const Camera& cam, const HoleSettings& settings,
+                const RenderSettings& render = {});
+  double diameter() const { return diameter_; }  // object_diameter(removed)
+
+ private:
+  const GaussianSet& kept_;
+  const GaussianSet& removed_;
+  GaussianSet full_;
+  double diameter_ = 0;
+};
 
 enum class InpaintMethod { kTelea, kNavierStokes, kNone };
 

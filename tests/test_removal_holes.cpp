@@ -111,14 +111,14 @@ size_t mismatches_beyond_a_pixel(const std::vector<uint8_t>& a, const std::vecto
 
 TEST(RemovalHoles, HoleIsTheFootprintSeenFromEachView) {
   const GaussianSet kept = floor_without_footprint(), removed = box();
-  const double diameter = object_diameter(removed);
-  EXPECT_NEAR(diameter, 2 * std::sqrt(3.0) * kHalf, 0.15);
+  HoleFinder finder(kept, removed);
+  EXPECT_NEAR(finder.diameter(), 2 * std::sqrt(3.0) * kHalf, 0.15);
   Renderer renderer(test::runtime());
   HoleSettings s;
   s.dilate = 0;
   for (double az : {0.3, 1.9, 3.4, 5.0}) {
     const Camera cam = view_from(az);
-    const ViewHole h = find_hole(renderer, kept, removed, diameter, cam, s);
+    const ViewHole h = finder.find(renderer, cam, s);
     const std::vector<uint8_t> want = expected_hole(cam);
     size_t want_pixels = 0;
     for (uint8_t b : want) want_pixels += b;
@@ -145,20 +145,25 @@ TEST(RemovalHoles, DilationGrowsTheHoleAndNothingRemovedMeansNoHole) {
   const Camera cam = view_from(0.7);
   HoleSettings s;
   s.dilate = 0;
-  const ViewHole h0 = find_hole(renderer, kept, removed, object_diameter(removed), cam, s);
+  HoleFinder finder(kept, removed);
+  const ViewHole h0 = finder.find(renderer, cam, s);
   s.dilate = 2;
-  const ViewHole h2 = find_hole(renderer, kept, removed, object_diameter(removed), cam, s);
+  const ViewHole h2 = finder.find(renderer, cam, s);
   EXPECT_EQ(h2.undilated_hole_pixels, h0.hole_pixels);
   EXPECT_GT(h2.hole_pixels, h0.hole_pixels);
   for (size_t p = 0; p < h0.hole.size(); ++p)
     if (h0.hole[p]) EXPECT_TRUE(h2.hole[p]);
   GaussianSet none;
   none.sh_degree = 0;
-  const ViewHole hn = find_hole(renderer, kept, none, 0.0, cam, s);
+  const ViewHole hn = HoleFinder(kept, none).find(renderer, cam, s);
   EXPECT_EQ(hn.object_pixels, 0u);
   EXPECT_EQ(hn.hole_pixels, 0u);
   s.dilate = -1;
-  EXPECT_THROW(find_hole(renderer, kept, removed, 1.0, cam, s), std::invalid_argument);
+  EXPECT_THROW(finder.find(renderer, cam, s), std::invalid_argument);
+  GaussianSet other_degree = removed;
+  other_degree.sh_degree = 1;
+  other_degree.sh.resize(other_degree.size() * 4 * 3, 0.f);
+  EXPECT_THROW(HoleFinder(kept, other_degree), std::invalid_argument);
 }
 
 TEST(RemovalHoles, InpaintingFillsOnlyTheHole) {
