@@ -13,7 +13,6 @@
 #include <filesystem>
 #include <memory>
 #include <nlohmann/json.hpp>
-#include <opencv2/imgcodecs.hpp>
 #include <string>
 #include <system_error>
 
@@ -80,38 +79,15 @@ std::vector<float> read_inpainted(const std::string& dir, const SceneView& view)
     throw std::runtime_error("--inpainted " + dir + ": " + path.filename().string() + " is missing (one " +
                              std::to_string(view.camera.width) + "x" + std::to_string(view.camera.height) +
                              " PNG per training view, named after the view)");
-  cv::Mat img = cv::imread(path.string(), cv::IMREAD_COLOR);
-  if (img.empty()) throw std::runtime_error(path.string() + ": not a readable image");
-  if (img.cols != view.camera.width || img.rows != view.camera.height)
-    throw std::runtime_error(path.string() + ": " + std::to_string(img.cols) + "x" + std::to_string(img.rows) +
+  int width = 0, height = 0;
+  std::vector<float> rgb = read_rgb(path.string(), width, height);
+  if (width != view.camera.width || height != view.camera.height)
+    throw std::runtime_error(path.string() + ": " + std::to_string(width) + "x" + std::to_string(height) +
                              ", expected " + std::to_string(view.camera.width) + "x" +
                              std::to_string(view.camera.height) + " (the view at the model's -r; use -r to match)");
-  std::vector<float> rgb(static_cast<size_t>(img.cols) * img.rows * 3);
-  for (int y = 0; y < img.rows; ++y)
-    for (int x = 0; x < img.cols; ++x) {
-      const cv::Vec3b p = img.at<cv::Vec3b>(y, x);  // BGR
-      const size_t i = (static_cast<size_t>(y) * img.cols + x) * 3;
-      rgb[i] = p[2] / 255.f;
-      rgb[i + 1] = p[1] / 255.f;
-      rgb[i + 2] = p[0] / 255.f;
-    }
   return rgb;
 }
 
-void write_rgb(const std::string& path, const std::vector<float>& rgb, int width, int height) {
-  cv::Mat img(height, width, CV_8UC3);
-  for (int y = 0; y < height; ++y)
-    for (int x = 0; x < width; ++x) {
-      const size_t i = (static_cast<size_t>(y) * width + x) * 3;
-      auto byte = [](float v) { return static_cast<uint8_t>(std::lround(std::clamp(v, 0.f, 1.f) * 255.f)); };
-      img.at<cv::Vec3b>(y, x) = cv::Vec3b(byte(rgb[i + 2]), byte(rgb[i + 1]), byte(rgb[i]));
-    }
-  std::vector<uint8_t> bytes;
-  if (!cv::imencode(".png", img, bytes)) throw std::runtime_error(path + ": could not encode the image as PNG");
-  AtomicFile f(path);
-  f.write(bytes.data(), bytes.size());
-  f.commit();
-}
 
 // The archive of the model without the removed anchors: the anchors, the
 // training record, and stage 3's clusters and language features with the
@@ -249,7 +225,7 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
           a.inpainted.empty() ? inpaint_hole(h.rgb_after, h.hole, h.width, h.height, method)
                               : read_inpainted(a.inpainted, sv);
       write_mask_png((tmp / "holes" / (sv.stem + ".png")).string(), h.hole, h.width, h.height);
-      write_rgb((tmp / "targets" / (sv.stem + ".png")).string(), target, h.width, h.height);
+      write_rgb_png((tmp / "targets" / (sv.stem + ".png")).string(), target, h.width, h.height);
       hole_total += h.hole_pixels;
       views.push_back({{"view", sv.name},
                        {"object_pixels", h.object_pixels},
