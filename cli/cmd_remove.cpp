@@ -98,6 +98,7 @@ ModelArchive archive_without(const ModelArchive& in, const AnchorModel& kept_mod
   ModelArchive out;
   kept_model.to_archive(out);
   if (in.meta.contains("train")) out.meta["train"] = in.meta["train"];
+  if (in.has("sky/sh")) out.put_tensor("sky/sh", in.tensor("sky/sh"));
   if (in.meta.contains("clusters") && in.has("clusters/anchor_cluster")) {
     const std::vector<int32_t> ids = in.get<int32_t>("clusters/anchor_cluster");
     std::vector<int32_t> size = in.get<int32_t>("clusters/size");
@@ -214,13 +215,17 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
     const GaussianSet kept = gaussians_of_anchors(model, sh_degree, in_sel, false);
     HoleFinder holes(kept, removed);
     Renderer renderer(rt);
+    // The model's sky shows in the renders after deletion, as in training.
+    Sky sky(rt);
+    if (const auto coefficients = sky_from_archive(tm.archive))
+      sky.set(sky_degree_for(coefficients->size()), *coefficients);
     nlohmann::json views = nlohmann::json::array();
     size_t hole_total = 0;
     const std::vector<int> train_views = scene->train_views();
     const auto t_holes = std::chrono::steady_clock::now();
     for (size_t i = 0; i < train_views.size(); ++i) {
       const SceneView& sv = scene->views()[train_views[i]];
-      const ViewHole h = holes.find(renderer, sv.camera, a.holes);
+      const ViewHole h = holes.find(renderer, sv.camera, a.holes, {}, sky.enabled() ? &sky : nullptr);
       const std::vector<float> target =
           a.inpainted.empty() ? inpaint_hole(h.rgb_after, h.hole, h.width, h.height, method)
                               : read_inpainted(a.inpainted, sv);

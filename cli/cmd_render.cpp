@@ -12,6 +12,7 @@
 #include <fstream>
 #include <map>
 #include <memory>
+#include <optional>
 #include <sstream>
 
 #include "cli/commands.h"
@@ -22,10 +23,12 @@
 #include "host/io/npy_io.h"
 #include "host/io/ply_io.h"
 #include "host/render/renderer.h"
+#include "host/render/sky.h"
 #include "host/scene/scene.h"
 #include "stages/anchor_model.h"
 #include "stages/clustering.h"
 #include "stages/instance_map.h"
+#include "stages/train_common.h"
 
 namespace fs = std::filesystem;
 
@@ -34,6 +37,7 @@ namespace {
 
 struct RenderArgs {
   std::string model, ply, scene, out, views, outputs = "rgb", bg = "0,0,0", sparse;
+  bool bg_given = false;  // --bg on the command line (else a model's sky, when it has one)
   int resolution = 0;  // 0 = the resolution the model was trained at (1 for a bare .ply)
   bool extras = false;
   bool drop_invalid = false;  // --drop-invalid: leave out Gaussians with invalid numbers
@@ -177,6 +181,11 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
 
   RenderSettings settings;
   settings.background = parse_rgb(a.bg);
+  // A model trained with a sky (host/render/sky.h) renders its rgb over
+  // it, as training saw it, unless --bg asks for a fixed background.
+  std::optional<std::vector<float>> sky_coefficients;
+  if (!a.model.empty() && !a.bg_given && fs::exists(fs::path(a.model) / "model.ag2gs"))
+    sky_coefficients = sky_from_archive(read_model_archive((fs::path(a.model) / "model.ag2gs").string()));
   GaussianSet set;
   // Instance maps need the anchors' clusters: the model's Gaussians are then
   // expanded from model.ag2gs (row g = anchor g / K, the same Gaussians as
@@ -224,6 +233,12 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
   Renderer renderer(rt);
   DeviceGaussians dg(rt);
   dg.upload(set);
+  Sky sky(rt);
+  if (sky_coefficients) {
+    sky.set(sky_degree_for(sky_coefficients->size()), *sky_coefficients);
+    settings.background = {0.f, 0.f, 0.f};
+    spdlog::info("rgb over the model's learned sky (SH degree {}); --bg R,G,B for a fixed background", sky.degree());
+  }
   InstanceMapper mapper(rt);
   if (wants("instance")) mapper.set_clusters(anchor_cluster, children);
   fs::path out_dir(a.out);
@@ -233,6 +248,7 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
     Camera cam = scale_camera(cams[i], resolution);
     renderer.forward(dg, cam, settings);
     RenderOutput out = renderer.download_output();
+    if (sky.enabled() && wants("rgb")) composite_sky(renderer, sky, cam, out);
     const std::string stem = fs::path(cam.name).stem().string();
     const int w = out.width, h = out.height;
     auto file = [&](const char* o, const char* ext) { return (out_dir / o / (stem + ext)).string(); };
@@ -285,7 +301,9 @@ void register_render(CLI::App& app, GlobalOptions& global) {
                      "train, test (every 8th image, as --eval), all (default), or comma-separated names/stems");
   render->add_option("--outputs", ra->outputs,
                      "Comma-separated: rgb (default), depth, alpha, feature, instance (cluster ids; needs stage 3)");
-  render->add_option("--bg", ra->bg, "Background colour R,G,B in [0,1] (default 0,0,0)");
+  render->add_option("--bg", ra->bg,
+                     "Fixed background colour R,G,B in [0,1] (default: the model's learned sky when it has one, "
+                     "else 0,0,0)");
   render->add_option("-r,--resolution", ra->resolution,
                      "Divide the camera resolution by R (default: the model's training -r, from model.ag2gs or "
                      "metrics.json; 1 for a .ply with neither beside it)");
@@ -295,7 +313,10 @@ void register_render(CLI::App& app, GlobalOptions& global) {
   render->add_flag("--drop-invalid", ra->drop_invalid,
                    "Leave out Gaussians with non-finite numbers, zero rotations, scales <= 0 or opacities outside "
                    "[0, 1] (default: such a .ply is refused)");
-  set_action(render, [&global, ra] { cmd_render(global, *ra); });
+  set_action(render, [&global, ra, render] {
+    ra->bg_given = render->count("--bg") > 0;
+    cmd_render(global, *ra);
+  });
 
 }
 

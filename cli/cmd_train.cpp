@@ -66,8 +66,10 @@ void apply_preset(const CLI::App& sub, TrainArgs& a) {
     unless_given("--grow-budget", c.grow_budget, 0.0);
     unless_given("--max-gaussians", c.max_gaussians, int64_t{0});
     unless_given("--downscales", c.downscales, 0);
-    spdlog::info("preset paper: --top-cells {} --children {} --scale-cap {} --grow-budget {} --max-gaussians {}",
-                 c.anchors.top_cells, c.anchors.children, c.anchors.scale_cap, c.grow_budget, c.max_gaussians);
+    unless_given("--sky-degree", c.sky_degree, -1);
+    spdlog::info(
+        "preset paper: --top-cells {} --children {} --scale-cap {} --grow-budget {} --max-gaussians {} --sky-degree {}",
+        c.anchors.top_cells, c.anchors.children, c.anchors.scale_cap, c.grow_budget, c.max_gaussians, c.sky_degree);
     return;
   }
   unless_given("--scale-cap", c.anchors.scale_cap, 64.f);
@@ -232,8 +234,9 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
                  trainer.gaussians(), c.anchors.children,
                  trainer.voxel_choice().describe(c.anchors.layers, c.anchors.layer_ratio));
   }
-  spdlog::info("{} iterations, seed {}, SH degree up to {} (+1 every {} iterations), background {}", c.iterations,
-               c.seed, c.anchors.sh_degree, c.effective_sh_interval(), c.white_background ? "white" : "black");
+  spdlog::info("{} iterations, seed {}, SH degree up to {} (+1 every {} iterations), background {}{}", c.iterations,
+               c.seed, c.anchors.sh_degree, c.effective_sh_interval(), c.white_background ? "white" : "black",
+               c.sky_degree >= 0 ? fmt::format(" (the start of a learned sky of SH degree {})", c.sky_degree) : "");
   if (c.downscales > 0)
     spdlog::info(
         "coarse to fine: images / {} at first, resolution doubled every {} iterations (full from iteration {}{})",
@@ -423,7 +426,14 @@ void register_train(CLI::App& app, GlobalOptions& global) {
   sub->add_option("--sh-interval", c.sh_interval,
                   "Iterations per SH degree step (default 0 = min(1000, iters / (sh-degree + 1)))")
       ->check(non_negative_number());
-  sub->add_flag("--white-bg", c.white_background, "White background instead of black");
+  sub->add_flag("--white-bg", c.white_background, "White background instead of black (with a sky: its start)");
+  sub->add_option("--sky-degree", c.sky_degree,
+                  "The sky behind the Gaussians: a colour per viewing direction, spherical harmonics of this degree "
+                  "(default 3; 0 = one learned colour; -1 = none, a fixed black or white background; --preset paper "
+                  "-1)")
+      ->check(CLI::Range(-1, 3));
+  sub->add_option("--lr-sky", c.sky_lr, "Learning rate of the sky's coefficients (default 0.01)")
+      ->check(CLI::NonNegativeNumber);
   sub->add_option("--lambda-ssim", c.lambda_ssim, "Weight of 1 - SSIM in L_rgb (default 0.2)")
       ->check(CLI::Range(0.0, 1.0));
   sub->add_option("--w-offset", c.w_offset, "Weight of the offset regulariser L_in (default 0.5)");

@@ -117,6 +117,7 @@ void Trainer::save_checkpoint(const std::string& model_dir) {
   ModelArchive archive;
   m.to_archive(archive);
   const nlohmann::json groups = groups_->to_archive(archive);
+  if (sky_.enabled()) sky_to_archive(archive, sky_.download());
   const GrowthStatsHost gs = growth_.download();
   archive.put("growth/grad_sum", gs.grad_sum);
   archive.put("growth/count", gs.count);
@@ -169,6 +170,10 @@ void Trainer::resume(const std::string& model_dir) {
     const int64_t n = static_cast<int64_t>(m.gaussians());
     std::unique_ptr<ParamGroups> groups =
         ParamGroups::from_archive(rt_, group_specs(), archive, ck.at("adam"), m.gaussians(), m.size());
+    std::optional<std::vector<float>> sky = sky_from_archive(archive);
+    if (sky_.enabled() != sky.has_value() ||
+        (sky && sky_degree_for(sky->size()) != config_.sky_degree))
+      fail("its sky does not match the config's sky_degree " + std::to_string(config_.sky_degree));
     GrowthStatsHost gs;
     gs.grad_sum = archive.get<float>("growth/grad_sum", {n});
     gs.count = archive.get<int32_t>("growth/count", {n});
@@ -180,6 +185,7 @@ void Trainer::resume(const std::string& model_dir) {
     anchors_.upload(model_);
     host_stale_ = false;
     groups_ = std::move(groups);
+    if (sky) sky_.set(config_.sky_degree, *sky);
     growth_.set_config(config_.growth_config(train_views_.size()));
     growth_.restore(gs);
     iteration_ = iteration;
@@ -202,6 +208,7 @@ void Trainer::save(const std::string& model_dir) {
   ModelArchive archive;
   m.to_archive(archive);
   if (graph_ready_) graph_.to_archive(archive);
+  if (sky_.enabled()) sky_to_archive(archive, sky_.download());
   archive.meta["train"] = {{"stage", iteration_ > config_.iterations ? 2 : 1},
                            {"iteration", iteration_},
                            {"seed", config_.seed},

@@ -10,7 +10,8 @@ namespace ag2gs {
 ParamGroups::ParamGroups(Runtime& rt, std::vector<ParamGroupSpec> specs, size_t rows, size_t anchor_rows)
     : specs_(std::move(specs)) {
   for (const ParamGroupSpec& s : specs_)
-    groups_.push_back(std::make_unique<AdamGroup>(rt, s.name, s.per_anchor ? anchor_rows : rows, s.row_size));
+    groups_.push_back(std::make_unique<AdamGroup>(
+        rt, s.name, s.fixed_rows > 0 ? s.fixed_rows : s.per_anchor ? anchor_rows : rows, s.row_size));
 }
 
 AdamGroup& ParamGroups::named(const std::string& name) const {
@@ -23,7 +24,8 @@ AdamGroup& ParamGroups::named(const std::string& name) const {
 }
 
 void ParamGroups::gather(const std::vector<int>& rows, const std::vector<int>& anchor_rows) {
-  for (size_t i = 0; i < groups_.size(); ++i) groups_[i]->gather(specs_[i].per_anchor ? anchor_rows : rows);
+  for (size_t i = 0; i < groups_.size(); ++i)
+    if (specs_[i].fixed_rows == 0) groups_[i]->gather(specs_[i].per_anchor ? anchor_rows : rows);
 }
 
 uint64_t ParamGroups::count_nonfinite(Adam& adam, const std::vector<GroupStep>& steps) const {

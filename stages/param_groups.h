@@ -23,6 +23,7 @@ struct ParamGroupSpec {
   const char* name;
   int row_size;
   bool per_anchor = false;  // one row per anchor (else one per Gaussian)
+  size_t fixed_rows = 0;    // > 0: this many rows whatever the model (the sky); growth leaves them
 };
 
 // One update: group `index` of the table steps `param` with `grad` at `lr`.

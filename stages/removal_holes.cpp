@@ -6,6 +6,8 @@
 #include <opencv2/photo.hpp>
 #include <stdexcept>
 
+#include "stages/train_common.h"
+
 namespace ag2gs {
 
 void HoleSettings::validate() const {
@@ -59,7 +61,8 @@ HoleFinder::HoleFinder(const GaussianSet& kept, const GaussianSet& removed)
   for (size_t i = 0; i < nr; ++i) full_.features[3 * (nk + i)] = 1.f;
 }
 
-ViewHole HoleFinder::find(Renderer& renderer, const Camera& cam, const HoleSettings& s, const RenderSettings& render) {
+ViewHole HoleFinder::find(Renderer& renderer, const Camera& cam, const HoleSettings& s, const RenderSettings& render,
+                          Sky* sky) {
   s.validate();
   ViewHole h;
   h.width = cam.width;
@@ -76,7 +79,8 @@ ViewHole HoleFinder::find(Renderer& renderer, const Camera& cam, const HoleSetti
 
   RenderSettings plain = render;
   plain.features = false;
-  const RenderOutput after = renderer.render(kept_, cam, plain);
+  RenderOutput after = renderer.render(kept_, cam, plain);
+  if (sky) composite_sky(renderer, *sky, cam, after);
   h.rgb_after = after.rgb;
 
   h.object.assign(npix, 0);

@@ -11,6 +11,7 @@
 
 #include "host/core/gaussians.h"
 #include "host/render/renderer.h"
+#include "host/render/sky.h"
 
 namespace ag2gs {
 
@@ -54,8 +55,10 @@ double object_diameter(const GaussianSet& removed);
 class HoleFinder {
  public:
   HoleFinder(const GaussianSet& kept, const GaussianSet& removed);
+  // With a sky (the model's, host/render/sky.h), rgb_after is composited
+  // over it; the hole rule reads the Gaussians' alpha alone.
   ViewHole find(Renderer& renderer, const Camera& cam, const HoleSettings& settings,
-                const RenderSettings& render = {});
+                const RenderSettings& render = {}, Sky* sky = nullptr);
   double diameter() const { return diameter_; }  // object_diameter(removed)
 
  private:

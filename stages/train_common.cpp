@@ -8,12 +8,14 @@
 namespace ag2gs {
 
 EvalStats evaluate_views(Renderer& renderer, ImageLoss& loss, const DeviceGaussians& gaussians, Scene& scene,
-                         const std::vector<int>& views, const RenderSettings& settings, float lambda_ssim) {
+                         const std::vector<int>& views, const RenderSettings& settings, float lambda_ssim,
+                         Sky* sky) {
   EvalStats ev;
   if (views.empty()) return ev;
   for (int v : views) {
     renderer.forward(gaussians, scene.views()[v].camera, settings);
     RenderOutput out = renderer.download_output();
+    if (sky) composite_sky(renderer, *sky, scene.views()[v].camera, out);
     for (float& x : out.rgb) x = std::clamp(x, 0.f, 1.f);
     std::shared_ptr<const Image> target = scene.image(v);
     ImageLossResult r =
@@ -27,6 +29,16 @@ EvalStats evaluate_views(Renderer& renderer, ImageLoss& loss, const DeviceGaussi
   ev.ssim /= ev.views;
   ev.l1 /= ev.views;
   return ev;
+}
+
+void composite_sky(Renderer& renderer, Sky& sky, const Camera& camera, RenderOutput& out) {
+  const DeviceBuffer& planar = sky.compose(renderer.device_rgb(), renderer.device_alpha(), camera);
+  const size_t npix = static_cast<size_t>(camera.width) * camera.height;
+  std::vector<float> p;
+  planar.download(p, 3 * npix);
+  out.rgb.resize(3 * npix);
+  for (size_t i = 0; i < npix; ++i)
+    for (size_t c = 0; c < 3; ++c) out.rgb[3 * i + c] = p[c * npix + i];
 }
 
 Camera downscaled_camera(const Camera& cam, int factor) {

@@ -9,6 +9,7 @@
 #include "host/device/cl_runtime.h"
 #include "host/render/image_loss.h"
 #include "host/render/renderer.h"
+#include "host/render/sky.h"
 #include "host/scene/scene.h"
 
 namespace ag2gs {
@@ -19,9 +20,15 @@ struct EvalStats {
 };
 
 // Mean PSNR/SSIM/L1 over `views`, each rendered from `gaussians` with
-// `settings`, colours clamped to [0, 1], against the scene's photo.
+// `settings` (and composited over `sky` when given), colours clamped to
+// [0, 1], against the scene's photo.
 EvalStats evaluate_views(Renderer& renderer, ImageLoss& loss, const DeviceGaussians& gaussians, Scene& scene,
-                         const std::vector<int>& views, const RenderSettings& settings, float lambda_ssim);
+                         const std::vector<int>& views, const RenderSettings& settings, float lambda_ssim,
+                         Sky* sky = nullptr);
+
+// The renderer's last frame composited over `sky` (Sky::compose), read
+// back into out.rgb ([H, W, 3], as RenderOutput holds it).
+void composite_sky(Renderer& renderer, Sky& sky, const Camera& camera, RenderOutput& out);
 
 // The photo as the losses read it, planar [3, H, W] on the device: each
 // pixel the mean of its downscale x downscale block (1 = the photo as

@@ -29,9 +29,12 @@ void TrainConfig::validate() const {
       {"offset_lr_init", offset_lr_init}, {"offset_lr_final", offset_lr_final},
       {"feature_lr", feature_lr},         {"sh_dc_lr", sh_dc_lr},
       {"sh_rest_lr", sh_rest_lr},         {"opacity_lr", opacity_lr},
-      {"scaling_lr", scaling_lr},         {"rotation_lr", rotation_lr}};
+      {"scaling_lr", scaling_lr},         {"rotation_lr", rotation_lr},
+      {"sky_lr", sky_lr}};
   for (const auto& [name, v] : rates)
     if (!(v >= 0) || !std::isfinite(v)) bad(std::string(name) + " must be finite and >= 0");
+  if (sky_degree < -1 || sky_degree > 3)
+    bad("sky_degree is " + std::to_string(sky_degree) + "; use -1 (no sky) or 0 to 3");
   if (!(prune_opacity >= 0 && prune_opacity < 1)) bad("prune_opacity must be in [0, 1)");
   if (!(recycle_opacity >= 0 && recycle_opacity < 1)) bad("recycle_opacity must be in [0, 1)");
   if (downscales < -1 || downscales > 6)
@@ -143,6 +146,8 @@ nlohmann::json TrainConfig::to_json() const {
           {"rotation_lr", rotation_lr},
           {"adam", {{"beta1", adam.beta1}, {"beta2", adam.beta2}, {"eps", adam.eps}}},
           {"white_background", white_background},
+          {"sky_degree", sky_degree},
+          {"sky_lr", sky_lr},
           {"grow",
            {{"from", grow_from},
             {"until", effective_grow_until()},
@@ -210,6 +215,8 @@ TrainConfig TrainConfig::from_json(const nlohmann::json& j) {
     c.adam.beta2 = j.at("adam").at("beta2").get<double>();
     c.adam.eps = j.at("adam").at("eps").get<double>();
     c.white_background = j.at("white_background").get<bool>();
+    c.sky_degree = j.value("sky_degree", -1);  // written before the sky existed
+    c.sky_lr = j.value("sky_lr", 0.01);
     const nlohmann::json& g = j.at("grow");
     c.grow_from = g.at("from").get<int>();
     c.grow_until = g.at("until").get<int>();

@@ -79,6 +79,12 @@ struct TrainConfig {
   AdamSettings adam;
 
   bool white_background = false;
+  // The sky (host/render/sky.h): a colour per viewing direction, spherical
+  // harmonics of this degree (0..3; -1 = none, the constant background
+  // above), learned behind the Gaussians with rate sky_lr. It starts as
+  // the constant background.
+  int sky_degree = 3;
+  double sky_lr = 0.01;
 
   // Growing. grow_every = 0 turns it off; grow_until = 0 means 2/3 of the
   // iterations (the official 20k of 30k).

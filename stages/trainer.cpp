@@ -37,6 +37,7 @@ Trainer::Trainer(Runtime& rt, Scene& scene, const TrainConfig& config)
       renderer_(rt),
       image_loss_(rt),
       mask_loss_(rt),
+      sky_(rt),
       adam_(rt, config.adam),
       growth_(rt, GrowthConfig{}),
       prop_(rt, PropagationLossConfig{config.prop_tau > 0 ? config.prop_tau : kPropagationTau, false, 0}) {
@@ -61,10 +62,23 @@ Trainer::Trainer(Runtime& rt, Scene& scene, const TrainConfig& config)
                              std::to_string(scene_.points().size()) + " SfM points (all non-finite or out of range)");
   extent_ = scene_.bounds().camera_radius > 0 ? scene_.bounds().camera_radius : scene_.bounds().longest_extent();
   anchors_.upload(model_);
+  if (config_.sky_degree >= 0) {
+    // The sky starts as the least-squares fit to the training photos.
+    const float bg = config_.white_background ? 1.f : 0.f;
+    sky_.set(config_.sky_degree, sky_constant(config_.sky_degree, {bg, bg, bg}));
+    Eigen::MatrixXd gram, rhs;
+    target_dev_.bind(&rt_);
+    for (int v : train_views_) {
+      upload_target(*scene_.image(v), 1, target_planar_, target_dev_);
+      sky_.add_fit(target_dev_, scene_.views()[v].camera, gram, rhs);
+    }
+    sky_.set(config_.sky_degree, Sky::solve_fit(gram, rhs));
+  }
   const size_t n = model_.gaussians();
   groups_ = std::make_unique<ParamGroups>(rt_, group_specs(), n, model_.size());
   reg_value_.bind(&rt_);
-  for (DeviceBuffer* b : {&target_dev_, &grad_rgb_dev_, &grad_dist_dev_, &grad_feat_dev_, &grad_alpha_dev_})
+  for (DeviceBuffer* b :
+       {&target_dev_, &grad_rgb_dev_, &grad_dist_dev_, &grad_feat_dev_, &grad_alpha_dev_, &sky_grad_alpha_})
     b->bind(&rt_);
   if (scene_.semantics() == SemanticsKind::none) {
     spdlog::info("scene {} has no SAM masks (language_features/ or masks/): training appearance only", scene_.dir());
@@ -111,10 +125,13 @@ bool Trainer::opacity_reset_due(int iteration) const {
          iteration <= config_.iterations;
 }
 
-std::vector<ParamGroupSpec> Trainer::group_specs() {
-  return {{"offset", 3},  {"scaling", 3}, {"rotation", 4},
-          {"opacity", 1}, {"sh_dc", 3},   {"sh_rest", 3 * kShRestCoeffs},
-          {"feature", 3, /*per_anchor=*/true}};
+std::vector<ParamGroupSpec> Trainer::group_specs() const {
+  std::vector<ParamGroupSpec> specs = {{"offset", 3},  {"scaling", 3}, {"rotation", 4},
+                                       {"opacity", 1}, {"sh_dc", 3},   {"sh_rest", 3 * kShRestCoeffs},
+                                       {"feature", 3, /*per_anchor=*/true}};
+  if (config_.sky_degree >= 0)
+    specs.push_back({"sky", 3, false, static_cast<size_t>(sh_coeffs_for_degree(config_.sky_degree))});
+  return specs;
 }
 
 AdamGroup& Trainer::adam_group(const std::string& name) { return groups_->named(name); }
@@ -159,12 +176,14 @@ std::pair<int, int> Trainer::render_and_losses(StepStats& st, bool compute_offse
   const Camera camera = level > 0 ? downscaled_camera(view.camera, st.downscale) : view.camera;
 
   RenderSettings settings;
-  const float bg = config_.white_background ? 1.f : 0.f;
+  const float bg = config_.white_background && !sky_.enabled() ? 1.f : 0.f;
   settings.background = {bg, bg, bg};
   settings.features = mask_step;  // only the mask losses read the rendered features
 
   expander_.forward(anchors_, gaussians_, st.sh_degree);
   renderer_.forward(gaussians_, camera, settings);
+  const DeviceBuffer& rgb =
+      sky_.enabled() ? sky_.compose(renderer_.device_rgb(), renderer_.device_alpha(), camera) : renderer_.device_rgb();
   st.intersections = renderer_.stats().n_intersections;
   const int w = camera.width, h = camera.height;
   const size_t npix = static_cast<size_t>(w) * h;
@@ -172,7 +191,7 @@ std::pair<int, int> Trainer::render_and_losses(StepStats& st, bool compute_offse
   // The losses read the rendered planes where they are, on the device; only
   // the target goes up and the distortion plane comes back (for the report).
   upload_target(*target, st.downscale, target_planar_, target_dev_);
-  image_loss_.enqueue(renderer_.device_rgb(), target_dev_, w, h, config_.lambda_ssim, &grad_rgb_dev_, nullptr,
+  image_loss_.enqueue(rgb, target_dev_, w, h, config_.lambda_ssim, &grad_rgb_dev_, nullptr,
                       ImageLayout::kPlanar);
   Renderer::DeviceOutputGrads og;
   og.rgb = &grad_rgb_dev_;
@@ -205,6 +224,13 @@ std::pair<int, int> Trainer::render_and_losses(StepStats& st, bool compute_offse
       renderer_.backward(fg);
       expander_.backward(anchors_, renderer_.device_grads(), feature_grads_);
     }
+  }
+  if (sky_.enabled()) {
+    // The sky's alpha gradient joins the mask loss's, or stands alone.
+    const bool add = og.alpha != nullptr;
+    DeviceBuffer& ga = add ? grad_alpha_dev_ : sky_grad_alpha_;
+    sky_.backward(grad_rgb_dev_, renderer_.device_alpha(), camera, ga, add);
+    og.alpha = &ga;
   }
   renderer_.backward(og);
   const ImageLossResult lr = image_loss_.result();
@@ -270,6 +296,7 @@ void Trainer::update(StepStats& st, int w, int h) {
       {kShDc, &anchors_.sh_dc, &grads_.sh_dc, config_.sh_dc_lr},
       {kShRest, &anchors_.sh_rest, &grads_.sh_rest, config_.sh_rest_lr}};
   if (step_features) updates.push_back({kFeature, &anchors_.feature, &feature_grad, config_.feature_lr});
+  if (sky_.enabled()) updates.push_back({kSky, &sky_.coefficients(), &sky_.gradient(), config_.sky_lr});
   st.skipped = !groups_->step_if_finite(adam_, updates, st.iteration, st.loss, &st.nonfinite);
   if (!st.skipped) {
     if (step_features && config_.feature_ball) enqueue_feature_ball(rt_, anchors_.anchors, anchors_.feature);
@@ -326,10 +353,11 @@ void Trainer::reset_opacities(StepStats& st) {
 EvalStats Trainer::evaluate(const std::vector<int>& views) {
   if (views.empty()) return {};
   RenderSettings settings;
-  const float bg = config_.white_background ? 1.f : 0.f;
+  const float bg = config_.white_background && !sky_.enabled() ? 1.f : 0.f;
   settings.background = {bg, bg, bg};
   expander_.forward(anchors_, gaussians_, active_sh_degree());
-  return evaluate_views(renderer_, image_loss_, gaussians_, scene_, views, settings, config_.lambda_ssim);
+  return evaluate_views(renderer_, image_loss_, gaussians_, scene_, views, settings, config_.lambda_ssim,
+                        sky_.enabled() ? &sky_ : nullptr);
 }
 
 }  // namespace ag2gs

@@ -80,6 +80,7 @@
 #include "host/render/image_loss.h"
 #include "host/render/mask_loss.h"
 #include "host/render/renderer.h"
+#include "host/render/sky.h"
 #include "host/scene/scene.h"
 #include "stages/anchor_graph.h"
 #include "stages/anchor_growth.h"
@@ -181,6 +182,8 @@ class Trainer {
   size_t max_gaussians() const { return max_gaussians_; }
   // The model with the device's current values.
   const AnchorModel& model();
+  // The sky's coefficients [K, 3] (empty without a sky; host/render/sky.h).
+  std::vector<float> sky() const { return sky_.enabled() ? sky_.download() : std::vector<float>{}; }
   const TrainConfig& config() const { return config_; }
   // The training view of iteration `it` (0-based): a permutation of the
   // training views per epoch from a counter-based hash of (seed, epoch).
@@ -224,11 +227,14 @@ class Trainer {
   Renderer renderer_;
   ImageLoss image_loss_;
   MaskLoss mask_loss_;
+  Sky sky_;
+  DeviceBuffer sky_grad_alpha_;  // the sky's alpha gradient when no mask loss wrote one
   bool has_masks_ = false;  // the scene has SAM masks (and a mask weight is > 0)
   Adam adam_;
   // The optimiser groups, in the order of group_specs().
-  enum Group : size_t { kOffset, kScaling, kRotation, kOpacity, kShDc, kShRest, kFeature };
-  static std::vector<ParamGroupSpec> group_specs();
+  // kSky exists only with a sky (config.sky_degree >= 0).
+  enum Group : size_t { kOffset, kScaling, kRotation, kOpacity, kShDc, kShRest, kFeature, kSky };
+  std::vector<ParamGroupSpec> group_specs() const;
   std::unique_ptr<ParamGroups> groups_;
   DeviceBuffer reg_value_;
   // The view's target image [3,H,W], the loss gradients fed back to the

@@ -116,6 +116,8 @@ step adam "$build/test_adam" \
 step instance_map "$build/test_instance_map" --gtest_filter='InstanceMap.NearHalfTies'
 step propagation "$build/test_anchor_graph" --gtest_filter='PropagationLoss.DeviceMatchesReference'
 step expander "$build/test_anchors" --gtest_filter='Expander.ForwardMatchesReference:Expander.ExtremeLogitsStayFinite'
+step sky "$build/test_sky" \
+  --gtest_filter='Sky.ComposeMatchesTheDoubleReference:Sky.ConstantStartAndArchiveRoundTrip:Sky.FitRecoversAKnownSky'
 
 # The program end to end on a 32x32 generated scene with masks and features:
 # stage 1 with growth, the mask losses and the regularisers, stage 2's

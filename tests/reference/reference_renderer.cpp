@@ -441,6 +441,11 @@ std::vector<int> row_order(const std::vector<int>& order, const std::vector<RefP
 
 }  // namespace
 
+void sh_values(int degree, const Eigen::Vector3d& d, double b[16]) {
+  Vector3d db[16];
+  sh_basis(degree, d, b, db);
+}
+
 // ---------------------------------------------------------------------------
 
 RefGaussians to_double(const GaussianSet& set) {

@@ -88,6 +88,8 @@ struct RefProjectedGrads {
 
 // Active SH degree: settings.sh_degree < 0 ? set degree : min(settings, set).
 int active_sh_degree(int set_degree, const RenderSettings& settings);
+// The real SH basis of degree 0..3 (3DGS constants and order) at unit d: b[0..(degree+1)^2).
+void sh_values(int degree, const Eigen::Vector3d& d, double b[16]);
 
 // Projection of every Gaussian (culled ones have visible = false, radius 0).
 std::vector<RefProjected> project(const RefGaussians& set, const Camera& camera, const RenderSettings& settings);

@@ -1,0 +1,165 @@
+#include "host/render/sky.h"
+
+#include <Eigen/Cholesky>
+#include <algorithm>
+#include <cmath>
+#include <map>
+#include <stdexcept>
+#include <string>
+
+namespace ag2gs {
+
+namespace {
+
+constexpr double kShC0 = 0.28209479177387814;
+
+// The kernels' camera arguments: rows of R^T (camera -> world) and (fx, fy, cx, cy).
+struct SkyCamera {
+  cl_float4 r[3];
+  cl_float4 intr;
+};
+
+SkyCamera sky_camera(const Camera& c) {
+  SkyCamera s{};
+  const Eigen::Matrix3d rt = c.R.transpose();
+  for (int i = 0; i < 3; ++i) {
+    s.r[i] = {{static_cast<float>(rt(i, 0)), static_cast<float>(rt(i, 1)), static_cast<float>(rt(i, 2)), 0.f}};
+  }
+  s.intr = {{static_cast<float>(c.fx), static_cast<float>(c.fy), static_cast<float>(c.cx), static_cast<float>(c.cy)}};
+  return s;
+}
+
+}  // namespace
+
+std::vector<float> sky_constant(int degree, const std::array<float, 3>& colour) {
+  if (degree < 0 || degree > kSkyMaxDegree)
+    throw std::invalid_argument("sky degree " + std::to_string(degree) + " is outside 0.." +
+                                std::to_string(kSkyMaxDegree));
+  std::vector<float> c(static_cast<size_t>(sh_coeffs_for_degree(degree)) * 3, 0.f);
+  for (int i = 0; i < 3; ++i) c[i] = static_cast<float>(colour[i] / kShC0);
+  return c;
+}
+
+int sky_degree_for(size_t values) {
+  for (int d = 0; d <= kSkyMaxDegree; ++d)
+    if (static_cast<size_t>(sh_coeffs_for_degree(d)) * 3 == values) return d;
+  return -1;
+}
+
+void sky_to_archive(ModelArchive& archive, const std::vector<float>& coefficients) {
+  archive.put("sky/sh", coefficients, {static_cast<int64_t>(coefficients.size() / 3), 3});
+}
+
+std::optional<std::vector<float>> sky_from_archive(const ModelArchive& archive) {
+  if (!archive.has("sky/sh")) return std::nullopt;
+  std::vector<float> c = archive.get<float>("sky/sh", {-1, 3});
+  if (sky_degree_for(c.size()) < 0)
+    throw std::runtime_error(archive.source + ": sky/sh holds " + std::to_string(c.size() / 3) +
+                             " coefficients per channel; a sky of degree 0..3 has 1, 4, 9 or 16");
+  return c;
+}
+
+Sky::Sky(Runtime& rt) : rt_(rt) {
+  for (DeviceBuffer* b : {&coef_, &grad_, &partial_, &out_}) b->bind(&rt_);
+}
+
+std::map<std::string, std::string> Sky::defines() const {
+  return {{"SKY_K", std::to_string(values_ / 3)}};
+}
+
+void Sky::set(int degree, const std::vector<float>& coefficients) {
+  if (degree < 0 || degree > kSkyMaxDegree)
+    throw std::invalid_argument("sky degree " + std::to_string(degree) + " is outside 0.." +
+                                std::to_string(kSkyMaxDegree));
+  const size_t values = static_cast<size_t>(sh_coeffs_for_degree(degree)) * 3;
+  if (coefficients.size() != values)
+    throw std::invalid_argument("a sky of degree " + std::to_string(degree) + " has " + std::to_string(values) +
+                                " coefficient values, not " + std::to_string(coefficients.size()));
+  degree_ = degree;
+  values_ = values;
+  coef_.upload(coefficients);
+  grad_.reserve(values * sizeof(float));
+  grad_.fill_zero(values * sizeof(float));
+}
+
+std::vector<float> Sky::download() const {
+  std::vector<float> c;
+  coef_.download(c, values_);
+  return c;
+}
+
+const DeviceBuffer& Sky::compose(const DeviceBuffer& rgb, const DeviceBuffer& alpha, const Camera& camera) {
+  if (!enabled()) throw std::logic_error("Sky::compose without coefficients (Sky::set)");
+  const size_t npix = static_cast<size_t>(camera.width) * camera.height;
+  out_.reserve(npix * 3 * sizeof(float));
+  const SkyCamera sc = sky_camera(camera);
+  cl::Kernel k = rt_.kernel("sky.cl", "sky_compose", defines());
+  set_kernel_args(k, static_cast<cl_int>(camera.width), static_cast<cl_int>(camera.height),
+                  static_cast<cl_int>(values_ / 3), sc.r[0], sc.r[1], sc.r[2], sc.intr, coef_, rgb, alpha, out_);
+  rt_.launch("sky_compose", k, cl::NDRange((npix + 63) / 64 * 64), cl::NDRange(64));
+  return out_;
+}
+
+void Sky::backward(const DeviceBuffer& grad_out, const DeviceBuffer& alpha, const Camera& camera,
+                   DeviceBuffer& grad_alpha, bool add) {
+  if (!enabled()) throw std::logic_error("Sky::backward without coefficients (Sky::set)");
+  const size_t npix = static_cast<size_t>(camera.width) * camera.height;
+  // At most 1024 partial rows of at least 64 pixels each: the sum's order is
+  // a function of the image size alone.
+  const size_t chunk = std::max<size_t>(64, (npix + 1023) / 1024);
+  const size_t rows = (npix + chunk - 1) / chunk;
+  grad_alpha.reserve(npix * sizeof(float));
+  partial_.reserve(std::max<size_t>(rows, 1) * values_ * sizeof(float));
+  const SkyCamera sc = sky_camera(camera);
+  cl::Kernel k = rt_.kernel("sky.cl", "sky_grad_partial", defines());
+  set_kernel_args(k, static_cast<cl_int>(camera.width), static_cast<cl_int>(camera.height),
+                  static_cast<cl_int>(values_ / 3), static_cast<cl_int>(chunk), sc.r[0], sc.r[1], sc.r[2], sc.intr,
+                  coef_, grad_out, alpha, static_cast<cl_int>(add ? 1 : 0), grad_alpha, static_cast<cl_int>(rows),
+                  partial_);
+  rt_.launch("sky_grad_partial", k, cl::NDRange((rows + 63) / 64 * 64), cl::NDRange(64));
+  cl::Kernel r = rt_.kernel("sky.cl", "sky_grad_reduce", defines());
+  set_kernel_args(r, static_cast<cl_int>(rows), static_cast<cl_int>(values_), partial_, grad_);
+  rt_.launch("sky_grad_reduce", r, cl::NDRange(64), cl::NDRange(64));
+}
+
+void Sky::add_fit(const DeviceBuffer& image, const Camera& camera, Eigen::MatrixXd& gram, Eigen::MatrixXd& rhs) {
+  if (!enabled()) throw std::logic_error("Sky::add_fit without a degree (Sky::set)");
+  const int k_count = static_cast<int>(values_ / 3);
+  const size_t npix = static_cast<size_t>(camera.width) * camera.height;
+  const size_t chunk = std::max<size_t>(64, (npix + 1023) / 1024);
+  const size_t rows = (npix + chunk - 1) / chunk;
+  const size_t values = static_cast<size_t>(k_count) * k_count + 3 * static_cast<size_t>(k_count);
+  partial_.reserve(std::max<size_t>(rows, 1) * values * sizeof(float));
+  DeviceBuffer sums(&rt_);
+  sums.reserve(values * sizeof(float));
+  const SkyCamera sc = sky_camera(camera);
+  cl::Kernel k = rt_.kernel("sky.cl", "sky_fit_partial", defines());
+  set_kernel_args(k, static_cast<cl_int>(camera.width), static_cast<cl_int>(camera.height), static_cast<cl_int>(k_count),
+                  static_cast<cl_int>(chunk), sc.r[0], sc.r[1], sc.r[2], sc.intr, image, static_cast<cl_int>(rows),
+                  partial_);
+  rt_.launch("sky_fit_partial", k, cl::NDRange((rows + 63) / 64 * 64), cl::NDRange(64));
+  cl::Kernel r = rt_.kernel("sky.cl", "sky_grad_reduce", defines());
+  set_kernel_args(r, static_cast<cl_int>(rows), static_cast<cl_int>(values), partial_, sums);
+  rt_.launch("sky_grad_reduce", r, cl::NDRange((values + 63) / 64 * 64), cl::NDRange(64));
+  std::vector<float> v;
+  sums.download(v, values);
+  if (gram.rows() != k_count) gram = Eigen::MatrixXd::Zero(k_count, k_count);
+  if (rhs.rows() != k_count) rhs = Eigen::MatrixXd::Zero(k_count, 3);
+  for (int a = 0; a < k_count; ++a) {
+    for (int b = 0; b < k_count; ++b) gram(a, b) += v[static_cast<size_t>(a) * k_count + b];
+    for (int c = 0; c < 3; ++c) rhs(a, c) += v[static_cast<size_t>(k_count) * k_count + 3 * a + c];
+  }
+}
+
+std::vector<float> Sky::solve_fit(const Eigen::MatrixXd& gram, const Eigen::MatrixXd& rhs) {
+  const Eigen::Index k = gram.rows();
+  std::vector<float> out(static_cast<size_t>(k) * 3, 0.f);
+  if (k == 0 || !(gram.trace() > 0)) return out;
+  const Eigen::MatrixXd a = gram + Eigen::MatrixXd::Identity(k, k) * (1e-3 * gram.trace() / k);
+  const Eigen::MatrixXd x = a.ldlt().solve(rhs);
+  for (Eigen::Index i = 0; i < k; ++i)
+    for (int c = 0; c < 3; ++c) out[static_cast<size_t>(i) * 3 + c] = std::isfinite(x(i, c)) ? static_cast<float>(x(i, c)) : 0.f;
+  return out;
+}
+
+}  // namespace ag2gs

@@ -1,0 +1,89 @@
+// The sky: a learned colour per viewing direction behind the Gaussians
+// (kernels/sky.cl, docs/design.md section 12). Open-air captures show the
+// sky in most views and no SfM point lies on it; without a model of its
+// own, the trainer either leaves it black or smears large, faint Gaussians
+// between the cameras and the objects to paint it, and those floaters hide
+// the objects in new views. The sky is a sum of real spherical harmonics
+// of the world-space ray direction (degree 0..3, K = (degree + 1)^2
+// coefficients per channel, linear: no offset, no clamp), composited where
+// the Gaussians leave the ray transparent:
+//
+//   out = rgb + (1 - alpha) * sky(d)
+//
+// with rgb the renderer's blend over a black background. Degree 0 is a
+// learned constant background. Everything per pixel runs on the device; the
+// coefficient gradient is summed in a fixed order (no atomics), so training
+// with the sky stays bit-reproducible.
+#pragma once
+
+#include <Eigen/Core>
+#include <array>
+#include <cstddef>
+#include <map>
+#include <string>
+#include <optional>
+#include <vector>
+
+#include "host/core/gaussians.h"
+#include "host/device/cl_runtime.h"
+#include "host/io/model_io.h"
+
+namespace ag2gs {
+
+constexpr int kSkyMaxDegree = 3;
+
+// Coefficients [K, 3] of a constant colour (only the degree-0 term set).
+std::vector<float> sky_constant(int degree, const std::array<float, 3>& colour);
+// The degree whose coefficient count K*3 is `values`; -1 when none is.
+int sky_degree_for(size_t values);
+
+// The archive entry "sky/sh" [K, 3] (model.ag2gs, checkpoints): absent for
+// a model without a sky. sky_from_archive throws std::runtime_error naming
+// the archive's file when the entry has a shape no degree gives.
+void sky_to_archive(ModelArchive& archive, const std::vector<float>& coefficients);
+std::optional<std::vector<float>> sky_from_archive(const ModelArchive& archive);
+
+class Sky {
+ public:
+  explicit Sky(Runtime& rt);
+
+  // Uploads [K, 3] coefficients of a degree in 0..3 (std::invalid_argument
+  // for another degree or a size that does not match it).
+  void set(int degree, const std::vector<float>& coefficients);
+  bool enabled() const { return degree_ >= 0; }
+  int degree() const { return degree_; }
+  size_t values() const { return values_; }  // K * 3
+  std::vector<float> download() const;
+
+  DeviceBuffer& coefficients() { return coef_; }
+  // dL/d coefficients [K, 3] of the last backward().
+  const DeviceBuffer& gradient() const { return grad_; }
+
+  // out [3, H, W] = rgb + (1 - alpha) sky(d) for the camera's pixels, into
+  // a buffer of the Sky's (valid until the next compose).
+  const DeviceBuffer& compose(const DeviceBuffer& rgb, const DeviceBuffer& alpha, const Camera& camera);
+  // From dL/d out [3, H, W] (which is also dL/d rgb): writes dL/d alpha
+  // [H, W] into grad_alpha (added to what it holds when add is true) and
+  // dL/d coefficients into gradient().
+  void backward(const DeviceBuffer& grad_out, const DeviceBuffer& alpha, const Camera& camera,
+                DeviceBuffer& grad_alpha, bool add);
+
+  // The sky's start: the least-squares fit of a sky alone to photos (each
+  // pixel as if nothing covered it), so the Gaussians need not paint the
+  // sky while it is learned. add_fit sums one photo [3, H, W] into the
+  // normal equations (gram K x K, rhs K x 3; zero them first);
+  // solve_fit returns the coefficients [K, 3], with a ridge of 1e-3 of
+  // the Gram matrix's mean diagonal so directions no photo saw stay near 0.
+  void add_fit(const DeviceBuffer& image, const Camera& camera, Eigen::MatrixXd& gram, Eigen::MatrixXd& rhs);
+  static std::vector<float> solve_fit(const Eigen::MatrixXd& gram, const Eigen::MatrixXd& rhs);
+
+ private:
+  std::map<std::string, std::string> defines() const;  // SKY_K for the kernels
+
+  Runtime& rt_;
+  int degree_ = -1;
+  size_t values_ = 0;
+  DeviceBuffer coef_, grad_, partial_, out_;
+};
+
+}  // namespace ag2gs

@@ -1,0 +1,136 @@
+// The sky: a colour per ray direction behind every Gaussian (host:
+// host/render/sky.h). The colour is a sum of real spherical harmonics of
+// the world-space viewing direction, K = (degree + 1)^2 coefficients per
+// channel, with no offset and no clamp (linear in the coefficients). A
+// rendered pixel becomes
+//
+//   out = rgb + T * sky(d),   T = 1 - alpha
+//
+// where rgb is the renderer's blend over a black background. d is the unit
+// direction of the ray through the pixel centre: camera ray ((x + 0.5 - cx)
+// / fx, (y + 0.5 - cy) / fy, 1) rotated by R^T (rows r0, r1, r2 below).
+// Images are planar [3, H, W]; alpha is [H, W]. SKY_K (the host defines
+// it, K) is a compile-time constant so the basis loops unroll and
+// sh_basis's switch folds away; the k_count arguments must equal it.
+#ifndef SKY_K
+#define SKY_K 16
+#endif
+
+inline float3 sky_direction(int x, int y, float4 r0, float4 r1, float4 r2, float4 intr) {
+  const float3 dc = (float3)(((float)x + 0.5f - intr.z) / intr.x, ((float)y + 0.5f - intr.w) / intr.y, 1.f);
+  return normalize((float3)(dot(r0.xyz, dc), dot(r1.xyz, dc), dot(r2.xyz, dc)));
+}
+
+inline float3 sky_colour(int k_count, __global const float* coef, float3 d) {
+  float3 c = (float3)(0.f);
+#pragma unroll
+  for (int k = 0; k < SKY_K; ++k) {
+    float3 unused;
+    c += sh_basis(k, d, &unused) * vload3(k, coef);
+  }
+  return c;
+}
+
+// out = rgb + (1 - alpha) * sky(d). One work-item per pixel.
+__kernel void sky_compose(int w, int h, int k_count, float4 r0, float4 r1, float4 r2, float4 intr,
+                          __global const float* coef,   // [K,3]
+                          __global const float* rgb,    // [3,H,W]
+                          __global const float* alpha,  // [H,W]
+                          __global float* out) {        // [3,H,W]
+  const int p = get_global_id(0);
+  const int npix = w * h;
+  if (p >= npix) return;
+  const float3 s = sky_colour(k_count, coef, sky_direction(p % w, p / w, r0, r1, r2, intr));
+  const float t = 1.f - alpha[p];
+  out[p] = rgb[p] + t * s.x;
+  out[npix + p] = rgb[npix + p] + t * s.y;
+  out[2 * npix + p] = rgb[2 * npix + p] + t * s.z;
+}
+
+// Backward of sky_compose for an upstream gradient g = dL/d out [3,H,W]
+// (which is also dL/d rgb, left to the caller):
+//   dL/d alpha[p] = base[p] - <g(p), sky(d)>   (base: the caller's alpha
+//                   gradient, or 0 when add_base is 0)
+//   dL/d coef[k,c] = sum over pixels of T(p) Y_k(d) g_c(p)
+// The coefficient sums run in two deterministic passes, no atomics: work-item
+// i sums the pixels [i * chunk, (i + 1) * chunk) in order into partial[i] (K*3
+// floats), then sky_grad_reduce adds the partial rows in order.
+#define SKY_MAX_K 16
+__kernel void sky_grad_partial(int w, int h, int k_count, int chunk, float4 r0, float4 r1, float4 r2, float4 intr,
+                               __global const float* coef,        // [K,3]
+                               __global const float* grad_out,    // [3,H,W]
+                               __global const float* alpha,       // [H,W]
+                               int add_base,                      // grad_alpha holds a gradient to add to
+                               __global float* grad_alpha,        // [H,W]
+                               int rows,                          // work-items that write a partial row
+                               __global float* partial) {         // [rows, K*3]
+  const int i = get_global_id(0);
+  if (i >= rows) return;
+  const int npix = w * h;
+  float acc[SKY_K * 3];
+#pragma unroll
+  for (int j = 0; j < SKY_K * 3; ++j) acc[j] = 0.f;
+  const int end = min(npix, (i + 1) * chunk);
+  for (int p = i * chunk; p < end; ++p) {
+    const float3 d = sky_direction(p % w, p / w, r0, r1, r2, intr);
+    const float3 g = (float3)(grad_out[p], grad_out[npix + p], grad_out[2 * npix + p]);
+    const float t = 1.f - alpha[p];
+    const float3 tg = t * g;
+    float3 s = (float3)(0.f);
+#pragma unroll
+    for (int k = 0; k < SKY_K; ++k) {
+      float3 unused;
+      const float b = sh_basis(k, d, &unused);
+      s += b * vload3(k, coef);
+      acc[3 * k] += b * tg.x;
+      acc[3 * k + 1] += b * tg.y;
+      acc[3 * k + 2] += b * tg.z;
+    }
+    grad_alpha[p] = (add_base ? grad_alpha[p] : 0.f) - dot(g, s);
+  }
+  for (int j = 0; j < SKY_K * 3; ++j) partial[i * SKY_K * 3 + j] = acc[j];
+}
+
+// grad[j] = sum over rows r (in order) of partial[r, j], j < K*3.
+__kernel void sky_grad_reduce(int rows, int values,
+                              __global const float* partial,  // [rows, values]
+                              __global float* grad) {         // [values]
+  const int j = get_global_id(0);
+  if (j >= values) return;
+  float s = 0.f;
+  for (int r = 0; r < rows; ++r) s += partial[r * values + j];
+  grad[j] = s;
+}
+
+// The normal equations of fitting the sky alone to an image [3,H,W]
+// (every pixel as if no Gaussian covered it): per partial row, the Gram
+// matrix sum Y_k Y_l (K*K, row-major) and then sum Y_k I_c (K*3). Summed
+// over rows by sky_grad_reduce, over views in double on the host.
+__kernel void sky_fit_partial(int w, int h, int k_count, int chunk, float4 r0, float4 r1, float4 r2, float4 intr,
+                              __global const float* image,  // [3,H,W]
+                              int rows,
+                              __global float* partial) {    // [rows, K*K + K*3]
+  const int i = get_global_id(0);
+  if (i >= rows) return;
+  const int npix = w * h;
+  const int values = k_count * k_count + 3 * k_count;
+  __global float* out = partial + i * values;
+  for (int j = 0; j < values; ++j) out[j] = 0.f;
+  const int end = min(npix, (i + 1) * chunk);
+  for (int p = i * chunk; p < end; ++p) {
+    const float3 d = sky_direction(p % w, p / w, r0, r1, r2, intr);
+    const float3 c = (float3)(image[p], image[npix + p], image[2 * npix + p]);
+    float b[SKY_MAX_K];
+#pragma unroll
+    for (int k = 0; k < SKY_K; ++k) {
+      float3 unused;
+      b[k] = sh_basis(k, d, &unused);
+    }
+    for (int k = 0; k < k_count; ++k) {
+      for (int l = 0; l < k_count; ++l) out[k * k_count + l] += b[k] * b[l];
+      out[k_count * k_count + 3 * k] += b[k] * c.x;
+      out[k_count * k_count + 3 * k + 1] += b[k] * c.y;
+      out[k_count * k_count + 3 * k + 2] += b[k] * c.z;
+    }
+  }
+}
