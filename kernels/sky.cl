@@ -51,7 +51,10 @@ __kernel void sky_compose(int w, int h, int k_count, float4 r0, float4 r1, float
 // (which is also dL/d rgb, left to the caller):
 //   dL/d alpha[p] = base[p] - <g(p), sky(d)>   (base: the caller's alpha
 //                   gradient, or 0 when add_base is 0)
-//   dL/d coef[k,c] = sum over pixels of T(p) Y_k(d) g_c(p)
+//   dL/d coef[k,c] = sum over pixels of W(p) T(p) Y_k(d) g_c(p)
+// W(p) is the pixel's weight (1 without one): the trainer gives 0 where
+// an SfM point shows that a surface is there, so only open pixels teach
+// the sky (host/render/sky.h, open_sky_pixels).
 // The coefficient sums run in two deterministic passes, no atomics: work-item
 // i sums the pixels [i * chunk, (i + 1) * chunk) in order into partial[i] (K*3
 // floats), then sky_grad_reduce adds the partial rows in order.
@@ -60,6 +63,8 @@ __kernel void sky_grad_partial(int w, int h, int k_count, int chunk, float4 r0, 
                                __global const float* coef,        // [K,3]
                                __global const float* grad_out,    // [3,H,W]
                                __global const float* alpha,       // [H,W]
+                               int use_weight,                    // 0: every pixel weighs 1
+                               __global const float* weight,      // [H,W] the pixel's share in the coefficient sums
                                int add_base,                      // grad_alpha holds a gradient to add to
                                __global float* grad_alpha,        // [H,W]
                                int rows,                          // work-items that write a partial row
@@ -75,7 +80,7 @@ __kernel void sky_grad_partial(int w, int h, int k_count, int chunk, float4 r0, 
     const float3 d = sky_direction(p % w, p / w, r0, r1, r2, intr);
     const float3 g = (float3)(grad_out[p], grad_out[npix + p], grad_out[2 * npix + p]);
     const float t = 1.f - alpha[p];
-    const float3 tg = t * g;
+    const float3 tg = (use_weight ? t * weight[p] : t) * g;
     float3 s = (float3)(0.f);
 #pragma unroll
     for (int k = 0; k < SKY_K; ++k) {
@@ -103,11 +108,14 @@ __kernel void sky_grad_reduce(int rows, int values,
 }
 
 // The normal equations of fitting the sky alone to an image [3,H,W]
-// (every pixel as if no Gaussian covered it): per partial row, the Gram
-// matrix sum Y_k Y_l (K*K, row-major) and then sum Y_k I_c (K*3). Summed
-// over rows by sky_grad_reduce, over views in double on the host.
+// (every pixel as if no Gaussian covered it), each pixel weighted by W(p)
+// (1 without weights): per partial row, the Gram matrix sum W Y_k Y_l (K*K,
+// row-major) and then sum W Y_k I_c (K*3). Summed over rows by
+// sky_grad_reduce, over views in double on the host.
 __kernel void sky_fit_partial(int w, int h, int k_count, int chunk, float4 r0, float4 r1, float4 r2, float4 intr,
                               __global const float* image,  // [3,H,W]
+                              int use_weight,
+                              __global const float* weight,  // [H,W]
                               int rows,
                               __global float* partial) {    // [rows, K*K + K*3]
   const int i = get_global_id(0);
@@ -119,7 +127,9 @@ __kernel void sky_fit_partial(int w, int h, int k_count, int chunk, float4 r0, f
   const int end = min(npix, (i + 1) * chunk);
   for (int p = i * chunk; p < end; ++p) {
     const float3 d = sky_direction(p % w, p / w, r0, r1, r2, intr);
-    const float3 c = (float3)(image[p], image[npix + p], image[2 * npix + p]);
+    const float wp = use_weight ? weight[p] : 1.f;
+    if (wp == 0.f) continue;
+    const float3 c = wp * (float3)(image[p], image[npix + p], image[2 * npix + p]);
     float b[SKY_MAX_K];
 #pragma unroll
     for (int k = 0; k < SKY_K; ++k) {
@@ -127,7 +137,7 @@ __kernel void sky_fit_partial(int w, int h, int k_count, int chunk, float4 r0, f
       b[k] = sh_basis(k, d, &unused);
     }
     for (int k = 0; k < k_count; ++k) {
-      for (int l = 0; l < k_count; ++l) out[k * k_count + l] += b[k] * b[l];
+      for (int l = 0; l < k_count; ++l) out[k * k_count + l] += wp * b[k] * b[l];
       out[k_count * k_count + 3 * k] += b[k] * c.x;
       out[k_count * k_count + 3 * k + 1] += b[k] * c.y;
       out[k_count * k_count + 3 * k + 2] += b[k] * c.z;

@@ -62,24 +62,14 @@ Trainer::Trainer(Runtime& rt, Scene& scene, const TrainConfig& config)
                              std::to_string(scene_.points().size()) + " SfM points (all non-finite or out of range)");
   extent_ = scene_.bounds().camera_radius > 0 ? scene_.bounds().camera_radius : scene_.bounds().longest_extent();
   anchors_.upload(model_);
-  if (config_.sky_degree >= 0) {
-    // The sky starts as the least-squares fit to the training photos.
-    const float bg = config_.white_background ? 1.f : 0.f;
-    sky_.set(config_.sky_degree, sky_constant(config_.sky_degree, {bg, bg, bg}));
-    Eigen::MatrixXd gram, rhs;
-    target_dev_.bind(&rt_);
-    for (int v : train_views_) {
-      upload_target(*scene_.image(v), 1, target_planar_, target_dev_);
-      sky_.add_fit(target_dev_, scene_.views()[v].camera, gram, rhs);
-    }
-    sky_.set(config_.sky_degree, Sky::solve_fit(gram, rhs));
-  }
   const size_t n = model_.gaussians();
   groups_ = std::make_unique<ParamGroups>(rt_, group_specs(), n, model_.size());
   reg_value_.bind(&rt_);
   for (DeviceBuffer* b :
-       {&target_dev_, &grad_rgb_dev_, &grad_dist_dev_, &grad_feat_dev_, &grad_alpha_dev_, &sky_grad_alpha_})
+       {&target_dev_, &grad_rgb_dev_, &grad_dist_dev_, &grad_feat_dev_, &grad_alpha_dev_, &sky_grad_alpha_,
+        &sky_weight_dev_})
     b->bind(&rt_);
+  if (config_.sky_degree >= 0) init_sky();
   if (scene_.semantics() == SemanticsKind::none) {
     spdlog::info("scene {} has no SAM masks (language_features/ or masks/): training appearance only", scene_.dir());
   } else if (config_.w_is <= 0 && config_.w_ic <= 0) {
@@ -104,6 +94,40 @@ Trainer::Trainer(Runtime& rt, Scene& scene, const TrainConfig& config)
 }
 
 Trainer::~Trainer() = default;
+
+void Trainer::init_sky() {
+  // Only open pixels (no SfM point projects near them) teach the sky: where
+  // a point shows a surface, the Gaussians are to explain the colour. The
+  // sky starts as the least-squares fit to the open pixels of the training
+  // photos; directions no open pixel saw stay at the fixed background.
+  const float bg = config_.white_background ? 1.f : 0.f;
+  const std::vector<float> start = sky_constant(config_.sky_degree, {bg, bg, bg});
+  sky_.set(config_.sky_degree, start);
+  sky_open_.assign(scene_.views().size(), {});
+  Eigen::MatrixXd gram, rhs;
+  std::vector<float> weights;
+  size_t open = 0, total = 0, largest = 0;
+  int radius = 0;
+  for (int v : train_views_) {
+    const Camera& cam = scene_.views()[v].camera;
+    radius = open_sky_radius(cam);
+    sky_open_[v] = open_sky_pixels(cam, scene_.points(), radius);
+    for (uint8_t o : sky_open_[v]) open += o;
+    total += sky_open_[v].size();
+    largest = std::max(largest, sky_open_[v].size());
+    upload_target(*scene_.image(v), 1, target_planar_, target_dev_);
+    open_sky_weights(sky_open_[v], cam.width, cam.height, 1, weights);
+    sky_weight_dev_.upload(weights);
+    sky_.add_fit(target_dev_, cam, gram, rhs, &sky_weight_dev_);
+  }
+  // The ridge is at least 1% of one view's pixels (in the degree-0 term's
+  // units): a few open pixels cannot bend the whole sky.
+  constexpr double kC0Squared = 0.28209479177387814 * 0.28209479177387814;
+  sky_.set(config_.sky_degree, Sky::solve_fit(gram, rhs, start, 0.01 * static_cast<double>(largest) * kC0Squared));
+  sky_open_fraction_ = total ? static_cast<double>(open) / static_cast<double>(total) : 0.0;
+  spdlog::info("sky: SH degree {}, fitted to the {:.1f}% of the training pixels with no SfM point within {} px",
+               config_.sky_degree, 100.0 * sky_open_fraction_, radius);
+}
 
 int Trainer::active_sh_degree() const {
   return std::min(config_.anchors.sh_degree, iteration_ / config_.effective_sh_interval());
@@ -229,7 +253,9 @@ std::pair<int, int> Trainer::render_and_losses(StepStats& st, bool compute_offse
     // The sky's alpha gradient joins the mask loss's, or stands alone.
     const bool add = og.alpha != nullptr;
     DeviceBuffer& ga = add ? grad_alpha_dev_ : sky_grad_alpha_;
-    sky_.backward(grad_rgb_dev_, renderer_.device_alpha(), camera, ga, add);
+    open_sky_weights(sky_open_[st.view], view.camera.width, view.camera.height, st.downscale, sky_weight_host_);
+    sky_weight_dev_.upload(sky_weight_host_);
+    sky_.backward(grad_rgb_dev_, renderer_.device_alpha(), camera, ga, add, &sky_weight_dev_);
     og.alpha = &ga;
   }
   renderer_.backward(og);

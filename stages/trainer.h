@@ -184,6 +184,8 @@ class Trainer {
   const AnchorModel& model();
   // The sky's coefficients [K, 3] (empty without a sky; host/render/sky.h).
   std::vector<float> sky() const { return sky_.enabled() ? sky_.download() : std::vector<float>{}; }
+  // The fraction of the training pixels that teach the sky (0 without one).
+  double sky_open_fraction() const { return sky_open_fraction_; }
   const TrainConfig& config() const { return config_; }
   // The training view of iteration `it` (0-based): a permutation of the
   // training views per epoch from a counter-based hash of (seed, epoch).
@@ -205,6 +207,8 @@ class Trainer {
   void update(StepStats& st, int w, int h);
   void growing_round(StepStats& st);
   void reset_opacities(StepStats& st);
+  // The sky's open pixels per training view and its start (config.sky_degree >= 0).
+  void init_sky();
 
   Runtime& rt_;
   Scene& scene_;
@@ -229,6 +233,12 @@ class Trainer {
   MaskLoss mask_loss_;
   Sky sky_;
   DeviceBuffer sky_grad_alpha_;  // the sky's alpha gradient when no mask loss wrote one
+  // Per scene view (training views only): 1 where a pixel is open
+  // (open_sky_pixels), the weights of the sky's gradient.
+  std::vector<std::vector<uint8_t>> sky_open_;
+  std::vector<float> sky_weight_host_;
+  DeviceBuffer sky_weight_dev_;
+  double sky_open_fraction_ = 0;
   bool has_masks_ = false;  // the scene has SAM masks (and a mask weight is > 0)
   Adam adam_;
   // The optimiser groups, in the order of group_specs().

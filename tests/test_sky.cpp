@@ -114,8 +114,9 @@ struct RefGrad {
   std::vector<double> alpha, coef;
 };
 
-RefGrad reference_gradient(int degree, const std::vector<float>& coef, const Planes& p, const Camera& cam,
-                           bool add) {
+// `weight` [H,W] (empty: 1) scales each pixel's share in the coefficient gradient.
+RefGrad reference_gradient(int degree, const std::vector<float>& coef, const Planes& p, const Camera& cam, bool add,
+                           const std::vector<float>& weight = {}) {
   const int w = cam.width, h = cam.height;
   const size_t n = static_cast<size_t>(w) * h;
   const int K = (degree + 1) * (degree + 1);
@@ -130,9 +131,10 @@ RefGrad reference_gradient(int degree, const std::vector<float>& coef, const Pla
       ref::sh_values(degree, d, b);
       const Vector3d s = sky_ref(degree, coef, d);
       double ga = add ? p.alpha[i] * 0.5 : 0.0;  // the base the test puts in grad_alpha
+      const double wp = weight.empty() ? 1.0 : weight[i];
       for (int c = 0; c < 3; ++c) {
         ga -= p.grad[c * n + i] * s[c];
-        for (int k = 0; k < K; ++k) g.coef[3 * k + c] += (1.0 - p.alpha[i]) * b[k] * p.grad[c * n + i];
+        for (int k = 0; k < K; ++k) g.coef[3 * k + c] += wp * (1.0 - p.alpha[i]) * b[k] * p.grad[c * n + i];
       }
       g.alpha[i] = ga;
     }
@@ -182,7 +184,8 @@ TEST(Sky, ReferenceGradientMatchesCentralDifferences) {
   }
 }
 
-// Sizes below one chunk, a partial last chunk, and over 1024 chunks' worth.
+// Sizes below one chunk, a partial last chunk, and over 1024 chunks' worth;
+// with a base alpha gradient to add to, also with pixel weights.
 TEST(Sky, BackwardMatchesTheReferenceAndRepeatsBitForBit) {
   Runtime& rt = test::runtime();
   const std::pair<int, int> sizes[] = {{5, 3}, {37, 23}, {301, 229}};
@@ -192,18 +195,22 @@ TEST(Sky, BackwardMatchesTheReferenceAndRepeatsBitForBit) {
       const Camera cam = tilted_camera(w, h);
       const Planes p = random_planes(w, h, w + h);
       const std::vector<float> coef = random_coefficients(degree, w);
-      const RefGrad ref = reference_gradient(degree, coef, p, cam, add);
+      std::vector<float> weight;
+      if (add)
+        for (size_t i = 0; i < p.alpha.size(); ++i) weight.push_back(i % 3 == 0 ? 0.f : 0.25f * (i % 5));
+      const RefGrad ref = reference_gradient(degree, coef, p, cam, add, weight);
       Sky sky(rt);
       sky.set(degree, coef);
-      DeviceBuffer grad(&rt), alpha(&rt), ga(&rt);
+      DeviceBuffer grad(&rt), alpha(&rt), ga(&rt), wbuf(&rt);
       grad.upload(p.grad);
       alpha.upload(p.alpha);
+      if (add) wbuf.upload(weight);
       std::vector<float> base(p.alpha.size());
       for (size_t i = 0; i < base.size(); ++i) base[i] = p.alpha[i] * 0.5f;
       std::vector<float> got_alpha, got_coef, again;
       for (int run = 0; run < 2; ++run) {
         ga.upload(base);
-        sky.backward(grad, alpha, cam, ga, add);
+        sky.backward(grad, alpha, cam, ga, add, add ? &wbuf : nullptr);
         ga.download(got_alpha, base.size());
         sky.gradient().download(run == 0 ? got_coef : again, coef.size());
       }
@@ -283,6 +290,45 @@ TEST(Sky, FitRecoversAKnownSky) {
   for (size_t j = 0; j < got.size(); ++j) EXPECT_NEAR(got[j], truth[j], 0.02) << "coefficient " << j;
   // Nothing seen: no sky.
   EXPECT_EQ(Sky::solve_fit(Eigen::MatrixXd::Zero(16, 16), Eigen::MatrixXd::Zero(16, 3)), std::vector<float>(48, 0.f));
+}
+
+// A pixel is open when no SfM point in front of the camera projects within
+// the radius; block weights are the open fraction of each block.
+TEST(Sky, OpenPixelsAndTheirBlockWeights) {
+  const Camera cam = test::look_at(Vector3d(0, 0, -5), Vector3d::Zero(), 40, 30, 40);
+  // One point at the centre of the view, one behind the camera.
+  const std::vector<Vector3d> points = {Vector3d::Zero(), Vector3d(0, 0, -10)};
+  EXPECT_EQ(open_sky_radius(cam), 2);
+  const std::vector<uint8_t> open = open_sky_pixels(cam, points, 3);
+  ASSERT_EQ(open.size(), 1200u);
+  const Eigen::Vector3d c = cam.R * Vector3d::Zero() + cam.t;
+  const int u = static_cast<int>(cam.fx * c.x() / c.z() + cam.cx), v = static_cast<int>(cam.fy * c.y() / c.z() + cam.cy);
+  size_t closed = 0;
+  for (int y = 0; y < 30; ++y)
+    for (int x = 0; x < 40; ++x) {
+      const bool near = (x - u) * (x - u) + (y - v) * (y - v) <= 9;
+      EXPECT_EQ(open[y * 40 + x], near ? 0 : 1) << x << "," << y;
+      closed += open[y * 40 + x] == 0;
+    }
+  EXPECT_GT(closed, 20u);
+  EXPECT_EQ(open_sky_pixels(cam, {}, 3), std::vector<uint8_t>(1200, 1));
+  std::vector<float> w;
+  open_sky_weights(open, 40, 30, 4, w);
+  ASSERT_EQ(w.size(), 70u);  // 40 / 4 by 30 / 4, rounded down
+  for (int by = 0; by < 7; ++by)
+    for (int bx = 0; bx < 10; ++bx) {
+      int n = 0;
+      for (int j = 0; j < 4; ++j)
+        for (int i = 0; i < 4; ++i) n += open[(by * 4 + j) * 40 + bx * 4 + i];
+      EXPECT_FLOAT_EQ(w[by * 10 + bx], n / 16.f);
+    }
+}
+
+// The ridge pulls directions nothing saw towards the start, not to 0.
+TEST(Sky, RidgePullsTowardsTheStart) {
+  const std::vector<float> start = sky_constant(1, {1.f, 1.f, 1.f});
+  const std::vector<float> got = Sky::solve_fit(Eigen::MatrixXd::Zero(4, 4), Eigen::MatrixXd::Zero(4, 3), start, 5.0);
+  EXPECT_EQ(got, start);
 }
 
 double test_psnr(const std::string& model_dir) {

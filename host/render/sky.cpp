@@ -2,6 +2,7 @@
 
 #include <Eigen/Cholesky>
 #include <algorithm>
+#include <opencv2/imgproc.hpp>
 #include <cmath>
 #include <map>
 #include <stdexcept>
@@ -101,7 +102,7 @@ const DeviceBuffer& Sky::compose(const DeviceBuffer& rgb, const DeviceBuffer& al
 }
 
 void Sky::backward(const DeviceBuffer& grad_out, const DeviceBuffer& alpha, const Camera& camera,
-                   DeviceBuffer& grad_alpha, bool add) {
+                   DeviceBuffer& grad_alpha, bool add, const DeviceBuffer* weight) {
   if (!enabled()) throw std::logic_error("Sky::backward without coefficients (Sky::set)");
   const size_t npix = static_cast<size_t>(camera.width) * camera.height;
   // At most 1024 partial rows of at least 64 pixels each: the sum's order is
@@ -114,15 +115,16 @@ void Sky::backward(const DeviceBuffer& grad_out, const DeviceBuffer& alpha, cons
   cl::Kernel k = rt_.kernel("sky.cl", "sky_grad_partial", defines());
   set_kernel_args(k, static_cast<cl_int>(camera.width), static_cast<cl_int>(camera.height),
                   static_cast<cl_int>(values_ / 3), static_cast<cl_int>(chunk), sc.r[0], sc.r[1], sc.r[2], sc.intr,
-                  coef_, grad_out, alpha, static_cast<cl_int>(add ? 1 : 0), grad_alpha, static_cast<cl_int>(rows),
-                  partial_);
+                  coef_, grad_out, alpha, static_cast<cl_int>(weight ? 1 : 0), weight ? *weight : coef_,
+                  static_cast<cl_int>(add ? 1 : 0), grad_alpha, static_cast<cl_int>(rows), partial_);
   rt_.launch("sky_grad_partial", k, cl::NDRange((rows + 63) / 64 * 64), cl::NDRange(64));
   cl::Kernel r = rt_.kernel("sky.cl", "sky_grad_reduce", defines());
   set_kernel_args(r, static_cast<cl_int>(rows), static_cast<cl_int>(values_), partial_, grad_);
   rt_.launch("sky_grad_reduce", r, cl::NDRange(64), cl::NDRange(64));
 }
 
-void Sky::add_fit(const DeviceBuffer& image, const Camera& camera, Eigen::MatrixXd& gram, Eigen::MatrixXd& rhs) {
+void Sky::add_fit(const DeviceBuffer& image, const Camera& camera, Eigen::MatrixXd& gram, Eigen::MatrixXd& rhs,
+                  const DeviceBuffer* weight) {
   if (!enabled()) throw std::logic_error("Sky::add_fit without a degree (Sky::set)");
   const int k_count = static_cast<int>(values_ / 3);
   const size_t npix = static_cast<size_t>(camera.width) * camera.height;
@@ -135,8 +137,8 @@ void Sky::add_fit(const DeviceBuffer& image, const Camera& camera, Eigen::Matrix
   const SkyCamera sc = sky_camera(camera);
   cl::Kernel k = rt_.kernel("sky.cl", "sky_fit_partial", defines());
   set_kernel_args(k, static_cast<cl_int>(camera.width), static_cast<cl_int>(camera.height), static_cast<cl_int>(k_count),
-                  static_cast<cl_int>(chunk), sc.r[0], sc.r[1], sc.r[2], sc.intr, image, static_cast<cl_int>(rows),
-                  partial_);
+                  static_cast<cl_int>(chunk), sc.r[0], sc.r[1], sc.r[2], sc.intr, image,
+                  static_cast<cl_int>(weight ? 1 : 0), weight ? *weight : coef_, static_cast<cl_int>(rows), partial_);
   rt_.launch("sky_fit_partial", k, cl::NDRange((rows + 63) / 64 * 64), cl::NDRange(64));
   cl::Kernel r = rt_.kernel("sky.cl", "sky_grad_reduce", defines());
   set_kernel_args(r, static_cast<cl_int>(rows), static_cast<cl_int>(values), partial_, sums);
@@ -151,15 +153,63 @@ void Sky::add_fit(const DeviceBuffer& image, const Camera& camera, Eigen::Matrix
   }
 }
 
-std::vector<float> Sky::solve_fit(const Eigen::MatrixXd& gram, const Eigen::MatrixXd& rhs) {
+std::vector<float> Sky::solve_fit(const Eigen::MatrixXd& gram, const Eigen::MatrixXd& rhs,
+                                  const std::vector<float>& start, double ridge_floor) {
   const Eigen::Index k = gram.rows();
   std::vector<float> out(static_cast<size_t>(k) * 3, 0.f);
-  if (k == 0 || !(gram.trace() > 0)) return out;
-  const Eigen::MatrixXd a = gram + Eigen::MatrixXd::Identity(k, k) * (1e-3 * gram.trace() / k);
-  const Eigen::MatrixXd x = a.ldlt().solve(rhs);
+  if (start.size() == out.size()) out = start;
+  const double lambda = std::max(1e-3 * gram.trace() / std::max<Eigen::Index>(k, 1), ridge_floor);
+  if (k == 0 || !(lambda > 0)) return out;
+  Eigen::MatrixXd b = rhs;
   for (Eigen::Index i = 0; i < k; ++i)
-    for (int c = 0; c < 3; ++c) out[static_cast<size_t>(i) * 3 + c] = std::isfinite(x(i, c)) ? static_cast<float>(x(i, c)) : 0.f;
+    for (int c = 0; c < 3; ++c) b(i, c) += lambda * out[static_cast<size_t>(i) * 3 + c];
+  const Eigen::MatrixXd x = (gram + Eigen::MatrixXd::Identity(k, k) * lambda).ldlt().solve(b);
+  for (Eigen::Index i = 0; i < k; ++i)
+    for (int c = 0; c < 3; ++c)
+      if (std::isfinite(x(i, c))) out[static_cast<size_t>(i) * 3 + c] = static_cast<float>(x(i, c));
   return out;
+}
+
+std::vector<uint8_t> open_sky_pixels(const Camera& cam, const std::vector<Eigen::Vector3d>& points, int radius) {
+  const int w = cam.width, h = cam.height;
+  cv::Mat hit = cv::Mat::zeros(h, w, CV_8U);
+  for (const Eigen::Vector3d& x : points) {
+    const Eigen::Vector3d c = cam.R * x + cam.t;
+    if (!(c.z() > 1e-9)) continue;
+    const double u = cam.fx * c.x() / c.z() + cam.cx, v = cam.fy * c.y() / c.z() + cam.cy;
+    if (!(u >= 0 && v >= 0 && u < w && v < h)) continue;
+    hit.at<uint8_t>(static_cast<int>(v), static_cast<int>(u)) = 1;
+  }
+  if (radius > 0) {
+    // The disc x^2 + y^2 <= radius^2 around each hit pixel.
+    cv::Mat disc = cv::Mat::zeros(2 * radius + 1, 2 * radius + 1, CV_8U);
+    for (int y = -radius; y <= radius; ++y)
+      for (int x = -radius; x <= radius; ++x)
+        if (x * x + y * y <= radius * radius) disc.at<uint8_t>(y + radius, x + radius) = 1;
+    cv::dilate(hit, hit, disc, cv::Point(radius, radius), 1, cv::BORDER_CONSTANT, cv::Scalar(0));
+  }
+  std::vector<uint8_t> open(static_cast<size_t>(w) * h);
+  for (int y = 0; y < h; ++y)
+    for (int x = 0; x < w; ++x) open[static_cast<size_t>(y) * w + x] = hit.at<uint8_t>(y, x) ? 0 : 1;
+  return open;
+}
+
+int open_sky_radius(const Camera& cam) {
+  return std::max(2, static_cast<int>(std::lround(0.03 * std::max(cam.width, cam.height))));
+}
+
+void open_sky_weights(const std::vector<uint8_t>& open, int width, int height, int factor, std::vector<float>& out) {
+  const int f = std::max(1, factor);
+  const int w = std::max(1, width / f), h = std::max(1, height / f);
+  const int bx = std::min(f, width), by = std::min(f, height);
+  out.assign(static_cast<size_t>(w) * h, 0.f);
+  for (int y = 0; y < h; ++y)
+    for (int x = 0; x < w; ++x) {
+      int n = 0;
+      for (int j = 0; j < by; ++j)
+        for (int i = 0; i < bx; ++i) n += open[static_cast<size_t>(y * f + j) * width + (x * f + i)];
+      out[static_cast<size_t>(y) * w + x] = static_cast<float>(n) / static_cast<float>(bx * by);
+    }
 }
 
 }  // namespace ag2gs

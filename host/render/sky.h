@@ -19,6 +19,7 @@
 #include <Eigen/Core>
 #include <array>
 #include <cstddef>
+#include <cstdint>
 #include <map>
 #include <string>
 #include <optional>
@@ -36,6 +37,18 @@ constexpr int kSkyMaxDegree = 3;
 std::vector<float> sky_constant(int degree, const std::array<float, 3>& colour);
 // The degree whose coefficient count K*3 is `values`; -1 when none is.
 int sky_degree_for(size_t values);
+
+// Which pixels may teach the sky. A pixel near the projection of an SfM
+// point (in front of the camera) shows a surface, which is the Gaussians'
+// to explain; the others (open sky, or a surface without features such as
+// a white wall far behind) are open. open_sky_pixels: [H, W], 1 where no
+// point projects within `radius` pixels, else 0. open_sky_radius: the
+// default radius, 3% of the longer image side (at least 2 pixels).
+// open_sky_weights: each f x f block's open fraction, [H/f, W/f] (rounded
+// down, at least 1), the layout of box_downscale_planar.
+std::vector<uint8_t> open_sky_pixels(const Camera& camera, const std::vector<Eigen::Vector3d>& points, int radius);
+int open_sky_radius(const Camera& camera);
+void open_sky_weights(const std::vector<uint8_t>& open, int width, int height, int factor, std::vector<float>& out);
 
 // The archive entry "sky/sh" [K, 3] (model.ag2gs, checkpoints): absent for
 // a model without a sky. sky_from_archive throws std::runtime_error naming
@@ -65,17 +78,24 @@ class Sky {
   // From dL/d out [3, H, W] (which is also dL/d rgb): writes dL/d alpha
   // [H, W] into grad_alpha (added to what it holds when add is true) and
   // dL/d coefficients into gradient().
+  // With `weight` [H, W], pixel p counts W(p) times in the coefficient
+  // gradient (the alpha gradient is the same); without it, once.
   void backward(const DeviceBuffer& grad_out, const DeviceBuffer& alpha, const Camera& camera,
-                DeviceBuffer& grad_alpha, bool add);
+                DeviceBuffer& grad_alpha, bool add, const DeviceBuffer* weight = nullptr);
 
   // The sky's start: the least-squares fit of a sky alone to photos (each
-  // pixel as if nothing covered it), so the Gaussians need not paint the
-  // sky while it is learned. add_fit sums one photo [3, H, W] into the
-  // normal equations (gram K x K, rhs K x 3; zero them first);
-  // solve_fit returns the coefficients [K, 3], with a ridge of 1e-3 of
-  // the Gram matrix's mean diagonal so directions no photo saw stay near 0.
-  void add_fit(const DeviceBuffer& image, const Camera& camera, Eigen::MatrixXd& gram, Eigen::MatrixXd& rhs);
-  static std::vector<float> solve_fit(const Eigen::MatrixXd& gram, const Eigen::MatrixXd& rhs);
+  // pixel as if nothing covered it, weighted by `weight` [H, W] when
+  // given), so the Gaussians need not paint the sky while it is learned.
+  // add_fit sums one photo [3, H, W] into the normal equations (gram
+  // K x K, rhs K x 3; empty matrices start at zero). solve_fit returns the
+  // coefficients [K, 3], with a ridge towards `start` [K, 3] of 1e-3 of
+  // the Gram matrix's mean diagonal (at least 1e-3 x the pixels of one
+  // degree-0 view, `ridge_floor`), so directions no open pixel saw stay
+  // near the start.
+  void add_fit(const DeviceBuffer& image, const Camera& camera, Eigen::MatrixXd& gram, Eigen::MatrixXd& rhs,
+               const DeviceBuffer* weight = nullptr);
+  static std::vector<float> solve_fit(const Eigen::MatrixXd& gram, const Eigen::MatrixXd& rhs,
+                                      const std::vector<float>& start = {}, double ridge_floor = 0);
 
  private:
   std::map<std::string, std::string> defines() const;  // SKY_K for the kernels
