@@ -236,7 +236,9 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   }
   spdlog::info("{} iterations, seed {}, SH degree up to {} (+1 every {} iterations), background {}{}", c.iterations,
                c.seed, c.anchors.sh_degree, c.effective_sh_interval(), c.white_background ? "white" : "black",
-               c.sky_degree >= 0 ? fmt::format(" (the start of a learned sky of SH degree {})", c.sky_degree) : "");
+               c.sky_degree >= 0                       ? fmt::format(" (the start of a learned sky of SH degree {})", c.sky_degree)
+               : c.sky_degree == TrainConfig::kSkyAuto ? " (or a learned sky, chosen from the scene below)"
+                                                       : "");
   if (c.downscales > 0)
     spdlog::info(
         "coarse to fine: images / {} at first, resolution doubled every {} iterations (full from iteration {}{})",
@@ -429,9 +431,10 @@ void register_train(CLI::App& app, GlobalOptions& global) {
   sub->add_flag("--white-bg", c.white_background, "White background instead of black (with a sky: its start)");
   sub->add_option("--sky-degree", c.sky_degree,
                   "The sky behind the Gaussians: a colour per viewing direction, spherical harmonics of this degree "
-                  "(default 3; 0 = one learned colour; -1 = none, a fixed black or white background; --preset paper "
+                  "(0 = one learned colour; -1 = none, a fixed black or white background, as --preset paper; default "
+                  "-2 = from the scene: 3 when at least 5% of the training pixels have no SfM point near them, else "
                   "-1)")
-      ->check(CLI::Range(-1, 3));
+      ->check(CLI::Range(-2, 3));
   sub->add_option("--lr-sky", c.sky_lr, "Learning rate of the sky's coefficients (default 0.01)")
       ->check(CLI::NonNegativeNumber);
   sub->add_option("--lambda-ssim", c.lambda_ssim, "Weight of 1 - SSIM in L_rgb (default 0.2)")

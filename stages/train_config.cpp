@@ -33,8 +33,8 @@ void TrainConfig::validate() const {
       {"sky_lr", sky_lr}};
   for (const auto& [name, v] : rates)
     if (!(v >= 0) || !std::isfinite(v)) bad(std::string(name) + " must be finite and >= 0");
-  if (sky_degree < -1 || sky_degree > 3)
-    bad("sky_degree is " + std::to_string(sky_degree) + "; use -1 (no sky) or 0 to 3");
+  if (sky_degree < kSkyAuto || sky_degree > 3)
+    bad("sky_degree is " + std::to_string(sky_degree) + "; use -2 (from the scene), -1 (no sky) or 0 to 3");
   if (!(prune_opacity >= 0 && prune_opacity < 1)) bad("prune_opacity must be in [0, 1)");
   if (!(recycle_opacity >= 0 && recycle_opacity < 1)) bad("recycle_opacity must be in [0, 1)");
   if (downscales < -1 || downscales > 6)

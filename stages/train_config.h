@@ -81,9 +81,14 @@ struct TrainConfig {
   bool white_background = false;
   // The sky (host/render/sky.h): a colour per viewing direction, spherical
   // harmonics of this degree (0..3; -1 = none, the constant background
-  // above), learned behind the Gaussians with rate sky_lr. It starts as
-  // the constant background.
-  int sky_degree = 3;
+  // above), learned behind the Gaussians with rate sky_lr. kSkyAuto (the
+  // default) chooses from the scene: degree 3 when at least
+  // kSkyMinOpenShare of the training pixels are open (no SfM point near
+  // them), else none; the trainer resolves it before the first step, so
+  // its config() and checkpoints hold the choice.
+  static constexpr int kSkyAuto = -2;
+  static constexpr double kSkyMinOpenShare = 0.05;
+  int sky_degree = kSkyAuto;
   double sky_lr = 0.01;
 
   // Growing. grow_every = 0 turns it off; grow_until = 0 means 2/3 of the

@@ -62,6 +62,16 @@ Trainer::Trainer(Runtime& rt, Scene& scene, const TrainConfig& config)
                              std::to_string(scene_.points().size()) + " SfM points (all non-finite or out of range)");
   extent_ = scene_.bounds().camera_radius > 0 ? scene_.bounds().camera_radius : scene_.bounds().longest_extent();
   anchors_.upload(model_);
+  if (config_.sky_degree != -1) find_open_pixels();
+  if (config_.sky_degree == TrainConfig::kSkyAuto) {
+    const bool on = sky_open_fraction_ >= TrainConfig::kSkyMinOpenShare;
+    config_.sky_degree = on ? 3 : -1;
+    spdlog::info("sky: {} ({:.1f}% of the training pixels have no SfM point within {} px; the rule: a sky of SH degree 3 "
+                 "from {:.0f}%); --sky-degree D sets it",
+                 on ? "on" : "off, a fixed background", 100.0 * sky_open_fraction_, sky_radius_,
+                 100.0 * TrainConfig::kSkyMinOpenShare);
+    if (!on) sky_open_.clear();
+  }
   const size_t n = model_.gaussians();
   groups_ = std::make_unique<ParamGroups>(rt_, group_specs(), n, model_.size());
   reg_value_.bind(&rt_);
@@ -95,25 +105,33 @@ Trainer::Trainer(Runtime& rt, Scene& scene, const TrainConfig& config)
 
 Trainer::~Trainer() = default;
 
-void Trainer::init_sky() {
+void Trainer::find_open_pixels() {
   // Only open pixels (no SfM point projects near them) teach the sky: where
-  // a point shows a surface, the Gaussians are to explain the colour. The
-  // sky starts as the least-squares fit to the open pixels of the training
-  // photos; directions no open pixel saw stay at the fixed background.
+  // a point shows a surface, the Gaussians are to explain the colour.
+  sky_open_.assign(scene_.views().size(), {});
+  size_t open = 0, total = 0;
+  for (int v : train_views_) {
+    const Camera& cam = scene_.views()[v].camera;
+    sky_radius_ = open_sky_radius(cam);
+    sky_open_[v] = open_sky_pixels(cam, scene_.points(), sky_radius_);
+    for (uint8_t o : sky_open_[v]) open += o;
+    total += sky_open_[v].size();
+  }
+  sky_open_fraction_ = total ? static_cast<double>(open) / static_cast<double>(total) : 0.0;
+}
+
+void Trainer::init_sky() {
+  // The sky starts as the least-squares fit to the open pixels of the
+  // training photos; directions no open pixel saw stay at the fixed
+  // background.
   const float bg = config_.white_background ? 1.f : 0.f;
   const std::vector<float> start = sky_constant(config_.sky_degree, {bg, bg, bg});
   sky_.set(config_.sky_degree, start);
-  sky_open_.assign(scene_.views().size(), {});
   Eigen::MatrixXd gram, rhs;
   std::vector<float> weights;
-  size_t open = 0, total = 0, largest = 0;
-  int radius = 0;
+  size_t largest = 0;
   for (int v : train_views_) {
     const Camera& cam = scene_.views()[v].camera;
-    radius = open_sky_radius(cam);
-    sky_open_[v] = open_sky_pixels(cam, scene_.points(), radius);
-    for (uint8_t o : sky_open_[v]) open += o;
-    total += sky_open_[v].size();
     largest = std::max(largest, sky_open_[v].size());
     upload_target(*scene_.image(v), 1, target_planar_, target_dev_);
     open_sky_weights(sky_open_[v], cam.width, cam.height, 1, weights);
@@ -124,9 +142,8 @@ void Trainer::init_sky() {
   // units): a few open pixels cannot bend the whole sky.
   constexpr double kC0Squared = 0.28209479177387814 * 0.28209479177387814;
   sky_.set(config_.sky_degree, Sky::solve_fit(gram, rhs, start, 0.01 * static_cast<double>(largest) * kC0Squared));
-  sky_open_fraction_ = total ? static_cast<double>(open) / static_cast<double>(total) : 0.0;
   spdlog::info("sky: SH degree {}, fitted to the {:.1f}% of the training pixels with no SfM point within {} px",
-               config_.sky_degree, 100.0 * sky_open_fraction_, radius);
+               config_.sky_degree, 100.0 * sky_open_fraction_, sky_radius_);
 }
 
 int Trainer::active_sh_degree() const {

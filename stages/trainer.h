@@ -184,7 +184,8 @@ class Trainer {
   const AnchorModel& model();
   // The sky's coefficients [K, 3] (empty without a sky; host/render/sky.h).
   std::vector<float> sky() const { return sky_.enabled() ? sky_.download() : std::vector<float>{}; }
-  // The fraction of the training pixels that teach the sky (0 without one).
+  // The fraction of the training pixels that are open (that would teach a
+  // sky; 0 when the config says no sky).
   double sky_open_fraction() const { return sky_open_fraction_; }
   const TrainConfig& config() const { return config_; }
   // The training view of iteration `it` (0-based): a permutation of the
@@ -207,7 +208,9 @@ class Trainer {
   void update(StepStats& st, int w, int h);
   void growing_round(StepStats& st);
   void reset_opacities(StepStats& st);
-  // The sky's open pixels per training view and its start (config.sky_degree >= 0).
+  // The open pixels of every training view (sky_open_, their share and
+  // radius), and the sky's start (config.sky_degree >= 0).
+  void find_open_pixels();
   void init_sky();
 
   Runtime& rt_;
@@ -239,6 +242,7 @@ class Trainer {
   std::vector<float> sky_weight_host_;
   DeviceBuffer sky_weight_dev_;
   double sky_open_fraction_ = 0;
+  int sky_radius_ = 0;
   bool has_masks_ = false;  // the scene has SAM masks (and a mask weight is > 0)
   Adam adam_;
   // The optimiser groups, in the order of group_specs().
