@@ -11,9 +11,9 @@
 #include <random>
 
 #include "cli_test_util.h"
-#include "io_test_util.h"
 #include "host/io/image_io.h"
 #include "host/render/sky.h"
+#include "io_test_util.h"
 #include "reference/reference_renderer.h"
 #include "test_util.h"
 
@@ -302,7 +302,8 @@ TEST(Sky, OpenPixelsAndTheirBlockWeights) {
   const std::vector<uint8_t> open = open_sky_pixels(cam, points, 3);
   ASSERT_EQ(open.size(), 1200u);
   const Eigen::Vector3d c = cam.R * Vector3d::Zero() + cam.t;
-  const int u = static_cast<int>(cam.fx * c.x() / c.z() + cam.cx), v = static_cast<int>(cam.fy * c.y() / c.z() + cam.cy);
+  const int u = static_cast<int>(cam.fx * c.x() / c.z() + cam.cx),
+            v = static_cast<int>(cam.fy * c.y() / c.z() + cam.cy);
   size_t closed = 0;
   for (int y = 0; y < 30; ++y)
     for (int x = 0; x < 40; ++x) {

@@ -2,9 +2,9 @@
 
 #include <Eigen/Cholesky>
 #include <algorithm>
-#include <opencv2/imgproc.hpp>
 #include <cmath>
 #include <map>
+#include <opencv2/imgproc.hpp>
 #include <stdexcept>
 #include <string>
 
@@ -136,8 +136,8 @@ void Sky::add_fit(const DeviceBuffer& image, const Camera& camera, Eigen::Matrix
   sums.reserve(values * sizeof(float));
   const SkyCamera sc = sky_camera(camera);
   cl::Kernel k = rt_.kernel("sky.cl", "sky_fit_partial", defines());
-  set_kernel_args(k, static_cast<cl_int>(camera.width), static_cast<cl_int>(camera.height), static_cast<cl_int>(k_count),
-                  static_cast<cl_int>(chunk), sc.r[0], sc.r[1], sc.r[2], sc.intr, image,
+  set_kernel_args(k, static_cast<cl_int>(camera.width), static_cast<cl_int>(camera.height),
+                  static_cast<cl_int>(k_count), static_cast<cl_int>(chunk), sc.r[0], sc.r[1], sc.r[2], sc.intr, image,
                   static_cast<cl_int>(weight ? 1 : 0), weight ? *weight : coef_, static_cast<cl_int>(rows), partial_);
   rt_.launch("sky_fit_partial", k, cl::NDRange((rows + 63) / 64 * 64), cl::NDRange(64));
   cl::Kernel r = rt_.kernel("sky.cl", "sky_grad_reduce", defines());

@@ -21,8 +21,8 @@
 #include <cstddef>
 #include <cstdint>
 #include <map>
-#include <string>
 #include <optional>
+#include <string>
 #include <vector>
 
 #include "host/core/gaussians.h"
@@ -80,8 +80,8 @@ class Sky {
   // dL/d coefficients into gradient().
   // With `weight` [H, W], pixel p counts W(p) times in the coefficient
   // gradient (the alpha gradient is the same); without it, once.
-  void backward(const DeviceBuffer& grad_out, const DeviceBuffer& alpha, const Camera& camera,
-                DeviceBuffer& grad_alpha, bool add, const DeviceBuffer* weight = nullptr);
+  void backward(const DeviceBuffer& grad_out, const DeviceBuffer& alpha, const Camera& camera, DeviceBuffer& grad_alpha,
+                bool add, const DeviceBuffer* weight = nullptr);
 
   // The sky's start: the least-squares fit of a sky alone to photos (each
   // pixel as if nothing covered it, weighted by `weight` [H, W] when
