@@ -201,6 +201,21 @@ TEST(TrainState, ResumeIsBitExactWithRecyclingAndAScaleCap) {
   EXPECT_GT(expect_resume_gives_straight_bytes(cfg, "train_resume_switches"), 0);
 }
 
+// The same with a sky (forced: the sample's open share is below the rule's
+// 5%): its coefficients and Adam moments go through the checkpoint.
+TEST(TrainState, ResumeIsBitExactWithASky) {
+  TrainConfig cfg = split_config();
+  cfg.sky_degree = 3;
+  expect_resume_gives_straight_bytes(cfg, "train_resume_sky");
+  SceneOptions so;
+  so.resolution = 2;
+  auto scene = Scene::open(sample_scene(), so);
+  Trainer t(test::runtime(), *scene, cfg);
+  EXPECT_EQ(t.config().sky_degree, 3);
+  EXPECT_EQ(t.sky().size(), 48u);
+  EXPECT_EQ(t.adam_group("sky").rows(), 16u);
+}
+
 TEST(TrainState, ResumeRefusesAnotherConfigOrScene) {
   SceneOptions so;
   so.resolution = 2;
