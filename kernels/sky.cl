@@ -11,7 +11,7 @@
 // / fx, (y + 0.5 - cy) / fy, 1) rotated by R^T (rows r0, r1, r2 below).
 // Images are planar [3, H, W]; alpha is [H, W]. SKY_K (the host defines
 // it, K) is a compile-time constant so the basis loops unroll and
-// sh_basis's switch folds away; the k_count arguments must equal it.
+// sh_basis's switch folds away.
 #ifndef SKY_K
 #define SKY_K 16
 #endif
@@ -21,7 +21,7 @@ inline float3 sky_direction(int x, int y, float4 r0, float4 r1, float4 r2, float
   return normalize((float3)(dot(r0.xyz, dc), dot(r1.xyz, dc), dot(r2.xyz, dc)));
 }
 
-inline float3 sky_colour(int k_count, __global const float* coef, float3 d) {
+inline float3 sky_colour(__global const float* coef, float3 d) {
   float3 c = (float3)(0.f);
 #pragma unroll
   for (int k = 0; k < SKY_K; ++k) {
@@ -32,7 +32,7 @@ inline float3 sky_colour(int k_count, __global const float* coef, float3 d) {
 }
 
 // out = rgb + (1 - alpha) * sky(d). One work-item per pixel.
-__kernel void sky_compose(int w, int h, int k_count, float4 r0, float4 r1, float4 r2, float4 intr,
+__kernel void sky_compose(int w, int h, float4 r0, float4 r1, float4 r2, float4 intr,
                           __global const float* coef,   // [K,3]
                           __global const float* rgb,    // [3,H,W]
                           __global const float* alpha,  // [H,W]
@@ -40,7 +40,7 @@ __kernel void sky_compose(int w, int h, int k_count, float4 r0, float4 r1, float
   const int p = get_global_id(0);
   const int npix = w * h;
   if (p >= npix) return;
-  const float3 s = sky_colour(k_count, coef, sky_direction(p % w, p / w, r0, r1, r2, intr));
+  const float3 s = sky_colour(coef, sky_direction(p % w, p / w, r0, r1, r2, intr));
   const float t = 1.f - alpha[p];
   out[p] = rgb[p] + t * s.x;
   out[npix + p] = rgb[npix + p] + t * s.y;
@@ -58,8 +58,7 @@ __kernel void sky_compose(int w, int h, int k_count, float4 r0, float4 r1, float
 // The coefficient sums run in two deterministic passes, no atomics: work-item
 // i sums the pixels [i * chunk, (i + 1) * chunk) in order into partial[i] (K*3
 // floats), then sky_grad_reduce adds the partial rows in order.
-#define SKY_MAX_K 16
-__kernel void sky_grad_partial(int w, int h, int k_count, int chunk, float4 r0, float4 r1, float4 r2, float4 intr,
+__kernel void sky_grad_partial(int w, int h, int chunk, float4 r0, float4 r1, float4 r2, float4 intr,
                                __global const float* coef,        // [K,3]
                                __global const float* grad_out,    // [3,H,W]
                                __global const float* alpha,       // [H,W]
@@ -112,7 +111,7 @@ __kernel void sky_grad_reduce(int rows, int values,
 // (1 without weights): per partial row, the Gram matrix sum W Y_k Y_l (K*K,
 // row-major) and then sum W Y_k I_c (K*3). Summed over rows by
 // sky_grad_reduce, over views in double on the host.
-__kernel void sky_fit_partial(int w, int h, int k_count, int chunk, float4 r0, float4 r1, float4 r2, float4 intr,
+__kernel void sky_fit_partial(int w, int h, int chunk, float4 r0, float4 r1, float4 r2, float4 intr,
                               __global const float* image,  // [3,H,W]
                               int use_weight,
                               __global const float* weight,  // [H,W]
@@ -121,7 +120,7 @@ __kernel void sky_fit_partial(int w, int h, int k_count, int chunk, float4 r0, f
   const int i = get_global_id(0);
   if (i >= rows) return;
   const int npix = w * h;
-  const int values = k_count * k_count + 3 * k_count;
+  const int values = SKY_K * SKY_K + 3 * SKY_K;
   __global float* out = partial + i * values;
   for (int j = 0; j < values; ++j) out[j] = 0.f;
   const int end = min(npix, (i + 1) * chunk);
@@ -130,17 +129,17 @@ __kernel void sky_fit_partial(int w, int h, int k_count, int chunk, float4 r0, f
     const float wp = use_weight ? weight[p] : 1.f;
     if (wp == 0.f) continue;
     const float3 c = wp * (float3)(image[p], image[npix + p], image[2 * npix + p]);
-    float b[SKY_MAX_K];
+    float b[SKY_K];
 #pragma unroll
     for (int k = 0; k < SKY_K; ++k) {
       float3 unused;
       b[k] = sh_basis(k, d, &unused);
     }
-    for (int k = 0; k < k_count; ++k) {
-      for (int l = 0; l < k_count; ++l) out[k * k_count + l] += wp * b[k] * b[l];
-      out[k_count * k_count + 3 * k] += b[k] * c.x;
-      out[k_count * k_count + 3 * k + 1] += b[k] * c.y;
-      out[k_count * k_count + 3 * k + 2] += b[k] * c.z;
+    for (int k = 0; k < SKY_K; ++k) {
+      for (int l = 0; l < SKY_K; ++l) out[k * SKY_K + l] += wp * b[k] * b[l];
+      out[SKY_K * SKY_K + 3 * k] += b[k] * c.x;
+      out[SKY_K * SKY_K + 3 * k + 1] += b[k] * c.y;
+      out[SKY_K * SKY_K + 3 * k + 2] += b[k] * c.z;
     }
   }
 }

@@ -138,10 +138,9 @@ void Trainer::init_sky() {
     sky_weight_dev_.upload(weights);
     sky_.add_fit(target_dev_, cam, gram, rhs, &sky_weight_dev_);
   }
-  // The ridge is at least 1% of one view's pixels (in the degree-0 term's
-  // units): a few open pixels cannot bend the whole sky.
-  constexpr double kC0Squared = 0.28209479177387814 * 0.28209479177387814;
-  sky_.set(config_.sky_degree, Sky::solve_fit(gram, rhs, start, 0.01 * static_cast<double>(largest) * kC0Squared));
+  // The ridge is at least what 1% of one view's pixels give: a few open
+  // pixels cannot bend the whole sky.
+  sky_.set(config_.sky_degree, Sky::solve_fit(gram, rhs, start, 0.01 * static_cast<double>(largest)));
   spdlog::info("sky: SH degree {}, fitted to the {:.1f}% of the training pixels with no SfM point within {} px",
                config_.sky_degree, 100.0 * sky_open_fraction_, sky_radius_);
 }

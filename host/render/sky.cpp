@@ -95,8 +95,8 @@ const DeviceBuffer& Sky::compose(const DeviceBuffer& rgb, const DeviceBuffer& al
   out_.reserve(npix * 3 * sizeof(float));
   const SkyCamera sc = sky_camera(camera);
   cl::Kernel k = rt_.kernel("sky.cl", "sky_compose", defines());
-  set_kernel_args(k, static_cast<cl_int>(camera.width), static_cast<cl_int>(camera.height),
-                  static_cast<cl_int>(values_ / 3), sc.r[0], sc.r[1], sc.r[2], sc.intr, coef_, rgb, alpha, out_);
+  set_kernel_args(k, static_cast<cl_int>(camera.width), static_cast<cl_int>(camera.height), sc.r[0], sc.r[1], sc.r[2],
+                  sc.intr, coef_, rgb, alpha, out_);
   rt_.launch("sky_compose", k, cl::NDRange((npix + 63) / 64 * 64), cl::NDRange(64));
   return out_;
 }
@@ -113,10 +113,10 @@ void Sky::backward(const DeviceBuffer& grad_out, const DeviceBuffer& alpha, cons
   partial_.reserve(std::max<size_t>(rows, 1) * values_ * sizeof(float));
   const SkyCamera sc = sky_camera(camera);
   cl::Kernel k = rt_.kernel("sky.cl", "sky_grad_partial", defines());
-  set_kernel_args(k, static_cast<cl_int>(camera.width), static_cast<cl_int>(camera.height),
-                  static_cast<cl_int>(values_ / 3), static_cast<cl_int>(chunk), sc.r[0], sc.r[1], sc.r[2], sc.intr,
-                  coef_, grad_out, alpha, static_cast<cl_int>(weight ? 1 : 0), weight ? *weight : coef_,
-                  static_cast<cl_int>(add ? 1 : 0), grad_alpha, static_cast<cl_int>(rows), partial_);
+  set_kernel_args(k, static_cast<cl_int>(camera.width), static_cast<cl_int>(camera.height), static_cast<cl_int>(chunk),
+                  sc.r[0], sc.r[1], sc.r[2], sc.intr, coef_, grad_out, alpha, static_cast<cl_int>(weight ? 1 : 0),
+                  weight ? *weight : coef_, static_cast<cl_int>(add ? 1 : 0), grad_alpha, static_cast<cl_int>(rows),
+                  partial_);
   rt_.launch("sky_grad_partial", k, cl::NDRange((rows + 63) / 64 * 64), cl::NDRange(64));
   cl::Kernel r = rt_.kernel("sky.cl", "sky_grad_reduce", defines());
   set_kernel_args(r, static_cast<cl_int>(rows), static_cast<cl_int>(values_), partial_, grad_);
@@ -136,9 +136,9 @@ void Sky::add_fit(const DeviceBuffer& image, const Camera& camera, Eigen::Matrix
   sums.reserve(values * sizeof(float));
   const SkyCamera sc = sky_camera(camera);
   cl::Kernel k = rt_.kernel("sky.cl", "sky_fit_partial", defines());
-  set_kernel_args(k, static_cast<cl_int>(camera.width), static_cast<cl_int>(camera.height),
-                  static_cast<cl_int>(k_count), static_cast<cl_int>(chunk), sc.r[0], sc.r[1], sc.r[2], sc.intr, image,
-                  static_cast<cl_int>(weight ? 1 : 0), weight ? *weight : coef_, static_cast<cl_int>(rows), partial_);
+  set_kernel_args(k, static_cast<cl_int>(camera.width), static_cast<cl_int>(camera.height), static_cast<cl_int>(chunk),
+                  sc.r[0], sc.r[1], sc.r[2], sc.intr, image, static_cast<cl_int>(weight ? 1 : 0),
+                  weight ? *weight : coef_, static_cast<cl_int>(rows), partial_);
   rt_.launch("sky_fit_partial", k, cl::NDRange((rows + 63) / 64 * 64), cl::NDRange(64));
   cl::Kernel r = rt_.kernel("sky.cl", "sky_grad_reduce", defines());
   set_kernel_args(r, static_cast<cl_int>(rows), static_cast<cl_int>(values), partial_, sums);
@@ -154,11 +154,11 @@ void Sky::add_fit(const DeviceBuffer& image, const Camera& camera, Eigen::Matrix
 }
 
 std::vector<float> Sky::solve_fit(const Eigen::MatrixXd& gram, const Eigen::MatrixXd& rhs,
-                                  const std::vector<float>& start, double ridge_floor) {
+                                  const std::vector<float>& start, double min_ridge_pixels) {
   const Eigen::Index k = gram.rows();
   std::vector<float> out(static_cast<size_t>(k) * 3, 0.f);
   if (start.size() == out.size()) out = start;
-  const double lambda = std::max(1e-3 * gram.trace() / std::max<Eigen::Index>(k, 1), ridge_floor);
+  const double lambda = std::max(1e-3 * gram.trace() / std::max<Eigen::Index>(k, 1), min_ridge_pixels * kShC0 * kShC0);
   if (k == 0 || !(lambda > 0)) return out;
   Eigen::MatrixXd b = rhs;
   for (Eigen::Index i = 0; i < k; ++i)

@@ -89,13 +89,13 @@ class Sky {
   // add_fit sums one photo [3, H, W] into the normal equations (gram
   // K x K, rhs K x 3; empty matrices start at zero). solve_fit returns the
   // coefficients [K, 3], with a ridge towards `start` [K, 3] of 1e-3 of
-  // the Gram matrix's mean diagonal (at least 1e-3 x the pixels of one
-  // degree-0 view, `ridge_floor`), so directions no open pixel saw stay
-  // near the start.
+  // the Gram matrix's mean diagonal, and at least the degree-0 diagonal
+  // entry that `min_ridge_pixels` pixels give (each adds Y_0^2), so
+  // directions no open pixel saw stay near the start.
   void add_fit(const DeviceBuffer& image, const Camera& camera, Eigen::MatrixXd& gram, Eigen::MatrixXd& rhs,
                const DeviceBuffer* weight = nullptr);
   static std::vector<float> solve_fit(const Eigen::MatrixXd& gram, const Eigen::MatrixXd& rhs,
-                                      const std::vector<float>& start = {}, double ridge_floor = 0);
+                                      const std::vector<float>& start = {}, double min_ridge_pixels = 0);
 
  private:
   std::map<std::string, std::string> defines() const;  // SKY_K for the kernels
