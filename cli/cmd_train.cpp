@@ -47,11 +47,13 @@ struct TrainArgs : RunArgs {
 
 // Presets. The default (also called "appearance") is the measured setting
 // for photographed scenes: children that may outgrow their voxel (scale cap
-// 64), 3 per anchor placed on the SfM points, recycling of transparent
-// children, faster offset and scale rates; with the library's defaults for
-// the rest (the voxel chosen from the scene, growth budgets). "paper" is the
+// 64), 2 per anchor placed on the SfM points, the points seeding the top
+// layer and the next (so thin objects get anchors of their own), growth of
+// at most 10% of the anchors per round, recycling of transparent children,
+// faster offset and scale rates; with the library's defaults for the rest
+// (the voxel chosen from the scene, the Gaussian budget). "paper" is the
 // method as published: 200 top-layer cells, 5 children inside their voxels,
-// no growth budget. A setting the user gives on the command line wins. A
+// one seeded layer, no growth budget. A setting the user gives on the command line wins. A
 // resumed run takes its settings from the checkpoint, so a preset is applied
 // only when given explicitly there.
 void apply_preset(const CLI::App& sub, TrainArgs& a) {
@@ -64,24 +66,31 @@ void apply_preset(const CLI::App& sub, TrainArgs& a) {
   if (a.preset == "paper") {
     unless_given("--top-cells", c.anchors.top_cells, 200);
     unless_given("--grow-budget", c.grow_budget, 0.0);
+    unless_given("--init-layers", c.anchors.init_layers, 1);
     unless_given("--max-gaussians", c.max_gaussians, int64_t{0});
     unless_given("--downscales", c.downscales, 0);
     unless_given("--sky-degree", c.sky_degree, -1);
     spdlog::info(
-        "preset paper: --top-cells {} --children {} --scale-cap {} --grow-budget {} --max-gaussians {} --sky-degree {}",
-        c.anchors.top_cells, c.anchors.children, c.anchors.scale_cap, c.grow_budget, c.max_gaussians, c.sky_degree);
+        "preset paper: --top-cells {} --children {} --init-layers {} --scale-cap {} --grow-budget {} --max-gaussians "
+        "{} --sky-degree {}",
+        c.anchors.top_cells, c.anchors.children, c.anchors.init_layers, c.anchors.scale_cap, c.grow_budget,
+        c.max_gaussians, c.sky_degree);
     return;
   }
   unless_given("--scale-cap", c.anchors.scale_cap, 64.f);
-  unless_given("--children", c.anchors.children, 3);
+  unless_given("--children", c.anchors.children, 2);
+  unless_given("--init-layers", c.anchors.init_layers, 2);
+  unless_given("--grow-budget", c.grow_budget, 0.1);
   unless_given("--init-children-at-points", c.anchors.init_children_at_points, true);
   unless_given("--recycle-opacity", c.recycle_opacity, 0.02);
   unless_given("--lr-offset", c.offset_lr_init, 1e-2);
   unless_given("--lr-scaling", c.scaling_lr, 0.01);
-  spdlog::info("preset {}: --scale-cap {} --children {} --{} --recycle-opacity {} --lr-offset {} --lr-scaling {}",
-               a.preset, c.anchors.scale_cap, c.anchors.children,
-               c.anchors.init_children_at_points ? "init-children-at-points" : "init-children-random",
-               c.recycle_opacity, c.offset_lr_init, c.scaling_lr);
+  spdlog::info(
+      "preset {}: --scale-cap {} --children {} --init-layers {} --{} --grow-budget {} --recycle-opacity {} "
+      "--lr-offset {} --lr-scaling {}",
+      a.preset, c.anchors.scale_cap, c.anchors.children, c.anchors.init_layers,
+      c.anchors.init_children_at_points ? "init-children-at-points" : "init-children-random", c.grow_budget,
+      c.recycle_opacity, c.offset_lr_init, c.scaling_lr);
 }
 
 bool has_stage(const TrainArgs& a, int s) {
@@ -510,15 +519,20 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                   "at least twice the initial count; 0 = no limit; below the initial count is an error)")
       ->check(CLI::Range(int64_t{0}, std::numeric_limits<int64_t>::max()));
   sub->add_option("--grow-budget", c.grow_budget,
-                  "A growing round adds at most this fraction of the anchors (at least 64; default 0.25; 0 = no "
+                  "A growing round adds at most this fraction of the anchors (at least 64; default 0.1; the library's 0.25; 0 = no "
                   "limit); the children asking hardest win")
       ->check(CLI::Range(0.0, 1e6));
-  sub->add_option("--children", c.anchors.children, "Gaussians per anchor (default 3; --preset paper 5)")
+  sub->add_option("--children", c.anchors.children, "Gaussians per anchor (default 2; --preset paper 5)")
       ->check(CLI::Range(1, 64));
   sub->add_option("--init-layer", c.anchors.init_layer,
-                  "Voxel layer the SfM points initialise anchors on (default 0 = the top layer, as the official "
-                  "code; -1 = every layer, as the paper says)")
+                  "First voxel layer the SfM points initialise anchors on (default 0 = the top layer, as the "
+                  "official code; -1 = every layer, as the paper says)")
       ->check(CLI::Range(-1, 15));
+  sub->add_option("--init-layers", c.anchors.init_layers,
+                  "Layers the SfM points initialise anchors on, from --init-layer down (default 2: the top layer "
+                  "and the next, so thin objects start with anchors of their own; --preset paper 1, the official "
+                  "code)")
+      ->check(CLI::Range(1, 16));
   sub->add_option("--init-scale", c.anchors.init_scale,
                   "Scale of a fresh child as a fraction of its voxel edge (default 0.5; below --scale-cap)")
       ->check(CLI::Range(1e-4, 1023.0));
@@ -601,10 +615,10 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                   "Stage 3: a pixel belongs to a cluster holding at least this share of its weight (default 0.5)")
       ->check(CLI::Range(0.5, 0.999));
   sub->add_option("--preset", a->preset,
-                  "default (= appearance: --scale-cap 64 --children 3 --init-children-at-points --recycle-opacity "
-                  "0.02 --lr-offset 1e-2 --lr-scaling 0.01, the voxel from the scene, growth budgets) or paper (the "
-                  "method as published: --top-cells 200, 5 children inside their voxels, --scale-cap 1, no growth "
-                  "budget); flags given explicitly win")
+                  "default (= appearance: --scale-cap 64 --children 2 --init-layers 2 --init-children-at-points "
+                  "--grow-budget 0.1 --recycle-opacity 0.02 --lr-offset 1e-2 --lr-scaling 0.01, the voxel from the "
+                  "scene) or paper (the method as published: --top-cells 200, 5 children inside their voxels, "
+                  "--scale-cap 1, one seeded layer, no growth budget); flags given explicitly win")
       ->check(CLI::IsMember({"default", "appearance", "paper"}));
   set_action(sub, [&global, a, sub] {
     a->stages_given = sub->count("--stages") > 0;

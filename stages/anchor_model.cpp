@@ -86,6 +86,8 @@ void AnchorConfig::validate() const {
   if (layer_ratio < 2) bad("layer_ratio is " + std::to_string(layer_ratio) + "; it must be at least 2");
   if (init_layer < -1 || init_layer >= layers)
     bad("init_layer is " + std::to_string(init_layer) + "; use -1 (every layer) or 0.." + std::to_string(layers - 1));
+  if (init_layers < 1 || init_layers > kMaxLayers)
+    bad("init_layers is " + std::to_string(init_layers) + "; use 1..16 (layers seeded from init_layer down)");
   if (!(init_opacity > 0.f && init_opacity < 1.f)) bad("init_opacity must lie in (0, 1)");
   if (!(scale_cap >= 1.f && scale_cap <= 1024.f)) bad("scale_cap must lie in [1, 1024] (voxel edges)");
   if (scale_cap_layers < 1 || scale_cap_layers > kMaxLayers)
@@ -181,7 +183,8 @@ AnchorInitStats AnchorModel::initialise_from_points(const std::vector<Eigen::Vec
   stats.anchors_per_layer.assign(config.layers, 0);
   std::vector<uint8_t> skipped(points.size(), 0);
   const int first = config.init_layer < 0 ? 0 : config.init_layer;
-  const int last = config.init_layer < 0 ? config.layers - 1 : config.init_layer;
+  const int last = config.init_layer < 0 ? config.layers - 1
+                                         : std::min(config.layers - 1, config.init_layer + config.init_layers - 1);
   for (int layer = first; layer <= last; ++layer) {
     // (voxel key, point index), sorted: the keys order like (layer, cell)
     // tuples and ties keep the point order, so colour sums run in a fixed order.
@@ -396,6 +399,7 @@ void AnchorModel::to_archive(ModelArchive& archive) const {
                                {"voxel_size", c.voxel_size},
                                {"layer_ratio", c.layer_ratio},
                                {"init_layer", c.init_layer},
+                               {"init_layers", c.init_layers},
                                {"init_children_at_points", c.init_children_at_points},
                                {"init_opacity", c.init_opacity},
                                {"init_scale", c.init_scale},
@@ -425,6 +429,7 @@ AnchorModel AnchorModel::from_archive(const ModelArchive& archive) {
     c.voxel_size = jc.value("voxel_size", 0.0);
     c.layer_ratio = jc.at("layer_ratio").get<int>();
     c.init_layer = jc.at("init_layer").get<int>();
+    c.init_layers = jc.value("init_layers", 1);
     c.init_children_at_points = jc.value("init_children_at_points", false);
     c.init_opacity = jc.at("init_opacity").get<float>();
     c.init_scale = jc.at("init_scale").get<float>();

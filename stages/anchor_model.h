@@ -42,7 +42,8 @@ struct AnchorConfig {
   double voxel_size = 0;
   int top_cells = 0;
   int layer_ratio = 4;        // each layer is this much finer than the one above
-  int init_layer = 0;         // layer initialised from the SfM points; -1 = every layer
+  int init_layer = 0;         // first layer initialised from the SfM points; -1 = every layer
+  int init_layers = 1;        // layers seeded from init_layer down (clipped at the finest); >= 1
   float init_opacity = 0.1f;  // opacity of a fresh child, in (0, 1)
   float init_scale = 0.5f;    // scale of a fresh child as a fraction of its voxel edge, in (0, scale_cap)
   // scale = sigmoid(logit) * scale_cap * l: 1 (the paper) keeps a child
@@ -112,7 +113,8 @@ class AnchorModel {
   AnchorModel() = default;
 
   // Replaces the model by anchors at the centres of the voxels occupied by
-  // `points` on config.init_layer (or on every layer with -1), in (layer,
+  // `points` on the init_layers layers from config.init_layer down (every
+  // layer with init_layer -1), in (layer,
   // cell x, y, z) order. Every finite point counts, also those outside the
   // robust box (which only sizes the voxels). colors: [points] RGB 0..255 or
   // empty (grey).

@@ -109,6 +109,7 @@ nlohmann::json TrainConfig::to_json() const {
       {"children", anchors.children},         {"layers", anchors.layers},
       {"top_cells", anchors.top_cells},       {"voxel_size", anchors.voxel_size},
       {"layer_ratio", anchors.layer_ratio},   {"init_layer", anchors.init_layer},
+      {"init_layers", anchors.init_layers},
       {"init_opacity", anchors.init_opacity}, {"init_children_at_points", anchors.init_children_at_points},
       {"init_scale", anchors.init_scale},     {"init_feature", anchors.init_feature},
       {"scale_cap", anchors.scale_cap},       {"scale_cap_layers", anchors.scale_cap_layers},
@@ -172,6 +173,7 @@ TrainConfig TrainConfig::from_json(const nlohmann::json& j) {
     c.anchors.voxel_size = a.value("voxel_size", 0.0);
     c.anchors.layer_ratio = a.at("layer_ratio").get<int>();
     c.anchors.init_layer = a.at("init_layer").get<int>();
+    c.anchors.init_layers = a.value("init_layers", 1);
     c.anchors.init_children_at_points = a.value("init_children_at_points", false);
     c.anchors.init_opacity = a.at("init_opacity").get<float>();
     c.anchors.init_scale = a.at("init_scale").get<float>();

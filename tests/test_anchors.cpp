@@ -327,6 +327,52 @@ TEST(AnchorInit, EveryLayerWhenInitLayerIsMinusOne) {
               st.anchors_per_layer[2]);
 }
 
+// init_layers N seeds the N layers from init_layer down, each exactly as
+// a run seeding that layer alone would; past the finest layer it is clipped,
+// and 0 is refused.
+TEST(AnchorInit, InitLayersSeedsTheCoarsestLayersAsEachAlone) {
+  const auto pts = random_points(3000, 2.0, 12);
+  const auto cols = random_colors(pts.size(), 2);
+  AnchorConfig two;
+  two.init_layers = 2;
+  const VoxelGrid g = unit_grid(two);
+  AnchorModel m;
+  const AnchorInitStats st = m.initialise_from_points(pts, cols, g, two, 5);
+  EXPECT_GT(st.anchors_per_layer[0], 0u);
+  EXPECT_GT(st.anchors_per_layer[1], st.anchors_per_layer[0]);
+  EXPECT_EQ(st.anchors_per_layer[2], 0u);
+  ASSERT_EQ(m.size(), st.anchors_per_layer[0] + st.anchors_per_layer[1]);
+  // Layer by layer, the anchors (cells, children, colours) of a run seeding that layer alone.
+  size_t a = 0;
+  for (int l = 0; l < 2; ++l) {
+    AnchorConfig one = two;
+    one.init_layers = 1;
+    one.init_layer = l;
+    AnchorModel alone;
+    alone.initialise_from_points(pts, cols, g, one, 5);
+    const size_t K = static_cast<size_t>(one.children);
+    for (size_t b = 0; b < alone.size(); ++b, ++a) {
+      ASSERT_EQ(m.layer()[a], l);
+      ASSERT_EQ(cell_at(m, a), cell_at(alone, b));
+      for (size_t k = 0; k < K * 3; ++k) ASSERT_EQ(m.offset()[a * K * 3 + k], alone.offset()[b * K * 3 + k]);
+      for (size_t k = 0; k < K * kAnchorShCoeffs * 3; ++k)
+        ASSERT_EQ(m.sh()[a * K * kAnchorShCoeffs * 3 + k], alone.sh()[b * K * kAnchorShCoeffs * 3 + k]);
+    }
+  }
+  // Clipped at the finest layer: from layer 1, 5 layers are layers 1 and 2.
+  AnchorConfig deep = two;
+  deep.init_layer = 1;
+  deep.init_layers = 5;
+  AnchorModel d;
+  const AnchorInitStats sd = d.initialise_from_points(pts, cols, g, deep, 5);
+  EXPECT_EQ(sd.anchors_per_layer[0], 0u);
+  EXPECT_EQ(sd.anchors_per_layer[1], st.anchors_per_layer[1]);
+  EXPECT_GT(sd.anchors_per_layer[2], sd.anchors_per_layer[1]);
+  AnchorConfig none = two;
+  none.init_layers = 0;
+  test::expect_error_with<std::invalid_argument>([&] { none.validate(); }, {"init_layers is 0"});
+}
+
 TEST(AnchorInit, DeterministicAndIndependentOfPointOrder) {
   AnchorConfig c;
   c.init_layer = -1;

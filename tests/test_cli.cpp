@@ -155,20 +155,23 @@ TEST(Cli, TrainPresetsDefaultAppearanceAndPaperExplicitFlagsWin) {
   // The default is the appearance setting.
   Result def = run(common + (dir / "default").string());
   ASSERT_EQ(def.code, 0) << def.output;
-  EXPECT_NE(def.output.find("preset default: --scale-cap 64 --children 3"), std::string::npos) << def.output;
+  EXPECT_NE(def.output.find("preset default: --scale-cap 64 --children 2 --init-layers 2"), std::string::npos)
+      << def.output;
   EXPECT_EQ(config_of(dir / "default").at("scale_cap").get<float>(), 64.f);
-  EXPECT_EQ(config_of(dir / "default").at("children").get<int>(), 3);
+  EXPECT_EQ(config_of(dir / "default").at("children").get<int>(), 2);
+  EXPECT_EQ(config_of(dir / "default").at("init_layers").get<int>(), 2);
   EXPECT_TRUE(config_of(dir / "default").at("init_children_at_points").get<bool>());
 
   // --preset paper: the method as published; the explicit --top-cells wins.
   Result paper = run(common + (dir / "paper").string() + " --preset paper");
   ASSERT_EQ(paper.code, 0) << paper.output;
-  EXPECT_NE(paper.output.find("preset paper: --top-cells 50 --children 5 --scale-cap 1 --grow-budget 0 "
-                              "--max-gaussians 0"),
+  EXPECT_NE(paper.output.find("preset paper: --top-cells 50 --children 5 --init-layers 1 --scale-cap 1 "
+                              "--grow-budget 0 --max-gaussians 0"),
             std::string::npos)
       << paper.output;
   EXPECT_EQ(config_of(dir / "paper").at("scale_cap").get<float>(), 1.f);
   EXPECT_EQ(config_of(dir / "paper").at("children").get<int>(), 5);
+  EXPECT_EQ(config_of(dir / "paper").at("init_layers").get<int>(), 1);
   EXPECT_EQ(config_of(dir / "paper").at("top_cells").get<int>(), 50);
   Result paper200 = run("train " + scene + " -r 2 --iters 1 --stages 1 --log-every 0 --preset paper -o " +
                         (dir / "paper200").string());
@@ -177,8 +180,9 @@ TEST(Cli, TrainPresetsDefaultAppearanceAndPaperExplicitFlagsWin) {
 
   Result app = run(common + (dir / "app").string() + " --preset appearance --children 4");
   ASSERT_EQ(app.code, 0) << app.output;
-  EXPECT_NE(app.output.find("preset appearance: --scale-cap 64 --children 4 --init-children-at-points "
-                            "--recycle-opacity 0.02 --lr-offset 0.01 --lr-scaling 0.01"),
+  EXPECT_NE(app.output.find("preset appearance: --scale-cap 64 --children 4 --init-layers 2 "
+                            "--init-children-at-points --grow-budget 0.1 --recycle-opacity 0.02 --lr-offset 0.01 "
+                            "--lr-scaling 0.01"),
             std::string::npos)
       << app.output;
   const auto c = config_of(dir / "app");
@@ -223,12 +227,26 @@ TEST(Cli, TrainInitLayerSeedsTheChosenLayers) {
     return n;
   };
   const std::string common = "train " + scene + " -r 2 --iters 1 --stages 1 --top-cells 50 --log-every 0 -o ";
-  Result top = run(common + (dir / "top").string());
+  Result top = run(common + (dir / "top").string() + " --init-layers 1");
   ASSERT_EQ(top.code, 0) << top.output;
   const auto t = per_layer(top.output);
   EXPECT_GT(t[0], 0) << top.output;
   EXPECT_EQ(t[1], 0);
   EXPECT_EQ(t[2], 0);
+  // The default seeds the top layer and the next.
+  Result two = run(common + (dir / "two").string());
+  ASSERT_EQ(two.code, 0) << two.output;
+  const auto d = per_layer(two.output);
+  EXPECT_EQ(d[0], t[0]) << two.output;
+  EXPECT_GT(d[1], d[0]);
+  EXPECT_EQ(d[2], 0);
+  // From layer 1 down: layers 1 and 2.
+  Result low = run(common + (dir / "low").string() + " --init-layer 1");
+  ASSERT_EQ(low.code, 0) << low.output;
+  const auto l = per_layer(low.output);
+  EXPECT_EQ(l[0], 0) << low.output;
+  EXPECT_EQ(l[1], d[1]);
+  EXPECT_GT(l[2], l[1]);
   Result all = run(common + (dir / "all").string() + " --init-layer -1");
   ASSERT_EQ(all.code, 0) << all.output;
   const auto a = per_layer(all.output);
@@ -239,6 +257,9 @@ TEST(Cli, TrainInitLayerSeedsTheChosenLayers) {
   EXPECT_NE(bad.code, 0);
   EXPECT_NE(bad.output.find("init_layer"), std::string::npos) << bad.output;
   EXPECT_FALSE(fs::exists(dir / "bad" / "model.ag2gs"));
+  Result none = run(common + (dir / "none").string() + " --init-layers 0");
+  EXPECT_NE(none.code, 0);
+  EXPECT_NE(none.output.find("--init-layers"), std::string::npos) << none.output;
   fs::remove_all(dir);
 }
 
