@@ -53,9 +53,9 @@ struct TrainArgs : RunArgs {
 // faster offset and scale rates; with the library's defaults for the rest
 // (the voxel chosen from the scene, the Gaussian budget). "paper" is the
 // method as published: 200 top-layer cells, 5 children inside their voxels,
-// one seeded layer, no growth budget. A setting the user gives on the command line wins. A
-// resumed run takes its settings from the checkpoint, so a preset is applied
-// only when given explicitly there.
+// one seeded layer, no growth budget. A setting the user gives on the
+// command line wins. A resumed run takes its settings from the checkpoint, so
+// a preset is applied only when given explicitly there.
 void apply_preset(const CLI::App& sub, TrainArgs& a) {
   const bool continues = a.resume || std::find(a.stages.begin(), a.stages.end(), 1) == a.stages.end();
   if (continues && sub.count("--preset") == 0) return;
@@ -519,8 +519,8 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                   "at least twice the initial count; 0 = no limit; below the initial count is an error)")
       ->check(CLI::Range(int64_t{0}, std::numeric_limits<int64_t>::max()));
   sub->add_option("--grow-budget", c.grow_budget,
-                  "A growing round adds at most this fraction of the anchors (at least 64; default 0.1; the library's 0.25; 0 = no "
-                  "limit); the children asking hardest win")
+                  "A growing round adds at most this fraction of the anchors (at least 64; default 0.1, the "
+                  "library's 0.25; 0 = no limit); the children asking hardest win")
       ->check(CLI::Range(0.0, 1e6));
   sub->add_option("--children", c.anchors.children, "Gaussians per anchor (default 2; --preset paper 5)")
       ->check(CLI::Range(1, 64));
