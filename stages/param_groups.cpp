@@ -10,8 +10,11 @@ namespace ag2gs {
 ParamGroups::ParamGroups(Runtime& rt, std::vector<ParamGroupSpec> specs, size_t rows, size_t anchor_rows)
     : specs_(std::move(specs)) {
   for (const ParamGroupSpec& s : specs_)
-    groups_.push_back(std::make_unique<AdamGroup>(
-        rt, s.name, s.fixed_rows > 0 ? s.fixed_rows : s.per_anchor ? anchor_rows : rows, s.row_size));
+    groups_.push_back(std::make_unique<AdamGroup>(rt, s.name,
+                                                  s.fixed_rows > 0 ? s.fixed_rows
+                                                  : s.per_anchor   ? anchor_rows
+                                                                   : rows,
+                                                  s.row_size));
 }
 
 AdamGroup& ParamGroups::named(const std::string& name) const {
@@ -35,7 +38,12 @@ uint64_t ParamGroups::count_nonfinite(Adam& adam, const std::vector<GroupStep>& 
 }
 
 void ParamGroups::step(Adam& adam, const std::vector<GroupStep>& steps) const {
-  for (const GroupStep& s : steps) adam.step(*groups_[s.index], *s.param, *s.grad, s.lr);
+  for (const GroupStep& s : steps) {
+    if (s.rows_on)
+      adam.step_visible(*groups_[s.index], *s.param, *s.grad, s.lr, *s.rows_on);
+    else
+      adam.step(*groups_[s.index], *s.param, *s.grad, s.lr);
+  }
 }
 
 nlohmann::json ParamGroups::to_archive(ModelArchive& archive) const {

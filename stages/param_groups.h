@@ -32,6 +32,10 @@ struct GroupStep {
   DeviceBuffer* param;
   const DeviceBuffer* grad;
   double lr;
+  // When set: [rows] ints, and only the rows with a nonzero entry change
+  // (Adam::step_visible); the others keep their values and moments bit
+  // for bit (the removal's fine-tune freezes what lies far from the hole).
+  const DeviceBuffer* rows_on = nullptr;
 };
 
 class ParamGroups {
@@ -68,8 +72,8 @@ class ParamGroups {
   // throws (nlohmann::json or std::runtime_error) when an entry is missing
   // or has another shape; `meta` is what to_archive returned.
   static std::unique_ptr<ParamGroups> from_archive(Runtime& rt, std::vector<ParamGroupSpec> specs,
-                                                   const ModelArchive& archive, const nlohmann::json& meta,
-                                                   size_t rows, size_t anchor_rows);
+                                                   const ModelArchive& archive, const nlohmann::json& meta, size_t rows,
+                                                   size_t anchor_rows);
 
  private:
   std::vector<ParamGroupSpec> specs_;

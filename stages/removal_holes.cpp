@@ -82,6 +82,11 @@ ViewHole HoleFinder::find(Renderer& renderer, const Camera& cam, const HoleSetti
   RenderOutput after = renderer.render(kept_, cam, plain);
   if (sky) composite_sky(renderer, *sky, cam, after);
   h.rgb_after = after.rgb;
+  h.alpha_after = after.alpha;
+  h.depth_after.assign(npix, 0.f);
+  for (size_t p = 0; p < npix; ++p)
+    if (after.alpha[p] > 0.f) h.depth_after[p] = after.depth[p] / after.alpha[p];
+  h.object_depth.assign(npix, 0.f);
 
   h.object.assign(npix, 0);
   cv::Mat hole(cam.height, cam.width, CV_8UC1, cv::Scalar(0));
@@ -91,6 +96,7 @@ ViewHole HoleFinder::find(Renderer& renderer, const Camera& cam, const HoleSetti
     h.object[p] = 1;
     ++h.object_pixels;
     const double object_depth = before.feature[3 * p + 1] / w;
+    h.object_depth[p] = static_cast<float>(object_depth);
     const float a = after.alpha[p];
     bool is_hole = a < s.alpha_min;
     if (!is_hole) {
@@ -102,11 +108,20 @@ ViewHole HoleFinder::find(Renderer& renderer, const Camera& cam, const HoleSetti
       ++h.undilated_hole_pixels;
     }
   }
-  if (s.dilate > 0 && h.undilated_hole_pixels > 0)
-    cv::dilate(hole, hole, cv::getStructuringElement(cv::MORPH_CROSS, cv::Size(3, 3)), cv::Point(-1, -1), s.dilate);
   h.hole.assign(hole.data, hole.data + npix);
+  if (s.dilate > 0 && h.undilated_hole_pixels > 0) h.hole = dilate_mask(h.hole, cam.width, cam.height, s.dilate);
   for (uint8_t b : h.hole) h.hole_pixels += b;
   return h;
+}
+
+std::vector<uint8_t> dilate_mask(const std::vector<uint8_t>& mask, int width, int height, int steps) {
+  if (mask.size() != static_cast<size_t>(width) * height)
+    throw std::invalid_argument("dilate_mask: " + std::to_string(mask.size()) + " values for " + std::to_string(width) +
+                                "x" + std::to_string(height));
+  if (steps <= 0) return mask;
+  cv::Mat m(height, width, CV_8UC1, const_cast<uint8_t*>(mask.data())), out;
+  cv::dilate(m, out, cv::getStructuringElement(cv::MORPH_CROSS, cv::Size(3, 3)), cv::Point(-1, -1), steps);
+  return std::vector<uint8_t>(out.data, out.data + mask.size());
 }
 
 InpaintMethod parse_inpaint_method(const std::string& name) {
@@ -116,8 +131,8 @@ InpaintMethod parse_inpaint_method(const std::string& name) {
   throw std::invalid_argument("--inpaint '" + name + "': expected telea, ns or none");
 }
 
-std::vector<float> inpaint_hole(const std::vector<float>& rgb, const std::vector<uint8_t>& hole, int width,
-                                int height, InpaintMethod method) {
+std::vector<float> inpaint_hole(const std::vector<float>& rgb, const std::vector<uint8_t>& hole, int width, int height,
+                                InpaintMethod method) {
   const size_t npix = static_cast<size_t>(width) * height;
   if (rgb.size() != npix * 3 || hole.size() != npix)
     throw std::invalid_argument("inpaint_hole: image and hole sizes do not match " + std::to_string(width) + "x" +

@@ -35,9 +35,12 @@ struct HoleSettings {
 
 struct ViewHole {
   int width = 0, height = 0;
-  std::vector<uint8_t> object;   // [H,W] 1 where the removed Gaussians' weights sum to >= object_weight
-  std::vector<uint8_t> hole;     // [H,W] 1 in the (dilated) hole
-  std::vector<float> rgb_after;  // [H,W,3] the render after deletion
+  std::vector<uint8_t> object;      // [H,W] 1 where the removed Gaussians' weights sum to >= object_weight
+  std::vector<uint8_t> hole;        // [H,W] 1 in the (dilated) hole
+  std::vector<float> rgb_after;     // [H,W,3] the render after deletion
+  std::vector<float> alpha_after;   // [H,W] the kept Gaussians' opacity
+  std::vector<float> depth_after;   // [H,W] their mean camera depth (sum w z / alpha; 0 where alpha is 0)
+  std::vector<float> object_depth;  // [H,W] the removed Gaussians' mean depth on object pixels, else 0
   size_t object_pixels = 0, hole_pixels = 0, undilated_hole_pixels = 0;
 };
 
@@ -57,8 +60,8 @@ class HoleFinder {
   HoleFinder(const GaussianSet& kept, const GaussianSet& removed);
   // With a sky (the model's, host/render/sky.h), rgb_after is composited
   // over it; the hole rule reads the Gaussians' alpha alone.
-  ViewHole find(Renderer& renderer, const Camera& cam, const HoleSettings& settings,
-                const RenderSettings& render = {}, Sky* sky = nullptr);
+  ViewHole find(Renderer& renderer, const Camera& cam, const HoleSettings& settings, const RenderSettings& render = {},
+                Sky* sky = nullptr);
   double diameter() const { return diameter_; }  // object_diameter(removed)
 
  private:
@@ -68,6 +71,9 @@ class HoleFinder {
   double diameter_ = 0;
 };
 
+// `mask` ([H,W] 0/1) grown by `steps` pixels, a 3x3 cross per step.
+std::vector<uint8_t> dilate_mask(const std::vector<uint8_t>& mask, int width, int height, int steps);
+
 enum class InpaintMethod { kTelea, kNavierStokes, kNone };
 
 // "telea" | "ns" | "none"; throws std::invalid_argument otherwise.
@@ -76,7 +82,7 @@ InpaintMethod parse_inpaint_method(const std::string& name);
 // Fills the hole of `rgb` ([H,W,3], linear 0..1) by classical inpainting
 // (OpenCV's Telea or Navier-Stokes, radius 3 pixels) and returns the filled
 // image; kNone returns rgb unchanged. Pixels outside the hole keep their values.
-std::vector<float> inpaint_hole(const std::vector<float>& rgb, const std::vector<uint8_t>& hole, int width,
-                                int height, InpaintMethod method);
+std::vector<float> inpaint_hole(const std::vector<float>& rgb, const std::vector<uint8_t>& hole, int width, int height,
+                                InpaintMethod method);
 
 }  // namespace ag2gs

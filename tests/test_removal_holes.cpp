@@ -2,14 +2,18 @@
 // a box standing on a textured floor that has no Gaussians under the box (no
 // view saw that ground), seen from four sides. The hole of each view must be
 // the box's footprint as the view's rays meet the floor plane, within a pixel;
-// the rest of the box's silhouette shows floor the model knows.
+// the rest of the box's silhouette shows floor the model knows. The fill
+// (stages/removal_fill.h) must then find the footprint in 3D: on the floor
+// plane, inside the box's base, and place anchors there only.
 #include <gtest/gtest.h>
 
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <set>
 #include <string>
 
+#include "stages/removal_fill.h"
 #include "stages/removal_holes.h"
 #include "test_util.h"
 
@@ -58,7 +62,7 @@ GaussianSet box() {
   for (int i = 0; i <= 10; ++i)
     for (int j = 0; j <= 10; ++j) {
       const double a = -kHalf + i * step, b = j * step, c = -kHalf + j * step;
-      add(g, a, c, h, 0.025, 0.025, 0.002, 0.9f, 0.1f, 0.1f);      // top
+      add(g, a, c, h, 0.025, 0.025, 0.002, 0.9f, 0.1f, 0.1f);       // top
       add(g, a, -kHalf, b, 0.025, 0.002, 0.025, 0.9f, 0.2f, 0.1f);  // four sides
       add(g, a, kHalf, b, 0.025, 0.002, 0.025, 0.9f, 0.2f, 0.1f);
       add(g, -kHalf, a, b, 0.002, 0.025, 0.025, 0.9f, 0.3f, 0.1f);
@@ -190,6 +194,114 @@ TEST(RemovalHoles, InpaintingFillsOnlyTheHole) {
   EXPECT_EQ(inpaint_hole(rgb, hole, w, h, InpaintMethod::kNone), rgb);
   EXPECT_THROW(parse_inpaint_method("lama"), std::invalid_argument);
   EXPECT_THROW(inpaint_hole(rgb, hole, w + 1, h, InpaintMethod::kTelea), std::invalid_argument);
+}
+
+// The 3D footprint of the four views' holes lies on the floor plane inside
+// the box's base and covers it; the fill puts anchors exactly into the empty
+// voxels of the base (on the floor's layer), with the targets' colour, and
+// marks the floor anchors around it trainable, the far ones not.
+TEST(RemovalFill, FootprintIsTheBaseOnTheFloorAndTheFillGoesThere) {
+  const GaussianSet kept = floor_without_footprint(), removed = box();
+  HoleFinder finder(kept, removed);
+  Renderer renderer(test::runtime());
+  HoleSettings s;
+  s.dilate = 0;
+  // Layer 1 of this grid: 0.08 cells, z = 0 the middle of cell 12.
+  AnchorConfig config;
+  config.children = 2;
+  config.layers = 2;
+  VoxelGrid grid;
+  grid.origin = Eigen::Vector3d(-1.0, -1.0, -1.0);
+  grid.top_voxel = 0.32;
+  grid.layer_ratio = 4;
+  grid.layers = 2;
+  HoleFootprint footprint(grid, finder.diameter(), s.behind);
+  for (double az : {0.3, 1.9, 3.4, 5.0}) {
+    const Camera cam = view_from(az);
+    const ViewHole h = finder.find(renderer, cam, s);
+    // A flat target colour in the hole: the fill's colour must be it.
+    std::vector<float> target(h.rgb_after);
+    for (size_t p = 0; p < h.hole.size(); ++p)
+      if (h.hole[p]) {
+        target[3 * p] = 0.25f;
+        target[3 * p + 1] = 0.5f;
+        target[3 * p + 2] = 0.75f;
+      }
+    footprint.add_view(cam, h, target);
+  }
+  EXPECT_EQ(footprint.views_with_holes(), 4);
+  ASSERT_GT(footprint.points(), 100u);
+  // Voxels seen by two views or more (those the fill takes) lie on the
+  // floor within 0.03 (1% of the camera distance); a voxel of one view's
+  // rim pixels within 0.06.
+  size_t off_plane = 0, outside = 0;
+  for (const auto& [key, c] : footprint.cells()) {
+    const double x = c.sum[0] / c.points, y = c.sum[1] / c.points, z = c.sum[2] / c.points;
+    off_plane += std::abs(z) > (c.views >= 2 ? 0.03 : 0.06);
+    if (std::getenv("AG2GS_DEBUG_HOLES"))
+      std::printf("cell %.3f %.3f %.3f (%zu points, %d views)\n", x, y, z, c.points, c.views);
+    outside += std::abs(x) > kHalf + 0.04 || std::abs(y) > kHalf + 0.04;
+  }
+  EXPECT_EQ(off_plane, 0u) << "of " << footprint.cells().size() << " footprint voxels";
+  EXPECT_EQ(outside, 0u) << "of " << footprint.cells().size() << " footprint voxels";
+
+  // Floor anchors on layer 1 everywhere but under the box.
+  AnchorModel model;
+  model.reset(grid, config);
+  const double edge = grid.voxel(1);
+  std::set<std::pair<int, int>> base;
+  for (int i = 0; i < 26; ++i)
+    for (int j = 0; j < 26; ++j) {
+      const Eigen::Vector3i cell(i, j, 12);
+      const Eigen::Vector3d c = grid.centre(1, cell);
+      if (std::abs(c.x()) < kHalf && std::abs(c.y()) < kHalf) {
+        base.insert({i, j});
+        continue;
+      }
+      ASSERT_GE(model.add_anchor(1, cell, -1, 1), 0);
+    }
+  ASSERT_EQ(base.size(), 25u);  // 5 x 5 cells of 0.08 tile the 0.4 base
+  const size_t floor_anchors = model.size();
+  FillSettings fs;
+  const FillResult r = add_fill_anchors(model, footprint, fs, 100, 1);
+  EXPECT_EQ(model.size(), floor_anchors + r.added.size());
+  EXPECT_GE(r.added.size(), 20u) << "most of the base's 25 voxels";
+  for (size_t k = 0; k < r.added.size(); ++k) {
+    const int id = r.added[k];
+    ASSERT_EQ(id, static_cast<int>(floor_anchors + k));
+    EXPECT_EQ(model.layer()[id], 1);
+    const int cx = model.cell()[3 * id], cy = model.cell()[3 * id + 1], cz = model.cell()[3 * id + 2];
+    EXPECT_EQ(cz, 12);
+    EXPECT_TRUE(base.count({cx, cy})) << cx << "," << cy;
+    for (int i = 0; i < config.children; ++i) {
+      const float* sh = model.sh().data() + (static_cast<size_t>(id) * config.children + i) * kAnchorShCoeffs * 3;
+      EXPECT_NEAR(0.5 + 0.28209479 * sh[0], 0.25, 1e-3);
+      EXPECT_NEAR(0.5 + 0.28209479 * sh[2], 0.75, 1e-3);
+      EXPECT_NEAR(1.0 / (1.0 + std::exp(-model.opacity_logit()[static_cast<size_t>(id) * config.children + i])),
+                  fs.opacity, 1e-5);
+    }
+  }
+  // Trainable: the fill and the floor ring within 1.5 voxels of the footprint.
+  size_t ring = 0;
+  for (size_t a = 0; a < floor_anchors; ++a) {
+    const Eigen::Vector3d p(model.pos()[3 * a], model.pos()[3 * a + 1], model.pos()[3 * a + 2]);
+    const double d = std::max(std::abs(p.x()), std::abs(p.y()));
+    if (d > kHalf + 1.5 * edge + 0.04) EXPECT_EQ(r.trainable[a], 0) << "far floor anchor " << a;
+    ring += r.trainable[a];
+  }
+  EXPECT_EQ(ring, r.trainable_kept);
+  EXPECT_GE(ring, 12u) << "the floor cells around the base";
+  for (int id : r.added) EXPECT_EQ(r.trainable[id], 1);
+  // The cap keeps the best-supported voxels.
+  AnchorModel capped;
+  capped.reset(grid, config);
+  ASSERT_GE(capped.add_anchor(1, Eigen::Vector3i(0, 0, 12), -1, 1), 0);
+  FillSettings one = fs;
+  one.max_anchors = 3;
+  EXPECT_EQ(add_fill_anchors(capped, footprint, one, 100, 1).added.size(), 3u);
+  FillSettings bad = fs;
+  bad.opacity = 1.f;
+  EXPECT_THROW(add_fill_anchors(capped, footprint, bad, 100, 1), std::invalid_argument);
 }
 
 }  // namespace

@@ -6,6 +6,7 @@
 #include <gtest/gtest.h>
 #include <unistd.h>
 
+#include <cstdlib>
 #include <cstring>
 #include <filesystem>
 #include <fstream>
@@ -101,16 +102,17 @@ TEST(Remove, ClickWritesACompleteModelFolderWithoutTheObject) {
   const AnchorModel before = AnchorModel::from_archive(read_model_archive((fixture().model / "model.ag2gs").string()));
   const AnchorModel after = AnchorModel::from_archive(read_model_archive((out / "model.ag2gs").string()));
   EXPECT_GT(rep["anchors_removed"].get<size_t>(), 0u);
-  EXPECT_EQ(rep["anchors_removed"].get<size_t>() + after.size(), before.size());
-  EXPECT_EQ(rep["gaussians_kept"].get<size_t>(), after.gaussians());
+  EXPECT_EQ(rep["anchors_removed"].get<size_t>() + after.size(), before.size() + rep["anchors_added"].get<size_t>());
+  EXPECT_EQ(rep["gaussians_kept"].get<size_t>() + rep["gaussians_added"].get<size_t>(), after.gaussians());
+  EXPECT_EQ(rep["gaussians"].get<size_t>(), after.gaussians());
+  EXPECT_EQ(rep["iterations"].get<int>(), 0) << "no fine-tune by default";
   EXPECT_EQ(rep["query"]["type"], "click");
   EXPECT_EQ(rep["holes"]["views"].size(), 7u);
   // Other subcommands take the folder.
   const auto info = test::run_cli("info " + out.string());
   EXPECT_EQ(info.code, 0) << info.output;
-  const auto render =
-      test::run_cli("render " + out.string() + " --scene " + fixture().scene.string() + " --views test -o " +
-                    (fixture().root / "by_click_renders").string() + " --quiet");
+  const auto render = test::run_cli("render " + out.string() + " --scene " + fixture().scene.string() +
+                                    " --views test -o " + (fixture().root / "by_click_renders").string() + " --quiet");
   EXPECT_EQ(render.code, 0) << render.output;
 }
 
@@ -125,6 +127,7 @@ TEST(Remove, KeptAnchorsKeepTheirBytesAndHolesStayInTheObject) {
   ASSERT_EQ(r.code, 0) << r.output;
   const ModelArchive res = read_model_archive((out / "model.ag2gs").string());
   const std::set<int> gone(chosen.begin(), chosen.end());
+  const size_t added = json::parse(std::ifstream(out / "removal.json"))["anchors_added"].get<size_t>();
   for (const auto& [name, t] : in.arrays()) {
     if (name.rfind("anchors/", 0) != 0) continue;
     ASSERT_TRUE(res.has(name)) << name;
@@ -136,7 +139,8 @@ TEST(Remove, KeptAnchorsKeepTheirBytesAndHolesStayInTheObject) {
       ASSERT_EQ(0, std::memcmp(&t.bytes[a * row], &u.bytes[k * row], row)) << name << " anchor " << a;
       ++k;
     }
-    EXPECT_EQ(k * row, u.bytes.size()) << name;
+    // The fill's anchors follow the kept ones.
+    EXPECT_EQ((k + added) * row, u.bytes.size()) << name;
   }
   // The report's hole counts are the masks written to holes/.
   json rep = json::parse(std::ifstream(out / "removal.json"));
@@ -214,10 +218,12 @@ TEST(Remove, ExternalInpaintingIsUsedAsItIs) {
       for (int x = 0; x < 64; ++x) img.at<cv::Vec3b>(y, x) = cv::Vec3b(x * 4, y * 5, (x + y + s.back()) % 256);
     cv::imwrite((dir / (s + ".png")).string(), img);
   }
-  const auto r = test::run_cli(remove_cmd(out.string(), "--selection " + sel.string() + " --inpainted " + dir.string()));
+  const auto r =
+      test::run_cli(remove_cmd(out.string(), "--selection " + sel.string() + " --inpainted " + dir.string()));
   ASSERT_EQ(r.code, 0) << r.output;
   for (const std::string& s : train_stems()) {
-    const cv::Mat a = cv::imread((dir / (s + ".png")).string()), b = cv::imread((out / "targets" / (s + ".png")).string());
+    const cv::Mat a = cv::imread((dir / (s + ".png")).string()),
+                  b = cv::imread((out / "targets" / (s + ".png")).string());
     ASSERT_EQ(a.size(), b.size()) << s;
     EXPECT_EQ(cv::norm(a, b, cv::NORM_INF), 0.0) << s;
   }
@@ -234,6 +240,67 @@ TEST(Remove, ExternalInpaintingIsUsedAsItIs) {
   EXPECT_FALSE(fs::exists(out2));
 }
 
+// --no-fill deletes only; the fine-tune (--iters) changes only the fill and
+// the kept anchors the report lists as near the holes, and gives the same
+// bytes with 1 and 2 PoCL threads.
+TEST(Remove, FineTuneTouchesOnlyAnchorsNearTheHoleAndIsDeterministic) {
+  const fs::path sel = fixture().root / "selection_tune.json";
+  const ModelArchive in = read_model_archive((fixture().model / "model.ag2gs").string());
+  const AnchorModel before = AnchorModel::from_archive(in);
+  std::vector<int> chosen;
+  for (int a = 0; a < static_cast<int>(before.size()); a += 5) chosen.push_back(a);
+  write_selection(sel, chosen);
+  const fs::path del = fresh("delete_only");
+  auto r = test::run_cli(remove_cmd(del.string(), "--selection " + sel.string() + " --no-fill"));
+  ASSERT_EQ(r.code, 0) << r.output;
+  json rep = json::parse(std::ifstream(del / "removal.json"));
+  EXPECT_EQ(rep["anchors_added"].get<size_t>(), 0u);
+  EXPECT_EQ(AnchorModel::from_archive(read_model_archive((del / "model.ag2gs").string())).size(),
+            before.size() - chosen.size());
+
+  std::string bytes[2];
+  for (int threads = 1; threads <= 2; ++threads) {
+    const fs::path out = fresh("tuned_" + std::to_string(threads));
+    setenv("POCL_MAX_PTHREAD_COUNT", std::to_string(threads).c_str(), 1);
+    r = test::run_cli(remove_cmd(out.string(), "--selection " + sel.string() + " --iters 12"));
+    unsetenv("POCL_MAX_PTHREAD_COUNT");
+    ASSERT_EQ(r.code, 0) << r.output;
+    bytes[threads - 1] = read_file(out / "model.ag2gs");
+  }
+  EXPECT_EQ(bytes[0], bytes[1]) << "1 thread vs 2 threads";
+  const fs::path out = fixture().root / "tuned_2";
+  rep = json::parse(std::ifstream(out / "removal.json"));
+  EXPECT_EQ(rep["iterations"].get<int>(), 12);
+  std::set<int> tuned;
+  for (const auto& v : rep["fill"]["kept_anchors_tuned_ids"]) tuned.insert(v.get<int>());
+  EXPECT_EQ(tuned.size(), rep["fill"]["kept_anchors_tuned"].get<size_t>());
+  ASSERT_GT(tuned.size(), 0u);
+  ASSERT_LT(tuned.size(), before.size() - chosen.size()) << "some kept anchors must be far from the holes";
+  const AnchorModel after = AnchorModel::from_archive(read_model_archive((out / "model.ag2gs").string()));
+  const std::set<int> gone(chosen.begin(), chosen.end());
+  size_t k = 0, changed = 0, frozen_changed = 0;
+  const int K = before.children();
+  for (size_t a = 0; a < before.size(); ++a) {
+    if (gone.count(static_cast<int>(a))) continue;
+    bool same = true;
+    for (int c = 0; c < K; ++c) {
+      const size_t g = a * K + c, h = k * K + c;
+      same = same && before.opacity_logit()[g] == after.opacity_logit()[h];
+      for (int i = 0; i < 3; ++i)
+        same = same && before.offset()[3 * g + i] == after.offset()[3 * h + i] &&
+               before.scale_logit()[3 * g + i] == after.scale_logit()[3 * h + i] &&
+               before.sh()[g * kAnchorShCoeffs * 3 + i] == after.sh()[h * kAnchorShCoeffs * 3 + i];
+    }
+    if (!same) {
+      ++changed;
+      if (!tuned.count(static_cast<int>(k))) ++frozen_changed;
+    }
+    ++k;
+  }
+  EXPECT_EQ(frozen_changed, 0u) << "a frozen anchor changed";
+  EXPECT_GT(changed, 0u) << "the fine-tune changed nothing";
+}
+
 TEST(Remove, BadInputIsRefusedBeforeAnythingIsWritten) {
   const Fixture& f = fixture();
   const AnchorModel m = AnchorModel::from_archive(read_model_archive((f.model / "model.ag2gs").string()));
@@ -248,7 +315,8 @@ TEST(Remove, BadInputIsRefusedBeforeAnythingIsWritten) {
   const std::vector<std::pair<std::string, std::string>> cases = {
       {"--selection " + empty.string(), "selected no anchor"},
       {"--selection " + all.string(), "empty model"},
-      {"--selection " + sel.string() + " --iters 5", "not built yet"},
+      {"--selection " + sel.string() + " --no-fill --iters 5", "--no-fill deletes only"},
+      {"--selection " + sel.string() + " --fill-opacity 1", "opacity must be in (0, 1)"},
       {"--selection " + sel.string() + " --inpaint lama", "expected telea, ns or none"},
       {"--text thing --vocab " + vocab, "no clusters/language features"},
       {"", "give exactly one query"},

@@ -5,14 +5,17 @@
 //
 //   ag2gs_bench_removal SCENE_DIR --category C --original RENDERS --removed RENDERS [--json OUT.json]
 //
-// RENDERS: folders written by `ag2gs render --views test --outputs rgb,depth,alpha`
+// RENDERS: folders written by `ag2gs render --views test` (rgb/ is read)
 // at full size (-r 1). Per method and view, with M the category's exact mask
 // (gt/ ids of its objects):
 //   hole PSNR: inside M, against removal_gt/C/;
 //   kept PSNR: outside M, against the same image;
-//   residue:   the share of M where the render still shows a surface within
-//              10% of the original render's depth there (what is left of the
-//              object), with alpha >= 0.5.
+//   residue:   the share of M's decidable pixels (where the original render
+//              and the truth differ by at least 0.15 in mean absolute colour)
+//              at which the render still looks like the original: closer to
+//              it than a quarter of that difference. A fill that continues
+//              the ground under the object is not residue (the truth shows
+//              that ground); what is left of the object is.
 #include <CLI/CLI.hpp>
 #include <cmath>
 #include <cstdio>
@@ -24,7 +27,6 @@
 #include <set>
 
 #include "host/io/atomic_file.h"
-#include "host/io/npy_io.h"
 #include "queries/semantic_eval.h"
 
 using namespace ag2gs;
@@ -40,7 +42,7 @@ cv::Mat read_or_throw(const fs::path& p, int flags) {
 
 struct Sums {
   double se_in = 0, se_out = 0;
-  size_t n_in = 0, n_out = 0, residue = 0;
+  size_t n_in = 0, n_out = 0, residue = 0, decidable = 0;
   void add(const cv::Mat& img, const cv::Mat& truth, const cv::Mat& mask) {
     for (int y = 0; y < img.rows; ++y)
       for (int x = 0; x < img.cols; ++x) {
@@ -60,21 +62,25 @@ struct Sums {
   nlohmann::json to_json(size_t mask_pixels) const {
     return {{"hole_psnr", psnr(se_in, n_in)},
             {"kept_psnr", psnr(se_out, n_out)},
-            {"residue", mask_pixels ? double(residue) / mask_pixels : 0.0}};
+            {"residue", decidable ? double(residue) / decidable : 0.0},
+            {"residue_pixels", decidable}};
   }
 };
 
-// Pixels of M where `depth`/`alpha` still show a surface near the original's.
-size_t residue(const NpyArray& depth, const NpyArray& alpha, const NpyArray& depth0, const cv::Mat& mask) {
-  size_t n = 0;
+// Residue of `img` against the original render `orig` and the truth, over M.
+void add_residue(Sums& s, const cv::Mat& img, const cv::Mat& orig, const cv::Mat& truth, const cv::Mat& mask) {
+  auto dist = [](const cv::Vec3b& a, const cv::Vec3b& b) {
+    return (std::abs(a[0] - b[0]) + std::abs(a[1] - b[1]) + std::abs(a[2] - b[2])) / (3.0 * 255.0);
+  };
   for (int y = 0; y < mask.rows; ++y)
     for (int x = 0; x < mask.cols; ++x) {
       if (!mask.at<uint8_t>(y, x)) continue;
-      const size_t p = static_cast<size_t>(y) * mask.cols + x;
-      const float d = depth.data[p], d0 = depth0.data[p];
-      if (alpha.data[p] >= 0.5f && std::isfinite(d) && std::isfinite(d0) && std::abs(d - d0) <= 0.1f * d0) ++n;
+      const cv::Vec3b o = orig.at<cv::Vec3b>(y, x), t = truth.at<cv::Vec3b>(y, x), r = img.at<cv::Vec3b>(y, x);
+      const double contrast = dist(o, t);
+      if (contrast < 0.15) continue;
+      ++s.decidable;
+      if (dist(r, o) < 0.25 * contrast) ++s.residue;
     }
-  return n;
 }
 
 }  // namespace
@@ -84,7 +90,7 @@ int main(int argc, char** argv) {
   std::string scene_dir, category, original, removed, json_out;
   app.add_option("scene_dir", scene_dir, "Scene written by `ag2gs synth --removal-gt`")->required();
   app.add_option("--category", category, "The removed category (a folder of removal_gt/)")->required();
-  app.add_option("--original", original, "Renders of the original model (rgb/, depth/ of the test views)")->required();
+  app.add_option("--original", original, "Renders of the original model (rgb/ of the test views)")->required();
   app.add_option("--removed", removed, "Renders of the model after removal")->required();
   app.add_option("--json", json_out, "Also write the numbers here");
   CLI11_PARSE(app, argc, argv);
@@ -119,16 +125,12 @@ int main(int argc, char** argv) {
       cv::Mat grown, inpainted;
       cv::dilate(mask * 255, grown, cv::getStructuringElement(cv::MORPH_CROSS, cv::Size(3, 3)), cv::Point(-1, -1), 2);
       cv::inpaint(a, grown, inpainted, 3.0, cv::INPAINT_TELEA);
-      const NpyArray d0 = read_npy((fs::path(original) / "depth" / (stem + ".npy")).string());
-      const NpyArray a0 = read_npy((fs::path(original) / "alpha" / (stem + ".npy")).string());
-      const NpyArray d1 = read_npy((fs::path(removed) / "depth" / (stem + ".npy")).string());
-      const NpyArray a1 = read_npy((fs::path(removed) / "alpha" / (stem + ".npy")).string());
       s_orig.add(a, truth, mask);
       s_removed.add(b, truth, mask);
       s_2d.add(inpainted, truth, mask);
-      s_orig.residue += residue(d0, a0, d0, mask);
-      s_removed.residue += residue(d1, a1, d0, mask);
-      s_2d.residue += residue(d0, a0, d0, mask);  // a 2D fill leaves the 3D object in place
+      add_residue(s_orig, a, a, truth, mask);
+      add_residue(s_removed, b, a, truth, mask);
+      add_residue(s_2d, inpainted, a, truth, mask);
       mask_pixels += m;
       views.push_back({{"view", stem}, {"mask_pixels", m}});
     }

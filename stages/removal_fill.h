@@ -1,0 +1,153 @@
+// The fill of a removal (docs/design.md section 15): new anchors where the
+// rays through each view's hole meet the surfaces around it, and a short
+// fine-tune of those anchors and the ones near them against targets that
+// are the photos outside the object and the inpainted renders inside it.
+// Everything far from the hole is frozen (Adam leaves its rows alone), so
+// the rest of the scene keeps its bits.
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <functional>
+#include <map>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "host/device/cl_runtime.h"
+#include "host/render/adam.h"
+#include "host/render/image_loss.h"
+#include "host/render/renderer.h"
+#include "host/render/sky.h"
+#include "host/scene/scene.h"
+#include "stages/anchor_model.h"
+#include "stages/expander.h"
+#include "stages/param_groups.h"
+#include "stages/removal_holes.h"
+
+namespace ag2gs {
+
+struct FillSettings {
+  // A footprint voxel becomes an anchor when hole pixels of at least this
+  // many views land in it (one view's depth guess alone is not trusted,
+  // unless only one view has a hole).
+  int min_views = 2;
+  // At most this many fill anchors (0: as many as were removed); the
+  // best-supported voxels first.
+  size_t max_anchors = 0;
+  // Opacity of the fill's children at the start of the fine-tune.
+  float opacity = 0.5f;
+  // Kept anchors within this many of their own voxel edges of a footprint
+  // point are fine-tuned with the fill; the rest are frozen.
+  float near = 1.5f;
+  // After the fine-tune, fill anchors whose children's mean opacity is
+  // below this are dropped again (they found nothing to show).
+  float prune_opacity = 0.01f;
+
+  // Throws std::invalid_argument naming the field.
+  void validate() const;
+};
+
+// The 3D footprint of the holes: per view, each hole pixel's ray meets the
+// surface around the hole at the depth inpainted from the hole's rim (the
+// kept model's inverse depth, Navier-Stokes on the float map), held between the
+// object's own surface and `behind` object diameters behind it. Points are
+// summed per voxel of the model's finest layer with the target's colour.
+class HoleFootprint {
+ public:
+  HoleFootprint(const VoxelGrid& grid, double object_diameter, float behind);
+  // `target`: [H,W,3] the view's inpainted image (its colours go with the points).
+  void add_view(const Camera& cam, const ViewHole& hole, const std::vector<float>& target);
+  struct Cell {
+    double sum[3] = {0, 0, 0};     // points
+    double colour[3] = {0, 0, 0};  // target colours
+    size_t points = 0;
+    int views = 0;
+    int last_view = -1;
+  };
+  const std::map<uint64_t, Cell>& cells() const { return cells_; }  // by finest-layer voxel key
+  size_t points() const { return points_; }
+  int views_with_holes() const { return views_; }
+
+ private:
+  VoxelGrid grid_;
+  double diameter_;
+  float behind_;
+  std::map<uint64_t, Cell> cells_;
+  size_t points_ = 0;
+  int views_ = 0;
+};
+
+struct FillResult {
+  std::vector<int> added;          // ids of the new anchors (appended at the end, in voxel-key order)
+  std::vector<int> parent;         // [added] the kept anchor each was initialised from
+  std::vector<uint8_t> trainable;  // [anchors] 1: fine-tuned (the fill and the kept anchors near it)
+  size_t trainable_kept = 0;
+  size_t candidates = 0;  // footprint voxels at the anchors' layers with enough views, before the cap
+};
+
+// Appends fill anchors to `model` (kept anchors keep their ids and bytes).
+// Each footprint voxel takes the layer of the kept anchor nearest to it (the
+// surface's own scale); a voxel that already holds an anchor gets none.
+// A new anchor copies its nearest kept anchor (add_anchor's parent_child,
+// so feature, rotation and offsets follow it), its children take the mean
+// target colour of its points as SH DC (higher SH zero) and opacity
+// `settings.opacity`.
+FillResult add_fill_anchors(AnchorModel& model, const HoleFootprint& footprint, const FillSettings& settings,
+                            size_t removed_anchors, uint64_t seed);
+
+struct FineTuneConfig {
+  int iterations = 300;
+  uint64_t seed = 1;
+  int sh_degree = 3;  // the model's active degree
+  std::array<float, 3> background{0.f, 0.f, 0.f};
+  float lambda_ssim = 0.2f;
+  // Learning rates: the end of training's (the offsets at offset_lr, in
+  // world units already scaled by the scene's extent when the model's
+  // training did so).
+  double offset_lr = 1e-4, scaling_lr = 0.005, rotation_lr = 0.001, opacity_lr = 0.05, sh_dc_lr = 0.0025,
+         sh_rest_lr = 0.0025 / 20;
+};
+
+// The fine-tune: per iteration one view (a per-epoch shuffle keyed by the
+// seed), L = (1 - lambda) L1 + lambda (1 - SSIM) against that view's target,
+// gradients through the renderer and the expander, Adam on the trainable
+// anchors' children only. The sky (when the model has one) is composited and
+// stays fixed. Deterministic like training.
+class FillTuner {
+ public:
+  FillTuner(Runtime& rt, const AnchorModel& model, const std::vector<uint8_t>& trainable, const FineTuneConfig& config,
+            const std::vector<float>* sky_coefficients);
+  ~FillTuner();
+  // One target per training view: the camera and [H,W,3] pixels.
+  void add_target(const Camera& camera, std::vector<float> rgb);
+  struct Step {
+    int iteration = 0;
+    double loss = 0, psnr = 0;
+    bool skipped = false;
+  };
+  Step step();
+  // The model with the device's values.
+  AnchorModel model();
+
+ private:
+  Runtime& rt_;
+  FineTuneConfig config_;
+  AnchorModel model_;
+  DeviceAnchors anchors_;
+  DeviceAnchorGrads grads_;
+  DeviceGaussians gaussians_;
+  Expander expander_;
+  Renderer renderer_;
+  ImageLoss loss_;
+  Sky sky_;
+  Adam adam_;
+  std::unique_ptr<ParamGroups> groups_;
+  DeviceBuffer rows_on_, target_dev_, grad_rgb_, grad_alpha_;
+  std::vector<Camera> cameras_;
+  std::vector<Image> targets_;
+  std::vector<float> planar_;
+  int iteration_ = 0;
+};
+
+}  // namespace ag2gs
