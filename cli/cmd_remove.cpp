@@ -264,7 +264,7 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
     for (size_t k = 0; k < keep.size(); ++k) keep[k] = !in_sel[k];
     AnchorModel result = model;
     std::vector<int> source = result.remove_anchors(keep);  // new id -> old id
-    HoleFootprint footprint(result.grid(), holes.diameter(), a.holes.behind);
+    HoleFootprint footprint(result.grid(), holes.diameter(), a.holes.behind, a.fill.max_alpha);
     RenderSettings render_settings;
     const float bg = tc.white_background && !sky.enabled() ? 1.f : 0.f;
     render_settings.background = {bg, bg, bg};
@@ -420,7 +420,8 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
                       {"candidates", fill.candidates},
                       {"anchors_placed", fill.added.size()},
                       {"anchors_pruned", fill.added.size() - fill_kept},
-                      {"kept_anchors_tuned", fill.trainable_kept},
+                      {"kept_anchors_near", fill.trainable_kept},
+                      {"kept_anchors_tuned", tuned_ids.size()},
                       {"kept_anchors_tuned_ids", tuned_ids},
                       {"min_views", a.fill.min_views},
                       {"near_voxels", a.fill.near},
@@ -484,6 +485,9 @@ void register_remove(CLI::App& app, GlobalOptions& global) {
   r->add_option("--fill-views", a->fill.min_views,
                 "A fill anchor needs hole pixels of this many views in its voxel (default 2)")
       ->check(CLI::Range(1, 1000000));
+  r->add_option("--fill-alpha", a->fill.max_alpha,
+                "Hole pixels the model without the object still covers with this alpha or more get no fill "
+                "(default 0.5; 1: every hole pixel)");
   r->add_option("--fill-opacity", a->fill.opacity, "Start opacity of the fill's children (default 0.5)");
   r->add_option("--fill-near", a->fill.near,
                 "Kept anchors within this many of their voxel edges of the holes' 3D footprint are fine-tuned "

@@ -29,11 +29,13 @@ void FillSettings::validate() const {
     throw std::invalid_argument("fill: near must be >= 0, got " + std::to_string(near));
   if (!(std::isfinite(prune_opacity) && prune_opacity >= 0.f && prune_opacity < 1.f))
     throw std::invalid_argument("fill: prune_opacity must be in [0, 1), got " + std::to_string(prune_opacity));
+  if (!(std::isfinite(max_alpha) && max_alpha > 0.f && max_alpha <= 1.f))
+    throw std::invalid_argument("--fill-alpha must be in (0, 1], got " + std::to_string(max_alpha));
 }
 
 // ------------------------------------------------------------------ footprint
-HoleFootprint::HoleFootprint(const VoxelGrid& grid, double object_diameter, float behind)
-    : grid_(grid), diameter_(object_diameter), behind_(behind) {}
+HoleFootprint::HoleFootprint(const VoxelGrid& grid, double object_diameter, float behind, float max_alpha)
+    : grid_(grid), diameter_(object_diameter), behind_(behind), max_alpha_(max_alpha) {}
 
 void HoleFootprint::add_view(const Camera& cam, const ViewHole& h, const std::vector<float>& target) {
   const int w = h.width, ht = h.height;
@@ -45,15 +47,21 @@ void HoleFootprint::add_view(const Camera& cam, const ViewHole& h, const std::ve
   // The depth the hole's surroundings continue with: the kept model's depth
   // where it is opaque and outside the hole, inpainted across the rest as
   // inverse depth (which is affine in the pixel coordinates on a plane, so a
-  // smooth fill continues a floor or a wall as the plane itself).
-  cv::Mat depth(ht, w, CV_32FC1), unknown(ht, w, CV_8UC1);
+  // smooth fill continues a floor or a wall as the plane itself). Open
+  // pixels (alpha below 0.1: sky or background) count as surfaces at
+  // infinity, inverse depth 0, so a hole bordering on the sky continues it.
+  cv::Mat inv_depth(ht, w, CV_32FC1), unknown(ht, w, CV_8UC1);
+  double deepest = 0;  // the farthest opaque surface of the view
   for (size_t p = 0; p < npix; ++p) {
-    const bool known = !h.hole[p] && h.alpha_after[p] >= 0.5f && h.depth_after[p] > 0.f;
-    reinterpret_cast<float*>(depth.data)[p] = known ? 1.f / h.depth_after[p] : 0.f;
+    const float a = h.alpha_after[p];
+    const bool opaque = a >= 0.5f && h.depth_after[p] > 0.f, open = a < 0.1f;
+    if (opaque) deepest = std::max(deepest, static_cast<double>(h.depth_after[p]));
+    const bool known = !h.hole[p] && (opaque || open);
+    reinterpret_cast<float*>(inv_depth.data)[p] = known && opaque ? 1.f / h.depth_after[p] : 0.f;
     unknown.data[p] = known ? 0 : 255;
   }
   cv::Mat filled;
-  cv::inpaint(depth, unknown, filled, 3.0, cv::INPAINT_NS);
+  cv::inpaint(inv_depth, unknown, filled, 3.0, cv::INPAINT_NS);
   const Eigen::Matrix3d Rt = cam.R.transpose();
   const int finest = grid_.layers - 1;
   const double far = behind_ * diameter_;
@@ -61,13 +69,23 @@ void HoleFootprint::add_view(const Camera& cam, const ViewHole& h, const std::ve
     for (int x = 0; x < w; ++x) {
       const size_t p = static_cast<size_t>(y) * w + x;
       if (!h.hole[p]) continue;
-      const double inv = reinterpret_cast<const float*>(filled.data)[p];
-      double z = inv > 0 ? 1.0 / inv : 0.0;
-      // Behind the object's own surface, and not the far wall the hole rule
-      // rejected (dilated rim pixels have no object depth: kept as inpainted).
+      // Pixels that show enough of the kept model (alpha >= max_alpha) and
+      // not a far surface through it are left to it: the fill takes the
+      // open part of the hole.
       const double zo = h.object_depth[p];
-      if (zo > 0) z = std::clamp(z, zo, zo + far);
-      if (!(std::isfinite(z) && z > 0)) continue;
+      if (h.alpha_after[p] >= max_alpha_ && !(zo > 0 && h.depth_after[p] > zo + far)) continue;
+      const double inv = reinterpret_cast<const float*>(filled.data)[p];
+      if (!(std::isfinite(inv) && inv > 0)) continue;
+      double z = 1.0 / inv;
+      // Behind the object's own surface. A surface continued to beyond
+      // `behind` diameters behind it (the far wall the hole rule rejected,
+      // or the sky) gets no fill: the hole shows what lies there.
+      if (zo > 0) {
+        if (z > zo + far) continue;
+        z = std::max(z, zo);
+      } else if (z > deepest) {
+        continue;  // a rim pixel continuing the sky
+      }
       const Eigen::Vector3d pc((x + 0.5 - cam.cx) / cam.fx * z, (y + 0.5 - cam.cy) / cam.fy * z, z);
       const Eigen::Vector3d pw = Rt * (pc - cam.t);
       const Eigen::Vector3i c = grid_.cell_of(finest, pw);

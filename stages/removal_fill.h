@@ -43,6 +43,9 @@ struct FillSettings {
   // After the fine-tune, fill anchors whose children's mean opacity is
   // below this are dropped again (they found nothing to show).
   float prune_opacity = 0.01f;
+  // Hole pixels the kept model already covers with this alpha or more get
+  // no fill (HoleFootprint's max_alpha).
+  float max_alpha = 0.5f;
 
   // Throws std::invalid_argument naming the field.
   void validate() const;
@@ -55,7 +58,9 @@ struct FillSettings {
 // summed per voxel of the model's finest layer with the target's colour.
 class HoleFootprint {
  public:
-  HoleFootprint(const VoxelGrid& grid, double object_diameter, float behind);
+  // Hole pixels where the kept model's alpha is at least max_alpha (and
+  // the surface it shows is not a far one behind the object) are skipped.
+  HoleFootprint(const VoxelGrid& grid, double object_diameter, float behind, float max_alpha = 1.f);
   // `target`: [H,W,3] the view's inpainted image (its colours go with the points).
   void add_view(const Camera& cam, const ViewHole& hole, const std::vector<float>& target);
   struct Cell {
@@ -73,6 +78,7 @@ class HoleFootprint {
   VoxelGrid grid_;
   double diameter_;
   float behind_;
+  float max_alpha_;
   std::map<uint64_t, Cell> cells_;
   size_t points_ = 0;
   int views_ = 0;
