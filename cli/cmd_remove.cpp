@@ -48,6 +48,8 @@ struct RemoveArgs {
   std::string model, scene, selection, out, inpaint = "telea", inpainted, sparse;
   int iters = -1;  // -1: kDefaultFillIters
   bool no_fill = false;
+  bool clear_stray = true;
+  float stray_colour = 0.2f;
   FillSettings fill;
   int resolution = 0;  // 0 = the model's training -r
   uint64_t seed = 1;
@@ -62,6 +64,10 @@ struct RemoveArgs {
 // the per-view targets (100 or 300 iterations), which differ from view to
 // view. An inpainter that agrees across views is what a fine-tune needs.
 constexpr int kDefaultFillIters = 0;
+
+// The opacity logit of a cleared child: sigmoid(-30) ~ 1e-13, below
+// what the renderer draws.
+constexpr float kClearedLogit = -30.f;
 
 double seconds_since(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
@@ -252,8 +258,15 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
   try {
     fs::create_directories(tmp / "holes");
     fs::create_directories(tmp / "targets");
+    // Children of kept anchors that show the object go with it (opacity 0).
+    AnchorModel cleaned = model;
+    std::vector<size_t> strays;
+    if (a.clear_stray) strays = stray_children(model, in_sel, a.stray_colour);
+    for (size_t g : strays) cleaned.opacity_logit()[g] = kClearedLogit;
+    if (!strays.empty())
+      spdlog::info("{} children of kept anchors sit in the object's voxels with its colour: cleared", strays.size());
     const GaussianSet removed = gaussians_of_anchors(model, sh_degree, in_sel, true);
-    const GaussianSet kept = gaussians_of_anchors(model, sh_degree, in_sel, false);
+    const GaussianSet kept = gaussians_of_anchors(cleaned, sh_degree, in_sel, false);
     HoleFinder holes(kept, removed);
     Renderer renderer(rt);
     // The model's sky shows in the renders after deletion, as in training.
@@ -262,7 +275,7 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
     if (sky_coefficients) sky.set(sky_degree_for(sky_coefficients->size()), *sky_coefficients);
     std::vector<uint8_t> keep(model.size());
     for (size_t k = 0; k < keep.size(); ++k) keep[k] = !in_sel[k];
-    AnchorModel result = model;
+    AnchorModel result = cleaned;
     std::vector<int> source = result.remove_anchors(keep);  // new id -> old id
     HoleFootprint footprint(result.grid(), holes.diameter(), a.holes.behind, a.fill.max_alpha);
     RenderSettings render_settings;
@@ -403,6 +416,14 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
     if (iterations_done > 0)
       for (size_t k = 0; k < kept_anchors; ++k)
         if (fill.trainable[k]) tuned_ids.push_back(static_cast<int>(k));
+    {
+      // The cleared children as (anchor id in the new model, child).
+      std::vector<int> new_id(model.size(), -1);
+      for (size_t r = 0; r < kept_anchors; ++r) new_id[source[r]] = static_cast<int>(r);
+      nlohmann::json cleared = nlohmann::json::array();
+      for (size_t g : strays) cleared.push_back({new_id[g / model.children()], static_cast<int>(g % model.children())});
+      report["stray_children_cleared"] = cleared;
+    }
     report["anchors_removed"] = n_sel;
     report["gaussians_removed"] = removed.size();
     report["anchors_kept"] = kept_anchors;
@@ -492,6 +513,13 @@ void register_remove(CLI::App& app, GlobalOptions& global) {
   r->add_option("--fill-near", a->fill.near,
                 "Kept anchors within this many of their voxel edges of the holes' 3D footprint are fine-tuned "
                 "with the fill (default 1.5; 0: the fill alone)");
+  r->add_flag("!--keep-stray", a->clear_stray,
+              "Keep the children of kept anchors that sit in the object's voxels with its colour (by default they "
+              "are cleared with it)");
+  r->add_option("--stray-colour", a->stray_colour,
+                "A kept child in the object's voxels is the object's when its colour is within this of the "
+                "object's there (mean absolute difference, 0..1; default 0.2)")
+      ->check(CLI::Range(0.0, 1.0));
   r->add_flag("--no-fill", a->no_fill, "Delete only: no fill anchors and no fine-tune");
   r->add_option("-r,--resolution", a->resolution, "Divide the cameras by R (default: the model's training -r)")
       ->check(CLI::Range(1, 64));

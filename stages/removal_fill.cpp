@@ -228,6 +228,43 @@ FillResult add_fill_anchors(AnchorModel& model, const HoleFootprint& footprint, 
   return r;
 }
 
+// ------------------------------------------------------------------ stray children
+std::vector<size_t> stray_children(const AnchorModel& model, const std::vector<uint8_t>& selected, float max_colour) {
+  if (selected.size() != model.size())
+    throw std::invalid_argument("stray_children: " + std::to_string(selected.size()) + " flags for " +
+                                std::to_string(model.size()) + " anchors");
+  const GaussianSet g = expand_reference(model, 0);
+  const int K = model.children();
+  const int finest = model.grid().layers - 1;
+  const size_t coeffs = static_cast<size_t>(g.sh_coeffs()) * 3;
+  auto key_of = [&](size_t i) {
+    const Eigen::Vector3d m(g.means[3 * i], g.means[3 * i + 1], g.means[3 * i + 2]);
+    return anchor_voxel_key(finest, model.grid().cell_of(finest, m));
+  };
+  auto colour = [&](size_t i, int c) { return 0.5 + kShC0 * g.sh[i * coeffs + c]; };
+  struct Sum {
+    double c[3] = {0, 0, 0};
+    size_t n = 0;
+  };
+  std::map<uint64_t, Sum> removed;
+  for (size_t i = 0; i < g.size(); ++i) {
+    if (!selected[i / K]) continue;
+    Sum& s = removed[key_of(i)];
+    for (int c = 0; c < 3; ++c) s.c[c] += colour(i, c);
+    ++s.n;
+  }
+  std::vector<size_t> out;
+  for (size_t i = 0; i < g.size(); ++i) {
+    if (selected[i / K]) continue;
+    auto it = removed.find(key_of(i));
+    if (it == removed.end()) continue;
+    double d = 0;
+    for (int c = 0; c < 3; ++c) d += std::abs(colour(i, c) - it->second.c[c] / it->second.n);
+    if (d / 3 <= max_colour) out.push_back(i);
+  }
+  return out;
+}
+
 // ------------------------------------------------------------------ fine-tune
 FillTuner::FillTuner(Runtime& rt, const AnchorModel& model, const std::vector<uint8_t>& trainable,
                      const FineTuneConfig& config, const std::vector<float>* sky_coefficients)

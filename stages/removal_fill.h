@@ -102,6 +102,16 @@ struct FillResult {
 FillResult add_fill_anchors(AnchorModel& model, const HoleFootprint& footprint, const FillSettings& settings,
                             size_t removed_anchors, uint64_t seed);
 
+// Children of kept anchors that belong to the removed object: an anchor
+// the selection kept can hold a child that sits in the object's surface
+// and shows its colour (the anchor's voxel straddles the two). A kept child
+// is stray when a removed Gaussian's mean lies in its voxel of the finest
+// layer and its colour (SH DC) is within `max_colour` (mean absolute, 0..1)
+// of the removed Gaussians' mean colour there. Returns the child rows of
+// `model` ([A*K] ids, ascending); `selected`: [A] 1 = removed anchor.
+std::vector<size_t> stray_children(const AnchorModel& model, const std::vector<uint8_t>& selected,
+                                   float max_colour = 0.2f);
+
 struct FineTuneConfig {
   int iterations = 300;
   uint64_t seed = 1;

@@ -304,5 +304,41 @@ TEST(RemovalFill, FootprintIsTheBaseOnTheFloorAndTheFillGoesThere) {
   EXPECT_THROW(add_fill_anchors(capped, footprint, bad, 100, 1), std::invalid_argument);
 }
 
+// A kept child in a removed Gaussian's voxel with its colour is stray; one
+// there with another colour, or elsewhere with the same colour, is not.
+TEST(RemovalFill, StrayChildrenAreThoseInTheObjectsVoxelsWithItsColour) {
+  AnchorConfig config;
+  config.children = 2;
+  config.layers = 1;
+  VoxelGrid grid;
+  grid.top_voxel = 1.0;
+  grid.layers = 1;
+  AnchorModel m;
+  m.reset(grid, config);
+  const int a = m.add_anchor(0, Eigen::Vector3i(0, 0, 0), -1, 1);  // removed
+  const int b = m.add_anchor(0, Eigen::Vector3i(1, 0, 0), -1, 1);  // kept, child 0 reaches into a's voxel
+  const int c = m.add_anchor(0, Eigen::Vector3i(0, 1, 0), -1, 1);  // kept, child 0 too, another colour
+  ASSERT_TRUE(a == 0 && b == 1 && c == 2);
+  auto set_child = [&](int anchor, int child, Eigen::Vector3f offset, float grey) {
+    const size_t g = static_cast<size_t>(anchor) * 2 + child;
+    for (int k = 0; k < 3; ++k) {
+      m.offset()[3 * g + k] = offset[k];
+      m.sh()[g * kAnchorShCoeffs * 3 + k] = (grey - 0.5f) / 0.28209479f;
+    }
+  };
+  set_child(a, 0, {0.f, 0.f, 0.f}, 0.8f);
+  set_child(a, 1, {0.2f, 0.f, 0.f}, 0.8f);
+  set_child(b, 0, {-1.f, 0.f, 0.f}, 0.7f);  // in a's voxel, 0.1 off its colour: stray
+  set_child(b, 1, {0.f, 0.f, 0.f}, 0.8f);   // a's colour, its own voxel: kept
+  set_child(c, 0, {0.f, -1.f, 0.f}, 0.2f);  // in a's voxel, another colour: kept
+  set_child(c, 1, {0.f, 0.f, 0.f}, 0.8f);
+  const std::vector<uint8_t> selected = {1, 0, 0};
+  EXPECT_EQ(stray_children(m, selected), std::vector<size_t>({2}));
+  EXPECT_TRUE(stray_children(m, selected, 0.05f).empty());
+  EXPECT_EQ(stray_children(m, selected, 0.7f), std::vector<size_t>({2, 4}));
+  EXPECT_TRUE(stray_children(m, {0, 0, 0}).empty());
+  EXPECT_THROW(stray_children(m, {1, 0}), std::invalid_argument);
+}
+
 }  // namespace
 }  // namespace ag2gs
