@@ -49,6 +49,7 @@ struct RemoveArgs {
   int iters = -1;  // -1: kDefaultFillIters
   bool no_fill = false;
   bool clear_stray = true;
+  std::string tune_targets = "inpainted";
   float stray_colour = 0.2f;
   FillSettings fill;
   int resolution = 0;  // 0 = the model's training -r
@@ -285,6 +286,7 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
     // hole, the render after deletion on the object's other pixels (the
     // model already shows what lies behind there), the photo elsewhere.
     std::vector<std::pair<Camera, std::vector<float>>> tune_targets;
+    std::vector<std::vector<uint8_t>> tune_holes;
     nlohmann::json views = nlohmann::json::array();
     size_t hole_total = 0;
     const std::vector<int> train_views = scene->train_views();
@@ -309,6 +311,7 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
             for (int c = 0; c < 3; ++c) t[3 * p + c] = (*from)[3 * p + c];
         }
         tune_targets.emplace_back(sv.camera, std::move(t));
+        tune_holes.push_back(h.hole);
       }
       hole_total += h.hole_pixels;
       views.push_back({{"view", sv.name},
@@ -355,6 +358,20 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
       fc.opacity_lr = tc.opacity_lr;
       fc.sh_dc_lr = tc.sh_dc_lr;
       fc.sh_rest_lr = tc.sh_rest_lr;
+      if (a.tune_targets == "fill") {
+        // The holes' targets are the filled model's own render: one colour
+        // per voxel, agreed by the views, so the fine-tune fits the seams
+        // around the holes to the photos without undoing the fill.
+        const GaussianSet filled = expand_reference(result, sh_degree);
+        for (size_t i = 0; i < tune_targets.size(); ++i) {
+          auto& [cam, t] = tune_targets[i];
+          RenderOutput o = renderer.render(filled, cam, render_settings);
+          if (sky.enabled()) composite_sky(renderer, sky, cam, o);
+          for (size_t p = 0; p < tune_holes[i].size(); ++p)
+            if (tune_holes[i][p])
+              for (int c = 0; c < 3; ++c) t[3 * p + c] = o.rgb[3 * p + c];
+        }
+      }
       FillTuner tuner(rt, result, fill.trainable, fc, sky_coefficients ? &*sky_coefficients : nullptr);
       for (auto& [cam, t] : tune_targets) tuner.add_target(cam, std::move(t));
       tune_targets.clear();
@@ -520,6 +537,10 @@ void register_remove(CLI::App& app, GlobalOptions& global) {
                 "A kept child in the object's voxels is the object's when its colour is within this of the "
                 "object's there (mean absolute difference, 0..1; default 0.2)")
       ->check(CLI::Range(0.0, 1.0));
+  r->add_option("--tune-targets", a->tune_targets,
+                "What the fine-tune fits inside the holes: inpainted (the targets/ images) or fill (the filled "
+                "model's own render, so only the seams around the holes move)")
+      ->check(CLI::IsMember({"inpainted", "fill"}));
   r->add_flag("--no-fill", a->no_fill, "Delete only: no fill anchors and no fine-tune");
   r->add_option("-r,--resolution", a->resolution, "Divide the cameras by R (default: the model's training -r)")
       ->check(CLI::Range(1, 64));

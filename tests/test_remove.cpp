@@ -317,6 +317,12 @@ TEST(Remove, FineTuneTouchesOnlyAnchorsNearTheHoleAndIsDeterministic) {
   }
   EXPECT_EQ(frozen_changed, 0u) << "a frozen anchor changed";
   EXPECT_GT(changed, 0u) << "the fine-tune changed nothing";
+  // The other hole target: the filled model's own render.
+  const fs::path own = fresh("tuned_own");
+  r = test::run_cli(remove_cmd(own.string(), "--selection " + sel.string() + " --iters 6 --tune-targets fill"));
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_EQ(json::parse(std::ifstream(own / "removal.json"))["iterations"].get<int>(), 6);
+  EXPECT_NE(read_file(own / "model.ag2gs"), bytes[1]);
 }
 
 TEST(Remove, BadInputIsRefusedBeforeAnythingIsWritten) {
@@ -335,6 +341,7 @@ TEST(Remove, BadInputIsRefusedBeforeAnythingIsWritten) {
       {"--selection " + all.string(), "empty model"},
       {"--selection " + sel.string() + " --no-fill --iters 5", "--no-fill deletes only"},
       {"--selection " + sel.string() + " --fill-opacity 1", "opacity must be in (0, 1)"},
+      {"--selection " + sel.string() + " --tune-targets lama", "--tune-targets"},
       {"--selection " + sel.string() + " --inpaint lama", "expected telea, ns or none"},
       {"--text thing --vocab " + vocab, "no clusters/language features"},
       {"", "give exactly one query"},
