@@ -335,7 +335,7 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
       for (int p : fill.parent) source.push_back(source[p]);
       spdlog::info(
           "fill: {} anchors ({} Gaussians) where {} hole pixels of {} views meet the surfaces around them "
-          "({} voxels with enough views); {} kept anchors near them are fine-tuned with them",
+          "({} voxels with enough views); {} kept anchors lie near them",
           fill.added.size(), fill.added.size() * static_cast<size_t>(result.children()), footprint.points(),
           footprint.views_with_holes(), fill.candidates, fill.trainable_kept);
     }
@@ -464,6 +464,9 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
                       {"min_views", a.fill.min_views},
                       {"near_voxels", a.fill.near},
                       {"start_opacity", a.fill.opacity},
+                      {"max_alpha", a.fill.max_alpha},
+                      {"stray_colour", a.clear_stray ? nlohmann::json(a.stray_colour) : nlohmann::json(nullptr)},
+                      {"tune_targets", a.tune_targets},
                       {"final_target_psnr", final_psnr}};
     report["holes"] = {{"object_weight", a.holes.object_weight},
                        {"alpha_min", a.holes.alpha_min},
