@@ -1,5 +1,6 @@
 // The fill of a removal (docs/design.md section 15): new anchors where the
-// rays through each view's hole meet the surfaces around it, and a short
+// rays through each view's hole meet the surfaces around it, and, when
+// asked for (`remove --iters N`; the default is none, measured), a
 // fine-tune of those anchors and the ones near them against targets that
 // are the photos outside the object and the inpainted renders inside it.
 // Everything far from the hole is frozen (Adam leaves its rows alone), so
