@@ -65,8 +65,7 @@ void cmd_baseline(const GlobalOptions& global, BaselineArgs& a) {
   run.start(0);
   int skipped = 0;
   double psnr0 = NAN;
-  const size_t gaussians_at_start = trainer.gaussians();
-  int rounds_done = 0;
+  size_t last_added = 0;  // the last densification's net gain (for the ETA)
   const int densify_until = densifying ? std::min(c.effective_densify_until(), c.iterations) : 0;
   for (int it = 0; it < c.iterations; ++it) {
     const int iteration = it + 1;
@@ -74,15 +73,15 @@ void cmd_baseline(const GlobalOptions& global, BaselineArgs& a) {
     // Tests run inside the step, before its densification and opacity
     // reset, as in `train`.
     const bool test_now = run.test_due(iteration, c.iterations);
+    const size_t count_before = trainer.gaussians();
     const auto t_step = std::chrono::steady_clock::now();
     FreeStepStats st = test_now ? trainer.step([&] { run.evaluate(iteration, evaluate, counts()); }) : trainer.step();
     if (!test_now)
-      run.record_step_ms(
-          std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t_step).count(),
-          iteration > densify_until);
+      run.record_step_ms(std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t_step).count(),
+                         iteration > densify_until);
     if (st.skipped) ++skipped;
     if (st.densified) {
-      ++rounds_done;
+      last_added = trainer.gaussians() > count_before ? trainer.gaussians() - count_before : 0;
       spdlog::info("iteration {}: cloned {}, split {}, pruned {} -> {} Gaussians", st.iteration, st.cloned, st.split,
                    st.pruned, trainer.gaussians());
     }
@@ -93,8 +92,9 @@ void cmd_baseline(const GlobalOptions& global, BaselineArgs& a) {
       const RunDriver::Means m = run.take_means(st.iteration);
       // The ETA from the recent steps' time and the densification still to come.
       const int growing = std::max(0, densify_until - st.iteration);
-      const double eta = run.eta_seconds(c.iterations - st.iteration, trainer.gaussians(), gaussians_at_start,
-                                         rounds_done, growing, c.densify_every, 0);
+      const int rounds_left = c.densify_every > 0 ? growing / c.densify_every : 0;
+      const double eta = run.eta_seconds(c.iterations - st.iteration, trainer.gaussians(), growing,
+                                         growth_end_tapering(trainer.gaussians(), last_added, rounds_left));
       spdlog::info(
           "it {:>6}/{}  loss {:.5f} (L1 {:.5f}, SSIM {:.4f})  PSNR {:.2f} dB  SH {}  Gaussians {}  {:.1f} it/s  "
           "ETA {}{}",
@@ -105,10 +105,10 @@ void cmd_baseline(const GlobalOptions& global, BaselineArgs& a) {
       // The baseline has no checkpoint to resume from: what it keeps is
       // the model so far.
       trainer.save(a.out);
-      spdlog::warn("{}: stopped at iteration {} of {}; the model so far is in {} (the baseline cannot resume: "
-                   "run it again with --force for the full schedule)",
-                   InterruptGuard::signal_name(), st.iteration, c.iterations,
-                   (fs::path(a.out) / "point_cloud.ply").string());
+      spdlog::warn(
+          "{}: stopped at iteration {} of {}; the model so far is in {} (the baseline cannot resume: "
+          "run it again with --force for the full schedule)",
+          InterruptGuard::signal_name(), st.iteration, c.iterations, (fs::path(a.out) / "point_cloud.ply").string());
       InterruptGuard::exit_after_saving();
     }
   }
@@ -131,8 +131,7 @@ void register_baseline(CLI::App& app, GlobalOptions& global) {
   add_scene_options(sub, *a);
   sub->add_flag("--force", a->force, "Replace the model MODEL_DIR holds (refused otherwise)");
   sub->add_option("--iters", c.iterations, "Training iterations (default 30000)")->check(CLI::Range(1, 100000000));
-  sub->add_option("--seed", c.seed, "Random seed: view order and split samples (default 0)")
-      ->check(seed_number());
+  sub->add_option("--seed", c.seed, "Random seed: view order and split samples (default 0)")->check(seed_number());
   sub->add_flag("--white-bg", c.white_background, "White background instead of black");
   sub->add_option("--sh-degree", c.sh_degree, "Highest SH degree (default 3)")->check(CLI::Range(0, 3));
   sub->add_option("--sh-interval", c.sh_interval,

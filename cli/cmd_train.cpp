@@ -245,7 +245,7 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   }
   spdlog::info("{} iterations, seed {}, SH degree up to {} (+1 every {} iterations), background {}{}", c.iterations,
                c.seed, c.anchors.sh_degree, c.effective_sh_interval(), c.white_background ? "white" : "black",
-               c.sky_degree >= 0                       ? fmt::format(" (the start of a learned sky of SH degree {})", c.sky_degree)
+               c.sky_degree >= 0 ? fmt::format(" (the start of a learned sky of SH degree {})", c.sky_degree)
                : c.sky_degree == TrainConfig::kSkyAuto ? " (or a learned sky, chosen from the scene below)"
                                                        : "");
   if (c.downscales > 0)
@@ -312,12 +312,11 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
     // reset (as 3DGS does), so a test at a reset iteration is meaningful.
     const bool test_now = run.test_due(iteration, it_end);
     const auto t_step = std::chrono::steady_clock::now();
-    StepStats st = test_now ? trainer.step(log_now, [&] { run.evaluate(iteration, evaluate, counts()); })
-                            : trainer.step(log_now);
+    StepStats st =
+        test_now ? trainer.step(log_now, [&] { run.evaluate(iteration, evaluate, counts()); }) : trainer.step(log_now);
     if (!test_now)
-      run.record_step_ms(
-          std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t_step).count(),
-          iteration > c.effective_grow_until() && iteration <= c.iterations);
+      run.record_step_ms(std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t_step).count(),
+                         iteration > c.effective_grow_until() && iteration <= c.iterations);
     if (st.stage2 && it == c.iterations)
       spdlog::info("stage 2: anchor graph with {} edges (mean degree {:.2f})", trainer.graph().edges(),
                    trainer.anchors() ? 2.0 * trainer.graph().edges() / trainer.anchors() : 0.0);
@@ -355,8 +354,10 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
       // growth still to come.
       const int grow_until = c.grow_every > 0 ? std::min(c.effective_grow_until(), c.iterations) : 0;
       const int growing = std::max(0, grow_until - st.iteration);
-      const double eta = run.eta_seconds(it_end - st.iteration, trainer.gaussians(), gaussians_at_start, rounds_done,
-                                         growing, c.grow_every, trainer.max_gaussians());
+      const int rounds_left = c.grow_every > 0 ? growing / c.grow_every : 0;
+      const double eta = run.eta_seconds(it_end - st.iteration, trainer.gaussians(), growing,
+                                         growth_end_geometric(trainer.gaussians(), gaussians_at_start, rounds_done,
+                                                              rounds_left, trainer.max_gaussians()));
       const std::string eta_text =
           fmt_duration(eta) + (growing > 0 ? fmt::format(" (growing until {})", grow_until) : std::string());
       std::string mask_terms =
@@ -431,8 +432,7 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                                  "MODEL_DIR/model.ag2gs and MODEL_DIR/point_cloud.ply");
   add_scene_options(sub, *a);
   sub->add_option("--iters", c.iterations, "Training iterations (default 30000)")->check(CLI::Range(1, 100000000));
-  sub->add_option("--seed", c.seed, "Random seed: anchor init and view order (default 0)")
-      ->check(seed_number());
+  sub->add_option("--seed", c.seed, "Random seed: anchor init and view order (default 0)")->check(seed_number());
   sub->add_option("--sh-degree", c.anchors.sh_degree, "Highest SH degree (default 3)")->check(CLI::Range(0, 3));
   sub->add_option("--sh-interval", c.sh_interval,
                   "Iterations per SH degree step (default 0 = min(1000, iters / (sh-degree + 1)))")

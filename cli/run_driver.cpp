@@ -80,20 +80,7 @@ double percentile(std::vector<double> v, double q) {
   return v[k];
 }
 
-double estimate_seconds_left(int remaining, double step_ms, size_t gaussians, int growing, int rounds_left,
-                             double round_factor, size_t budget) {
-  if (remaining <= 0 || !(step_ms > 0) || gaussians == 0) return 0;
-  double end = static_cast<double>(gaussians);
-  if (rounds_left > 0 && round_factor > 1) end *= std::pow(round_factor, std::min(rounds_left, 1000));
-  if (budget > 0) end = std::min(end, std::max(static_cast<double>(budget), static_cast<double>(gaussians)));
-  const double ratio_end = end / static_cast<double>(gaussians);
-  growing = std::clamp(growing, 0, remaining);
-  const double weighted = growing * 0.5 * (1 + ratio_end) + (remaining - growing) * ratio_end;
-  return weighted * step_ms / 1000;
-}
-
-RunDriver::RunDriver(const RunArgs& args, const Scene& scene, const std::string& model, uint64_t seed,
-                     int iterations)
+RunDriver::RunDriver(const RunArgs& args, const Scene& scene, const std::string& model, uint64_t seed, int iterations)
     : args_(args),
       metrics_({{"scene", scene.dir()},
                 {"model", model},
@@ -126,9 +113,13 @@ double RunDriver::train_seconds() const {
   return std::chrono::duration<double>(Clock::now() - t0_).count() - eval_seconds_;
 }
 
-std::string RunDriver::metrics_path() const { return (fs::path(args_.out) / "metrics.json").string(); }
+std::string RunDriver::metrics_path() const {
+  return (fs::path(args_.out) / "metrics.json").string();
+}
 
-void RunDriver::write_metrics() const { write_json_atomic(metrics_path(), metrics_); }
+void RunDriver::write_metrics() const {
+  write_json_atomic(metrics_path(), metrics_);
+}
 
 EvalStats RunDriver::evaluate(int iteration, const std::function<EvalStats()>& eval, const nlohmann::json& counts) {
   const auto t = Clock::now();
@@ -138,8 +129,8 @@ EvalStats RunDriver::evaluate(int iteration, const std::function<EvalStats()>& e
   spdlog::info("[test] iteration {}: PSNR {:.3f} dB, SSIM {:.4f}, L1 {:.5f} over {} views ({:.2f} s)", iteration,
                ev.psnr, ev.ssim, ev.l1, ev.views, s);
   eval_seconds_ += s;
-  nlohmann::json entry = {{"iteration", iteration}, {"psnr", ev.psnr},         {"ssim", ev.ssim},
-                          {"l1", ev.l1},           {"train_seconds", trained_s}, {"eval_seconds", s}};
+  nlohmann::json entry = {{"iteration", iteration},     {"psnr", ev.psnr},  {"ssim", ev.ssim}, {"l1", ev.l1},
+                          {"train_seconds", trained_s}, {"eval_seconds", s}};
   for (auto it = counts.begin(); it != counts.end(); ++it) entry[it.key()] = it.value();
   metrics_["test"].push_back(entry);
   write_metrics();
@@ -158,12 +149,8 @@ double RunDriver::recent_step_ms() const {
                 : 0.0;
 }
 
-double RunDriver::eta_seconds(int remaining, size_t now, size_t start, int rounds_done, int growing, int every,
-                              size_t budget) const {
-  const int rounds_left = every > 0 ? growing / every : 0;
-  const double round_factor =
-      rounds_done > 0 ? std::pow(static_cast<double>(now) / std::max<size_t>(start, 1), 1.0 / rounds_done) : 1.0;
-  return estimate_seconds_left(remaining, recent_step_ms(), now, growing, rounds_left, round_factor, budget);
+double RunDriver::eta_seconds(int remaining, size_t now, int growing, double end_count) const {
+  return estimate_seconds_left(remaining, recent_step_ms(), now, growing, end_count);
 }
 
 void RunDriver::add_sample(double loss, double psnr, double l1, double ssim) {

@@ -5,9 +5,9 @@
 // (docs/formats.md). What a trainer does per step stays in its command.
 #pragma once
 
+#include <CLI/CLI.hpp>
 #include <chrono>
 #include <cstdint>
-#include <CLI/CLI.hpp>
 #include <functional>
 #include <memory>
 #include <nlohmann/json.hpp>
@@ -16,6 +16,7 @@
 
 #include "host/device/cl_runtime.h"
 #include "host/scene/scene.h"
+#include "stages/eta.h"
 #include "stages/train_common.h"
 
 namespace ag2gs::cli {
@@ -50,15 +51,6 @@ std::string fmt_duration(double seconds);
 // The q-quantile (nearest rank) of `v`; NaN when empty.
 double percentile(std::vector<double> v, double q);
 
-// Seconds left: `remaining` steps at `step_ms` each while the model holds
-// `gaussians`, with the step time taken to follow the Gaussian count. Of
-// those steps, `growing` are still in the growth phase, over `rounds_left`
-// rounds, each expected to multiply the count by `round_factor` (the mean
-// of the rounds so far), up to `budget` (0 = none): the count is taken to
-// rise evenly to its end value through the growth phase and stay there.
-double estimate_seconds_left(int remaining, double step_ms, size_t gaussians, int growing, int rounds_left,
-                             double round_factor, size_t budget);
-
 class RunDriver {
  public:
   // The metrics start with the run's fixed fields: the scene, `model`
@@ -85,11 +77,8 @@ class RunDriver {
   // in the summary names which).
   void record_step_ms(double ms, bool fixed);
   double recent_step_ms() const;  // median of the last 100
-  // estimate_seconds_left at the recent step time, for a model that grew
-  // from `start` to `now` Gaussians in `rounds_done` rounds and has `growing`
-  // steps of rounds every `every` iterations still to come (budget 0 = none).
-  double eta_seconds(int remaining, size_t now, size_t start, int rounds_done, int growing, int every,
-                     size_t budget) const;
+  // estimate_seconds_left (stages/eta.h) at the recent step time.
+  double eta_seconds(int remaining, size_t now, int growing, double end_count) const;
 
   // Running means of the progress line.
   void add_sample(double loss, double psnr, double l1, double ssim);

@@ -16,6 +16,7 @@
 #include "host/render/adam.h"
 #include "stages/anchor_growth.h"
 #include "stages/anchor_model.h"
+#include "stages/eta.h"
 #include "stages/expander.h"
 #include "tests/test_util.h"
 
@@ -733,6 +734,57 @@ TEST(GrowthDecision, RoundsNeverExceedTheBudget) {
   }
   EXPECT_GT(m.gaussians(), c.max_gaussians - static_cast<size_t>(3 * m.children()));  // the budget was used
   m.check();
+}
+
+}  // namespace
+}  // namespace ag2gs
+
+namespace ag2gs {
+namespace {
+
+TEST(Eta, SecondsLeftFollowTheCountToItsEnd) {
+  // A fixed count: every step at the recent step time.
+  EXPECT_DOUBLE_EQ(estimate_seconds_left(1000, 50, 10000, 0, 10000), 50);
+  // Rising evenly to 3x over the 400 growing steps, then 600 steps at 3x.
+  EXPECT_DOUBLE_EQ(estimate_seconds_left(1000, 50, 10000, 400, 30000), (400 * 2.0 + 600 * 3.0) * 0.05);
+  // An end below the count now (pruning) or not finite does not shorten or break it.
+  EXPECT_DOUBLE_EQ(estimate_seconds_left(1000, 50, 10000, 400, 5000), 50);
+  EXPECT_DOUBLE_EQ(estimate_seconds_left(1000, 50, 10000, 400, INFINITY), 50);
+  EXPECT_EQ(estimate_seconds_left(0, 50, 10000, 0, 10000), 0);
+  EXPECT_EQ(estimate_seconds_left(10, 0, 10000, 0, 10000), 0);
+  // Growth models: the budget bounds the geometric one, the tapering one
+  // adds half of the last round per round left.
+  EXPECT_DOUBLE_EQ(growth_end_geometric(2000, 1000, 1, 3, 0), 16000);
+  EXPECT_DOUBLE_EQ(growth_end_geometric(2000, 1000, 1, 3, 5000), 5000);
+  EXPECT_DOUBLE_EQ(growth_end_geometric(2000, 1000, 1, 0, 5000), 2000);
+  EXPECT_DOUBLE_EQ(growth_end_tapering(2000, 400, 10), 4000);
+  EXPECT_DOUBLE_EQ(growth_end_tapering(2000, 400, 0), 2000);
+}
+
+TEST(Eta, TheBaselinesEtaMatchesALoggedRun) {
+  // `ag2gs baseline` on the fox (-r 4, 7000 iterations, densifying every 100
+  // until 3500), from its log: iteration, Gaussians, the last round's net
+  // gain, the step time over the last 100 iterations (ms) and the seconds the
+  // run actually took from there.
+  struct Row {
+    int it;
+    size_t count, added;
+    double step_ms, actual_s;
+  };
+  const Row rows[] = {{500, 17476, 4774, 111.1, 3894},   {1000, 60377, 8921, 263.2, 3797},
+                      {1500, 98903, 6785, 476.2, 3608},  {2000, 125868, 4871, 500.0, 3367},
+                      {2500, 144735, 3167, 714.3, 3023}, {3000, 157953, 2454, 714.3, 2693},
+                      {3500, 143771, 2584, 666.7, 2363}, {4000, 143771, 0, 666.7, 2042}};
+  for (const Row& r : rows) {
+    const int growing = std::max(0, 3500 - r.it);
+    const double eta = estimate_seconds_left(7000 - r.it, r.step_ms, r.count, growing,
+                                             growth_end_tapering(r.count, r.added, growing / 100));
+    EXPECT_NEAR(eta / r.actual_s, 1.0, 0.25) << "iteration " << r.it << ": " << eta << " s, took " << r.actual_s;
+  }
+  // The rule it replaced (the mean round factor so far, no budget) promised
+  // days at iteration 1000.
+  const double old_end = growth_end_geometric(60377, 12702, 5, 25, 0);
+  EXPECT_GT(estimate_seconds_left(6000, 263.2, 60377, 2500, old_end), 100 * 3797.0);
 }
 
 }  // namespace
