@@ -20,6 +20,7 @@
 #include <system_error>
 
 #include "cli/commands.h"
+#include "cli/object_selection.h"
 #include "cli/run_driver.h"
 #include "cli/run_guard.h"
 #include "host/device/cl_runtime.h"
@@ -72,28 +73,6 @@ constexpr float kClearedLogit = -30.f;
 
 double seconds_since(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-}
-
-// The anchors listed in a `query` selection.json.
-std::vector<int32_t> read_selection_file(const std::string& path, size_t anchors) {
-  std::ifstream f(path);
-  if (!f) throw std::runtime_error(path + ": cannot be read (give the selection.json that `ag2gs query` wrote)");
-  nlohmann::json j;
-  try {
-    j = nlohmann::json::parse(f);
-  } catch (const nlohmann::json::exception& e) {
-    throw std::runtime_error(path + ": not valid JSON (" + e.what() + ")");
-  }
-  if (!j.contains("anchors") || !j["anchors"].is_array())
-    throw std::runtime_error(path + ": no \"anchors\" list; give the selection.json that `ag2gs query` wrote");
-  std::vector<int32_t> out;
-  for (const auto& v : j["anchors"]) {
-    if (!v.is_number_integer() || v.get<int64_t>() < 0 || v.get<int64_t>() >= static_cast<int64_t>(anchors))
-      throw std::runtime_error(path + ": anchor id " + v.dump() + " is not one of the model's " +
-                               std::to_string(anchors) + " anchors (was the selection made on another model?)");
-    out.push_back(v.get<int32_t>());
-  }
-  return out;
 }
 
 // The image an external inpainter wrote for `view`: DIR/<stem>.png, exactly
@@ -154,9 +133,7 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
   const auto t_start = std::chrono::steady_clock::now();
   // ---- everything that can be checked before any work
   const bool by_selection = !a.selection.empty();
-  if (by_selection && (a.request.by_click() || a.request.by_text()))
-    throw std::invalid_argument("give either --selection FILE or a query (--click / --text), not both");
-  if (!by_selection) check_query_request(a.request);
+  check_selection_request(a.request, a.selection);
   a.holes.validate();
   const InpaintMethod method = parse_inpaint_method(a.inpaint);
   a.fill.validate();
@@ -166,22 +143,7 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
   if (a.iters < 0) a.iters = a.no_fill ? 0 : kDefaultFillIters;
   a.config.validate();
   std::error_code ec;
-  // "out/", "out/." and "out" are one folder; it must lie outside the model folder.
-  fs::path out = fs::absolute(a.out).lexically_normal();
-  if (!out.has_filename()) out = out.parent_path();
-  const fs::path model_dir = fs::weakly_canonical(fs::absolute(a.model));
-  const fs::path out_real = fs::weakly_canonical(out);
-  for (fs::path p = out_real; !p.empty(); p = p.parent_path()) {
-    if (p == model_dir)
-      throw std::invalid_argument("-o " + a.out +
-                                  (p == out_real ? " is the model folder itself" : " lies inside the model folder") +
-                                  "; write the result to a new folder outside it");
-    if (p == p.parent_path()) break;
-  }
-  if (fs::exists(out) && !(fs::is_directory(out) && fs::is_empty(out)))
-    throw std::invalid_argument("-o " + a.out + " exists and is not empty; give a new folder (nothing was written)");
-  if (by_selection && !(a.request.view.empty() && a.request.vocab.empty()))
-    throw std::invalid_argument("--view and --vocab belong to a click or text query, not to --selection");
+  const fs::path out = check_new_output_folder(a.out, a.model);
   if (!a.inpainted.empty() && !fs::is_directory(a.inpainted))
     throw std::invalid_argument("--inpainted " + a.inpainted + " is not a folder");
 
@@ -209,24 +171,11 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
   report["model"] = model_file;
   report["scene"] = a.scene;
   report["resolution"] = a.resolution;
-  std::vector<int32_t> selected;
-  double query_ms = 0;
-  if (by_selection) {
-    selected = read_selection_file(a.selection, model.size());
-    report["query"] = {{"type", "selection"}, {"file", a.selection}};
-  } else {
-    QueryEngine engine(rt, model, a.config);
-    if (by_text) engine.set_language(tm.clustering, language);
-    selected = run_query(engine, *scene, a.request, embedding, a.resolution, a.config.text_margin, report, &query_ms);
-  }
-  std::vector<uint8_t> in_sel(model.size(), 0);
-  for (int32_t s : selected) in_sel[s] = 1;
-  size_t n_sel = 0;
-  for (uint8_t b : in_sel) n_sel += b;
-  if (n_sel == 0)
-    throw std::runtime_error(
-        "the query selected no anchor: nothing to remove (try another click or phrase; "
-        "`ag2gs query` shows what a query selects)");
+  const SelectedObject sel =
+      select_object(rt, tm, *scene, a.request, a.selection, a.config, embedding, a.resolution, report, "remove");
+  const std::vector<uint8_t>& in_sel = sel.anchors;
+  const size_t n_sel = sel.count;
+  const double query_ms = sel.query_ms;
   if (n_sel == model.size())
     throw std::runtime_error("the query selected all " + std::to_string(model.size()) +
                              " anchors: removing them would leave an empty model");

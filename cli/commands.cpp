@@ -29,6 +29,7 @@ void register_commands(CLI::App& app, GlobalOptions& global) {
   register_query(app, global);
   register_eval(app, global);
   register_remove(app, global);
+  register_simulate(app, global);
 }
 
 namespace {

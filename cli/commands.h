@@ -45,6 +45,7 @@ void register_baseline(CLI::App& app, GlobalOptions& global);       // baseline 
 void register_query(CLI::App& app, GlobalOptions& global);          // query (cmd_query.cpp)
 void register_eval(CLI::App& app, GlobalOptions& global);           // eval (cmd_eval.cpp)
 void register_remove(CLI::App& app, GlobalOptions& global);         // remove (cmd_remove.cpp)
+void register_simulate(CLI::App& app, GlobalOptions& global);       // simulate (cmd_simulate.cpp)
 // The QueryConfig flags shared by query and eval (cmd_query.cpp).
 void add_query_config_options(CLI::App* sub, QueryConfig& config);
 

@@ -320,3 +320,87 @@ __kernel void mpm_g2p(int n, int grid, float dt, float dx, float inv_dx, int4 nl
   mat3_store_g(Cn, C + 9 * p);
   mat3_store_g(Fn, F + 9 * p);
 }
+
+// ------------------------------------------------------------ Gaussians
+// R(q) -> q for a rotation matrix (Shepperd's method: the largest of the
+// four candidates' denominators, so no division by a small number).
+inline float4 rotmat_to_quat(mat3 R) {
+  const float tr = R.m[0] + R.m[4] + R.m[8];
+  float4 q;  // w x y z
+  if (tr > 0.f) {
+    const float s = 2.f * sqrt(tr + 1.f);
+    q = (float4)(0.25f * s, (R.m[7] - R.m[5]) / s, (R.m[2] - R.m[6]) / s, (R.m[3] - R.m[1]) / s);
+  } else if (R.m[0] > R.m[4] && R.m[0] > R.m[8]) {
+    const float s = 2.f * sqrt(1.f + R.m[0] - R.m[4] - R.m[8]);
+    q = (float4)((R.m[7] - R.m[5]) / s, 0.25f * s, (R.m[1] + R.m[3]) / s, (R.m[2] + R.m[6]) / s);
+  } else if (R.m[4] > R.m[8]) {
+    const float s = 2.f * sqrt(1.f + R.m[4] - R.m[0] - R.m[8]);
+    q = (float4)((R.m[2] - R.m[6]) / s, (R.m[1] + R.m[3]) / s, 0.25f * s, (R.m[5] + R.m[7]) / s);
+  } else {
+    const float s = 2.f * sqrt(1.f + R.m[8] - R.m[0] - R.m[4]);
+    q = (float4)((R.m[3] - R.m[1]) / s, (R.m[2] + R.m[6]) / s, (R.m[5] + R.m[7]) / s, 0.25f * s);
+  }
+  return q;
+}
+
+// The Gaussians that follow particles, for one view: mean = the particle's
+// position in the world; covariance F Sigma F^T (F taken to the world frame,
+// A^T F A: the world -> box map is a rotation A and a uniform scale, which
+// cancels), written back as a rotation and scales through the SVD of
+// F R diag(s); colour = the SH at the view direction turned back by the
+// rotation part of F (the coefficients stay as trained), baked into the DC
+// coefficient with the other coefficients zero, so that the renderer's
+// degree-0 evaluation gives exactly that colour.
+__kernel void mpm_gaussians(int n, int K, int K_active,
+                            __global const int* particle,    // [n] the particle each Gaussian follows
+                            __global const float* x,         // [N,3] particle positions in the box
+                            __global const float* F,         // [N,9]
+                            __constant const float* frame,   // [16] A (9, world -> box), scale, world origin (3), box origin (3)
+                            float4 campos,                   // camera centre (world)
+                            __global const float* scales0,   // [n,3] trained scales
+                            __global const float* quats0,    // [n,4] trained rotations (w x y z)
+                            __global const float* sh0,       // [n,K,3] trained SH
+                            __global float* means,           // [n,3] out
+                            __global float* scales,          // [n,3] out
+                            __global float* quats,           // [n,4] out
+                            __global float* sh) {            // [n,K,3] out: DC baked, the rest 0
+  const int g = get_global_id(0);
+  if (g >= n) return;
+  const int p = particle[g];
+  mat3 A;
+  for (int i = 0; i < 9; ++i) A.m[i] = frame[i];
+  const float s = frame[9];
+  const float3 o = (float3)(frame[10], frame[11], frame[12]), b = (float3)(frame[13], frame[14], frame[15]);
+  const mat3 At = mat3_transpose(A);
+  const float3 mean = mat3_vec(At, (vload3(p, x) - b) / s) + o;
+  const mat3 Fw = mat3_mul(At, mat3_mul(mat3_load_g(F + 9 * p), A));
+  // F R diag(s) = U diag(sig) V^T  =>  F Sigma F^T = U diag(sig^2) U^T.
+  const float4 q0 = vload4(g, quats0);
+  const float qn = length(q0);
+  const mat3 R0 = quat_to_rotmat(qn > 0.f ? q0 / qn : (float4)(1.f, 0.f, 0.f, 0.f));
+  const float3 s0 = vload3(g, scales0);
+  mat3 M = mat3_mul(Fw, R0);
+  for (int i = 0; i < 3; ++i) {
+    M.m[3 * i] *= s0.x;
+    M.m[3 * i + 1] *= s0.y;
+    M.m[3 * i + 2] *= s0.z;
+  }
+  mat3 U, V, Uf, Vf;
+  float3 sig, sigf;
+  svd3(M, &U, &sig, &V);
+  vstore3(mean, g, means);
+  vstore3(fmax(fabs(sig), (float3)(1e-9f)), g, scales);
+  vstore4(rotmat_to_quat(U), g, quats);
+  // The view direction in the Gaussian's rest frame: R_F^T d, R_F = U_F V_F^T.
+  svd3(Fw, &Uf, &sigf, &Vf);
+  const mat3 RF = mat3_mul(Uf, mat3_transpose(Vf));
+  float inv_norm;
+  const float3 d = mat3_vec(mat3_transpose(RF), view_dir(mean, campos.xyz, &inv_norm));
+  float3 rgb = (float3)(0.f);
+  for (int k = 0; k < K_active; ++k) {
+    float3 grad;
+    rgb += sh_basis(k, d, &grad) * vload3(g * K + k, sh0);
+  }
+  vstore3(rgb / SH_C0, g * K, sh);
+  for (int k = 1; k < K; ++k) vstore3((float3)(0.f), g * K + k, sh);
+}

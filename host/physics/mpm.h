@@ -108,6 +108,10 @@ class MpmSolver {
   // One substep of `dt` seconds; the materials' forces apply when `forces_on`.
   void step(double dt, bool forces_on);
 
+  // The particles' positions [N,3] and deformation gradients [N,9] on the
+  // device, in the caller's order (for kernels that read them).
+  const DeviceBuffer& positions() const { return x_; }
+  const DeviceBuffer& deformation() const { return F_; }
   const MpmConfig& config() const { return config_; }
   const std::vector<MpmMaterial>& materials() const { return materials_; }
 

@@ -1,0 +1,126 @@
+// ag2gs_bench_mpm: speed of the MLS-MPM solver (host/physics/mpm.h) against
+// its error, for jelly cubes of 2 particles per cell and axis at grids of 32,
+// 64 and 128 cells: time per substep (median of 3 runs) and per kernel, the
+// free-fall error against the parabola (the scheme's exact error is dt / t of
+// the drop, so what is reported beyond that is the solver's), and the energy
+// of an elastic bounce (never above the start; what it lost is numerical
+// dissipation).
+#include <CLI/CLI.hpp>
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <vector>
+
+#include "host/device/cl_runtime.h"
+#include "host/physics/mpm.h"
+
+using namespace ag2gs;
+
+namespace {
+
+MpmParticles cube(double cx, double cy, double cz, double side, double spacing) {
+  MpmParticles p;
+  const int k = static_cast<int>(std::lround(side / spacing));
+  for (int i = 0; i < k; ++i)
+    for (int j = 0; j < k; ++j)
+      for (int l = 0; l < k; ++l)
+        p.add({static_cast<float>(cx + (i + 0.5 - k / 2.0) * spacing),
+               static_cast<float>(cy + (j + 0.5 - k / 2.0) * spacing),
+               static_cast<float>(cz + (l + 0.5 - k / 2.0) * spacing)},
+              static_cast<float>(spacing * spacing * spacing), 0, 1000);
+  return p;
+}
+
+double total_energy(const MpmParticles& q, double dx, const MpmMaterial& m) {
+  double e = diagnose(q, dx).kinetic;
+  for (size_t i = 0; i < q.size(); ++i) {
+    e += q.mass[i] * 9.8 * q.x[3 * i + 2];
+    // Fixed-corotated energy for small strains: mu |F - I|_sym^2 + lambda / 2 tr^2 (enough to rank).
+    double tr = 0, s = 0;
+    for (int a = 0; a < 3; ++a) {
+      tr += q.F[9 * i + 4 * a] - 1;
+      for (int b = 0; b < 3; ++b) {
+        const double eab = 0.5 * (q.F[9 * i + 3 * a + b] + q.F[9 * i + 3 * b + a]) - (a == b);
+        s += eab * eab;
+      }
+    }
+    e += q.volume[i] * (m.mu() * s + 0.5 * m.lambda() * tr * tr);
+  }
+  return e;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"ag2gs_bench_mpm: MLS-MPM speed against error"};
+  int device = -1;
+  double seconds = 0.05;
+  std::vector<int> grids = {32, 64, 128};
+  app.add_option("--device", device, "OpenCL device index (default: the first)");
+  app.add_option("--seconds", seconds, "Simulated time per case (default 0.05)");
+  app.add_option("--grids", grids, "Grid sizes (default 32 64 128)");
+  CLI11_PARSE(app, argc, argv);
+  Runtime rt(device);
+  std::printf("device: %s\n\n", rt.info().name.c_str());
+  std::printf(
+      "| grid | particles | dt (s) | substeps | ms / substep | particles / s | free-fall error - dt/t | bounce energy "
+      "max / start, end / start | sort / stress / grid / g2p (ms) |\n");
+  std::printf("| --- | ---: | ---: | ---: | ---: | ---: | ---: | --- | --- |\n");
+  for (int g : grids) {
+    MpmMaterial m;
+    m.E = 1e5;
+    m.nu = 0.3;
+    MpmConfig cfg;
+    cfg.grid = g;
+    const double dx = 1.0 / g;
+    // Free fall (uniform motion: F stays I) timed, then a bounce on the ground.
+    MpmParticles p = cube(0.5, 0.5, 0.7, 0.25, dx / 2);
+    MpmSolver s(rt, cfg, {m});
+    const double dt = s.max_stable_dt(3.0);
+    const int steps = std::max(1, static_cast<int>(std::ceil(seconds / dt)));
+    std::vector<double> ms;
+    double err = 0;
+    std::map<std::string, double> kernels;
+    for (int rep = 0; rep < 3; ++rep) {
+      s.upload(p);
+      rt.set_profiling(rep == 2);
+      rt.take_timings();
+      rt.queue().finish();
+      const auto t0 = std::chrono::steady_clock::now();
+      for (int k = 0; k < steps; ++k) s.step(dt, false);
+      rt.queue().finish();
+      ms.push_back(std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count() / steps);
+      if (rep == 2) kernels = rt.take_timings();
+      rt.set_profiling(false);
+      MpmParticles q;
+      s.download(q);
+      const double t = steps * dt, drop = 9.8 * t * t / 2;
+      err = ((centre_of_mass(p)[2] - drop) - centre_of_mass(q)[2]) / drop - dt / t;
+    }
+    std::sort(ms.begin(), ms.end());
+    MpmConfig bc = cfg;
+    bc.ground = 0.2;
+    MpmParticles b = cube(0.5, 0.5, 0.35, 0.12, dx / 2);
+    MpmSolver bs(rt, bc, {m});
+    bs.upload(b);
+    const double e0 = total_energy(b, dx, m);
+    double emax = e0, eend = e0;
+    const int bsteps = static_cast<int>(std::ceil(0.5 / bs.max_stable_dt(4.0)));
+    const double bdt = 0.5 / bsteps;
+    MpmParticles q;
+    for (int k = 1; k <= bsteps; ++k) {
+      bs.step(bdt, false);
+      if (k % std::max(1, bsteps / 50) && k != bsteps) continue;
+      bs.download(q);
+      eend = total_energy(q, dx, m);
+      emax = std::max(emax, eend);
+    }
+    auto km = [&](const char* k) { return kernels.count(k) ? kernels[k] / steps : 0.0; };
+    std::printf("| %d | %zu | %.2e | %d | %.3f | %.3g | %.1e | %.4f, %.4f | %.3f / %.3f / %.3f / %.3f |\n", g, p.size(),
+                dt, steps, ms[1], p.size() / (ms[1] / 1000), err, emax / e0, eend / e0, km("mpm_keys"),
+                km("mpm_particle_stress"), km("mpm_grid"), km("mpm_g2p"));
+    std::fflush(stdout);
+  }
+  return 0;
+}

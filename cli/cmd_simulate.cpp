@@ -1,0 +1,366 @@
+// simulate: select an object as `query` does and let it move in an MLS-MPM
+// simulation (stages/simulation.h), rendering the scene frame by frame
+// (docs/design.md, "Physics").
+
+#include <spdlog/spdlog.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <cmath>
+#include <filesystem>
+#include <memory>
+#include <nlohmann/json.hpp>
+#include <opencv2/imgproc.hpp>
+#include <opencv2/videoio.hpp>
+#include <optional>
+#include <sstream>
+#include <string>
+#include <system_error>
+
+#include "cli/commands.h"
+#include "cli/object_selection.h"
+#include "cli/run_driver.h"
+#include "cli/run_guard.h"
+#include "host/device/cl_runtime.h"
+#include "host/io/atomic_file.h"
+#include "host/io/image_io.h"
+#include "host/io/ply_io.h"
+#include "host/render/renderer.h"
+#include "host/render/sky.h"
+#include "host/scene/scene.h"
+#include "queries/query.h"
+#include "stages/anchor_model.h"
+#include "stages/simulation.h"
+#include "stages/train_common.h"
+#include "stages/train_config.h"
+
+namespace fs = std::filesystem;
+
+namespace ag2gs::cli {
+namespace {
+
+struct SimulateArgs {
+  QueryRequest request;
+  QueryConfig config;
+  std::string model, scene, selection, out, sparse;
+  std::string material = "jelly";
+  double E = 2e8, nu = 0.4, density = 1000;
+  double background_E = 2e6, background_nu = 0.3;
+  bool no_background = false;
+  int frames = 30;
+  double fps = 25;
+  double dt = 0;
+  int grid = 64;
+  std::string gravity, force, force_frames = "0:5", up;
+  std::optional<double> ground;
+  double object_size = 0.4;
+  double push = 20;
+  std::string views;
+  int ply_every = 10;
+  int resolution = 0;
+  float min_opacity = 0.02f;
+};
+
+// "X,Y,Z" -> a vector; throws naming the flag.
+Eigen::Vector3d parse_vector(const std::string& text, const std::string& flag) {
+  std::stringstream ss(text);
+  Eigen::Vector3d v;
+  char comma = 0;
+  if (!(ss >> v(0) >> comma) || comma != ',' || !(ss >> v(1) >> comma) || comma != ',' || !(ss >> v(2)) || !ss.eof() ||
+      !v.allFinite())
+    throw std::invalid_argument(flag + " " + text + ": give three numbers as X,Y,Z");
+  return v;
+}
+
+// "A:B" -> [A, B): the frames whose substeps the force acts in.
+std::pair<int, int> parse_frames(const std::string& text) {
+  const size_t c = text.find(':');
+  try {
+    if (c == std::string::npos) throw std::invalid_argument("");
+    size_t used = 0;
+    const int a = std::stoi(text.substr(0, c), &used);
+    if (used != c) throw std::invalid_argument("");
+    const int b = std::stoi(text.substr(c + 1), &used);
+    if (used != text.size() - c - 1 || a < 0 || b < a) throw std::invalid_argument("");
+    return {a, b};
+  } catch (const std::exception&) {
+    throw std::invalid_argument("--force-frames " + text + ": give A:B with 0 <= A <= B (frames A to B-1)");
+  }
+}
+
+void cmd_simulate(const GlobalOptions& global, SimulateArgs a) {
+  const auto t_start = std::chrono::steady_clock::now();
+  // ---- everything that can be checked before any work
+  check_selection_request(a.request, a.selection);
+  a.config.validate();
+  SimulationSettings ss;
+  ss.object.kind = parse_material(a.material);
+  ss.object.E = a.E;
+  ss.object.nu = a.nu;
+  ss.object.density = a.density;
+  ss.background.kind = MaterialKind::kMetal;  // von Mises plasticity (the paper's background)
+  ss.background.E = a.background_E;
+  ss.background.nu = a.background_nu;
+  ss.background.density = a.density;
+  ss.with_background = !a.no_background;
+  ss.grid = a.grid;
+  ss.frame_time = 1.0 / a.fps;
+  ss.dt = a.dt;
+  if (!a.gravity.empty()) ss.gravity = parse_vector(a.gravity, "--gravity");
+  if (!a.up.empty()) ss.up = parse_vector(a.up, "--up");
+  ss.ground = a.ground;
+  ss.object_size = a.object_size;
+  ss.min_opacity = a.min_opacity;
+  if (!a.force.empty()) ss.force = parse_vector(a.force, "--force");
+  const auto [force_from, force_to] = parse_frames(a.force_frames);
+  if (!(a.fps > 0) || !std::isfinite(a.fps)) throw std::invalid_argument("--fps must be a number > 0");
+  ss.validate();
+  const fs::path out = check_new_output_folder(a.out, a.model);
+
+  const bool by_text = a.selection.empty() && a.request.by_text();
+  const TrainedModel tm = load_trained_model(a.model, by_text);
+  if (a.resolution == 0) a.resolution = tm.resolution;
+  SceneOptions so;
+  so.resolution = a.resolution;
+  so.eval = tm.eval_split;
+  so.sparse = a.sparse;
+  std::unique_ptr<Scene> scene = Scene::open(a.scene, so);
+  // The views to render: --views names (image names or stems), else the
+  // first training view.
+  std::vector<int> views;
+  if (a.views.empty()) {
+    views.push_back(scene->train_views().at(0));
+  } else {
+    std::stringstream vs(a.views);
+    std::string name;
+    while (std::getline(vs, name, ',')) {
+      int found = -1;
+      for (const SceneView& v : scene->views())
+        if (v.name == name || v.stem == name) found = v.index;
+      if (found < 0)
+        throw std::invalid_argument("--views: no view named '" + name + "' in " + a.scene +
+                                    " (give image names or stems, e.g. " + scene->views()[0].stem + ")");
+      views.push_back(found);
+    }
+  }
+  std::vector<float> embedding;
+  if (by_text) embedding = load_query_embedding(a.request, tm.file, tm.language.dim);
+
+  Runtime rt(global.device);
+  nlohmann::json report;
+  report["model"] = tm.file;
+  report["scene"] = a.scene;
+  report["resolution"] = a.resolution;
+  const SelectedObject sel =
+      select_object(rt, tm, *scene, a.request, a.selection, a.config, embedding, a.resolution, report, "simulate");
+  const int K = tm.model.children();
+  const GaussianSet gaussians = expand_reference(tm.model, tm.sh_degree);
+  std::vector<uint8_t> selected(gaussians.size(), 0);
+  for (size_t g = 0; g < selected.size(); ++g) selected[g] = sel.anchors[g / K];
+  std::vector<Camera> cameras;
+  for (int v : scene->train_views()) cameras.push_back(scene->views()[v].camera);
+  // The default push: along the first rendered view's right, across up.
+  if (a.force.empty()) {
+    const Eigen::Vector3d up = ss.up ? ss.up->normalized() : up_from_cameras(cameras);
+    const Eigen::Vector3d right = scene->views()[views[0]].camera.R.row(0).transpose();
+    const Eigen::Vector3d across = right - right.dot(up) * up;
+    if (across.norm() > 1e-6) ss.force = a.push * across.normalized();
+  }
+  spdlog::info("selected {} of {} anchors ({} Gaussians) to simulate as {}", sel.count, tm.model.size(),
+               sel.count * static_cast<size_t>(K), a.material);
+  Simulation sim(rt, gaussians, selected, cameras, scene->points(), ss);
+  spdlog::info(
+      "simulation: {} particles ({} of the object's Gaussians, {} filling its inside, {} background Gaussians), grid "
+      "{}^3, up ({:.3f}, {:.3f}, {:.3f}), ground at {:.4g}; stable substep at rest {:.3g} s",
+      sim.particles(), sim.object_gaussians(), sim.fill_particles(), sim.background_gaussians(), a.grid,
+      sim.frame().up(0), sim.frame().up(1), sim.frame().up(2), sim.frame().ground_world,
+      sim.describe()["max_stable_dt_at_rest"].get<double>());
+
+  TrainConfig tc;
+  if (tm.archive.meta.contains("train") && tm.archive.meta["train"].contains("config")) {
+    try {
+      tc = TrainConfig::from_json(tm.archive.meta["train"]["config"]);
+    } catch (const std::exception&) {
+    }
+  }
+  Sky sky(rt);
+  const std::optional<std::vector<float>> sky_coefficients = sky_from_archive(tm.archive);
+  if (sky_coefficients) sky.set(sky_degree_for(sky_coefficients->size()), *sky_coefficients);
+  RenderSettings rs;
+  const float bg = tc.white_background && !sky.enabled() ? 1.f : 0.f;
+  rs.background = {bg, bg, bg};
+  rs.features = false;
+  Renderer renderer(rt);
+
+  InterruptGuard interrupts;
+  const fs::path tmp = out.parent_path() / (out.filename().string() + ".partial." + std::to_string(::getpid()));
+  std::error_code ec;
+  fs::remove_all(tmp, ec);
+  try {
+    std::vector<std::unique_ptr<cv::VideoWriter>> videos;
+    for (int v : views) {
+      const SceneView& sv = scene->views()[v];
+      fs::create_directories(tmp / "frames" / sv.stem);
+      auto w = std::make_unique<cv::VideoWriter>();
+      w->open((tmp / "frames" / (sv.stem + ".avi")).string(), cv::CAP_OPENCV_MJPEG,
+              cv::VideoWriter::fourcc('M', 'J', 'P', 'G'), a.fps, cv::Size(sv.camera.width, sv.camera.height));
+      if (!w->isOpened()) {
+        spdlog::warn("OpenCV cannot write a video here; the frames are PNG only");
+        w.reset();
+      }
+      videos.push_back(std::move(w));
+    }
+    if (a.ply_every > 0) fs::create_directories(tmp / "ply");
+    char name[32];
+    auto write_frame = [&](int f) {
+      for (size_t i = 0; i < views.size(); ++i) {
+        const SceneView& sv = scene->views()[views[i]];
+        const GaussianSet g = sim.gaussians(sv.camera.center());
+        RenderOutput o = renderer.render(g, sv.camera, rs);
+        if (sky.enabled()) composite_sky(renderer, sky, sv.camera, o);
+        std::snprintf(name, sizeof name, "%04d.png", f);
+        write_rgb_png((tmp / "frames" / sv.stem / name).string(), o.rgb, sv.camera.width, sv.camera.height);
+        if (videos[i]) {
+          cv::Mat img(sv.camera.height, sv.camera.width, CV_32FC3, o.rgb.data());
+          cv::Mat bgr;
+          img.convertTo(bgr, CV_8UC3, 255.0);
+          cv::cvtColor(bgr, bgr, cv::COLOR_RGB2BGR);
+          videos[i]->write(bgr);
+        }
+      }
+      if (a.ply_every > 0 && f % a.ply_every == 0) {
+        std::snprintf(name, sizeof name, "frame_%04d.ply", f);
+        write_ply((tmp / "ply" / name).string(), sim.gaussians(Eigen::Vector3d::Zero(), false), true,
+                  PlyValues::activated);
+      }
+    };
+    auto frame_json = [](const SimFrameStats& s) {
+      auto arr = [](const std::array<double, 3>& v) { return nlohmann::json::array({v[0], v[1], v[2]}); };
+      return nlohmann::json{{"frame", s.frame},
+                            {"time", s.time},
+                            {"substeps", s.substeps},
+                            {"wall_seconds", s.wall_s},
+                            {"kinetic_energy", s.all.kinetic},
+                            {"momentum", arr(s.all.momentum)},
+                            {"object_kinetic_energy", s.object.kinetic},
+                            {"object_momentum", arr(s.object.momentum)},
+                            {"object_centre_of_mass", arr(s.object_centre)},
+                            {"max_strain", s.all.max_strain},
+                            {"object_max_strain", s.object.max_strain}};
+    };
+    nlohmann::json frames = nlohmann::json::array();
+    frames.push_back(frame_json(sim.stats()));
+    write_frame(0);
+    double sim_s = 0;
+    int substeps_total = 0;
+    for (int f = 1; f <= a.frames; ++f) {
+      // Frame f covers the substeps from frame f-1 to f: the force acts in
+      // frames [A, B) of --force-frames.
+      const bool forces_on = f - 1 >= force_from && f - 1 < force_to;
+      const SimFrameStats st = sim.advance(forces_on);
+      sim_s += st.wall_s;
+      substeps_total += st.substeps;
+      write_frame(f);
+      frames.push_back(frame_json(st));
+      spdlog::info(
+          "frame {:3d}/{}  {} substeps of {:.3g} s{}  kinetic {:.4g} J  object centre ({:.4g}, {:.4g}, {:.4g})  max "
+          "|F - I| {:.3g}  {:.2f} s  ETA {}",
+          f, a.frames, st.substeps, sim.dt(), forces_on ? "  force on" : "", st.all.kinetic, st.object_centre[0],
+          st.object_centre[1], st.object_centre[2], st.all.max_strain, st.wall_s,
+          fmt_duration(sim_s / f * (a.frames - f)));
+      if (InterruptGuard::interrupted()) {
+        fs::remove_all(tmp, ec);
+        spdlog::warn("{} during the simulation: nothing was written ({} does not exist); run the command again",
+                     InterruptGuard::signal_name(), a.out);
+        InterruptGuard::exit_after_saving();
+      }
+    }
+    for (auto& v : videos)
+      if (v) v->release();
+    report["simulation"] = sim.describe();
+    report["material"] = a.material;
+    report["frames"] = a.frames;
+    report["fps"] = a.fps;
+    report["force_frames"] = {force_from, force_to};
+    report["dt"] = a.dt > 0 ? nlohmann::json(a.dt) : nlohmann::json("automatic");
+    report["substeps"] = substeps_total;
+    report["views"] = nlohmann::json::array();
+    for (int v : views) report["views"].push_back(scene->views()[v].name);
+    report["ply_every"] = a.ply_every;
+    report["per_frame"] = frames;
+    report["seconds"] = {{"query", sel.query_ms / 1000.0},
+                         {"simulation", sim_s},
+                         {"total", std::chrono::duration<double>(std::chrono::steady_clock::now() - t_start).count()}};
+    AtomicFile jf((tmp / "simulation.json").string());
+    jf.write(report.dump(2) + "\n");
+    jf.commit();
+    if (fs::exists(out)) fs::remove(out);  // an empty folder (checked above)
+    fs::rename(tmp, out);
+    spdlog::info("wrote {}: frames/ ({} views x {} frames), {}simulation.json ({:.1f} s simulating, {} substeps)",
+                 a.out, views.size(), a.frames + 1, a.ply_every > 0 ? "ply/, " : "", sim_s, substeps_total);
+  } catch (...) {
+    fs::remove_all(tmp, ec);
+    throw;
+  }
+}
+
+}  // namespace
+
+void register_simulate(CLI::App& app, GlobalOptions& global) {
+  auto a = std::make_shared<SimulateArgs>();
+  auto* r = app.add_subcommand("simulate",
+                               "Simulate a selected object (by a click or by text) with MLS-MPM and render the scene "
+                               "as it moves; writes frames, PLYs and simulation.json to a new folder");
+  r->add_option("model", a->model, "Model folder written by `ag2gs train` (MODEL_DIR/model.ag2gs)")->required();
+  r->add_option("--scene", a->scene, "Scene directory (images/, sparse/0/) the model was trained on")->required();
+  r->add_option("-o,--out", a->out, "New folder for frames/, ply/ and simulation.json")->required();
+  add_query_request_options(r, a->request);
+  r->add_option("--selection", a->selection, "Simulate the anchors of a selection.json written by `ag2gs query`");
+  r->add_option("--material", a->material, "The object's material: jelly (default), metal, sand or plasticine")
+      ->check(CLI::IsMember({"jelly", "metal", "sand", "plasticine"}));
+  r->add_option("--E", a->E, "The object's Young's modulus in Pa (default 2e8)")->check(positive_number());
+  r->add_option("--nu", a->nu, "The object's Poisson's ratio (default 0.4)");
+  r->add_option("--density", a->density, "Density in kg/m^3 of every material (default 1000)")
+      ->check(positive_number());
+  r->add_option("--background-E", a->background_E,
+                "Young's modulus of the other Gaussians inside the simulation box (default 2e6; von Mises)")
+      ->check(positive_number());
+  r->add_option("--background-nu", a->background_nu, "Their Poisson's ratio (default 0.3)");
+  r->add_flag("--no-background", a->no_background, "Simulate the object alone; the rest of the scene stays still");
+  r->add_option("--frames", a->frames, "Frames to simulate (default 30; frame 0, the start, is written too)")
+      ->check(CLI::Range(1, 100000));
+  r->add_option("--fps", a->fps, "Frames per second of simulated time (default 25)")->check(positive_number());
+  r->add_option("--dt", a->dt,
+                "Substep in s (default: the largest stable one at the current speed; a value above the stable "
+                "substep is refused)")
+      ->check(non_negative_number());
+  r->add_option("--grid", a->grid, "Grid cells per side of the simulation box (default 64)")
+      ->check(CLI::Range(16, 512));
+  r->add_option("--gravity", a->gravity, "Gravity X,Y,Z in the world frame, m/s^2 (default 9.8 against --up)");
+  r->add_option("--force", a->force,
+                "Acceleration X,Y,Z (m/s^2, world frame) on the object during --force-frames (default: --push "
+                "along the first view's right, across up)");
+  r->add_option("--push", a->push, "Size of the default force in m/s^2 (default 20; 0 = none)")
+      ->check(non_negative_number());
+  r->add_option("--force-frames", a->force_frames, "Frames A:B (A to B-1) during which the force acts (default 0:5)");
+  r->add_option("--up", a->up, "Up direction X,Y,Z in the world (default: the cameras' mean up)");
+  r->add_option("--ground", a->ground,
+                "Height of the ground plane along up, world units (default: the surface the SfM points show under "
+                "the object)");
+  r->add_option("--object-size", a->object_size,
+                "The object's largest side in the simulation's metres (default 0.4; the box is 1 m across)");
+  r->add_option("--min-opacity", a->min_opacity,
+                "Gaussians at or below this opacity stay out of the simulation (default 0.02)");
+  r->add_option("--views", a->views,
+                "Views to render, comma-separated names or stems (default: the first training view)");
+  r->add_option("--ply-every", a->ply_every, "Write ply/frame_NNNN.ply every K frames (default 10; 0 = none)")
+      ->check(CLI::Range(0, 100000));
+  r->add_option("-r,--resolution", a->resolution, "Divide the cameras by R (default: the model's training -r)")
+      ->check(CLI::Range(1, 64));
+  r->add_option("--sparse", a->sparse,
+                "COLMAP model folder inside the scene (default: sparse/0/, else sparse/ when it holds the model)");
+  add_query_config_options(r, a->config);
+  set_action(r, [&global, a] { cmd_simulate(global, *a); });
+}
+
+}  // namespace ag2gs::cli

@@ -1,0 +1,81 @@
+#include "cli/object_selection.h"
+
+#include <fstream>
+#include <stdexcept>
+
+namespace fs = std::filesystem;
+
+namespace ag2gs::cli {
+
+fs::path check_new_output_folder(const std::string& out_arg, const std::string& model_arg) {
+  fs::path out = fs::absolute(out_arg).lexically_normal();
+  if (!out.has_filename()) out = out.parent_path();
+  const fs::path model_dir = fs::weakly_canonical(fs::absolute(model_arg));
+  const fs::path out_real = fs::weakly_canonical(out);
+  for (fs::path p = out_real; !p.empty(); p = p.parent_path()) {
+    if (p == model_dir)
+      throw std::invalid_argument("-o " + out_arg +
+                                  (p == out_real ? " is the model folder itself" : " lies inside the model folder") +
+                                  "; write the result to a new folder outside it");
+    if (p == p.parent_path()) break;
+  }
+  if (fs::exists(out) && !(fs::is_directory(out) && fs::is_empty(out)))
+    throw std::invalid_argument("-o " + out_arg + " exists and is not empty; give a new folder (nothing was written)");
+  return out;
+}
+
+std::vector<int32_t> read_selection_file(const std::string& path, size_t anchors) {
+  std::ifstream f(path);
+  if (!f) throw std::runtime_error(path + ": cannot be read (give the selection.json that `ag2gs query` wrote)");
+  nlohmann::json j;
+  try {
+    j = nlohmann::json::parse(f);
+  } catch (const nlohmann::json::exception& e) {
+    throw std::runtime_error(path + ": not valid JSON (" + e.what() + ")");
+  }
+  if (!j.contains("anchors") || !j["anchors"].is_array())
+    throw std::runtime_error(path + ": no \"anchors\" list; give the selection.json that `ag2gs query` wrote");
+  std::vector<int32_t> out;
+  for (const auto& v : j["anchors"]) {
+    if (!v.is_number_integer() || v.get<int64_t>() < 0 || v.get<int64_t>() >= static_cast<int64_t>(anchors))
+      throw std::runtime_error(path + ": anchor id " + v.dump() + " is not one of the model's " +
+                               std::to_string(anchors) + " anchors (was the selection made on another model?)");
+    out.push_back(v.get<int32_t>());
+  }
+  return out;
+}
+
+void check_selection_request(const QueryRequest& request, const std::string& selection_file) {
+  const bool by_selection = !selection_file.empty();
+  if (by_selection && (request.by_click() || request.by_text()))
+    throw std::invalid_argument("give either --selection FILE or a query (--click / --text), not both");
+  if (!by_selection) check_query_request(request);
+  if (by_selection && !(request.view.empty() && request.vocab.empty()))
+    throw std::invalid_argument("--view and --vocab belong to a click or text query, not to --selection");
+}
+
+SelectedObject select_object(Runtime& rt, const TrainedModel& tm, const Scene& scene, const QueryRequest& request,
+                             const std::string& selection_file, const QueryConfig& config,
+                             const std::vector<float>& embedding, int resolution, nlohmann::json& report,
+                             const std::string& action) {
+  const AnchorModel& model = tm.model;
+  std::vector<int32_t> selected;
+  SelectedObject out;
+  if (!selection_file.empty()) {
+    selected = read_selection_file(selection_file, model.size());
+    report["query"] = {{"type", "selection"}, {"file", selection_file}};
+  } else {
+    QueryEngine engine(rt, model, config);
+    if (request.by_text()) engine.set_language(tm.clustering, tm.language);
+    selected = run_query(engine, scene, request, embedding, resolution, config.text_margin, report, &out.query_ms);
+  }
+  out.anchors.assign(model.size(), 0);
+  for (int32_t s : selected) out.anchors[s] = 1;
+  for (uint8_t b : out.anchors) out.count += b;
+  if (out.count == 0)
+    throw std::runtime_error("the query selected no anchor: nothing to " + action +
+                             " (try another click or phrase; `ag2gs query` shows what a query selects)");
+  return out;
+}
+
+}  // namespace ag2gs::cli

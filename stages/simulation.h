@@ -1,0 +1,131 @@
+// Physics on a trained scene (docs/design.md, "Physics"): the selected
+// object's Gaussians become particles of an MLS-MPM simulation
+// (host/physics/mpm.h), its closed volume is filled with more particles so
+// that a hollow shell does not collapse, the other Gaussians inside the
+// simulation box become a softer background material, and every frame the
+// Gaussians follow their particles (position, covariance F Sigma F^T, view
+// direction turned by F's rotation) and render like any model.
+#pragma once
+
+#include <Eigen/Dense>
+#include <array>
+#include <memory>
+#include <nlohmann/json.hpp>
+#include <optional>
+#include <vector>
+
+#include "host/core/gaussians.h"
+#include "host/device/cl_runtime.h"
+#include "host/physics/mpm.h"
+
+namespace ag2gs {
+
+struct SimulationSettings {
+  MpmMaterial object;      // the selection (material 0)
+  MpmMaterial background;  // the other Gaussians inside the box (material 1)
+  bool with_background = true;
+  int grid = 64;
+  double frame_time = 0.04;                         // s
+  double dt = 0;                                    // s; 0 = the largest stable substep
+  std::optional<Eigen::Vector3d> gravity;           // world frame, m/s^2; default 9.8 down
+  Eigen::Vector3d force = Eigen::Vector3d::Zero();  // world frame, m/s^2, on the object while forces are on
+  std::optional<Eigen::Vector3d> up;                // world frame; default from the cameras
+  std::optional<double> ground;                     // height along up (world units); default from the SfM points
+  float min_opacity = 0.02f;                        // Gaussians below this opacity stay out of the simulation
+  double object_size = 0.4;                         // the object's largest side, in box units (metres)
+
+  // Throws std::invalid_argument naming the flag.
+  void validate() const;
+};
+
+// The map between the world and the simulation box: box = s A (world - o) + b,
+// A a rotation that takes `up` to +z.
+struct SimulationFrame {
+  Eigen::Matrix3d A = Eigen::Matrix3d::Identity();
+  double scale = 1;
+  Eigen::Vector3d origin = Eigen::Vector3d::Zero();  // o (world)
+  Eigen::Vector3d box = Eigen::Vector3d::Zero();     // b (box)
+  Eigen::Vector3d up = Eigen::Vector3d::UnitZ();
+  double ground_world = 0;  // height of the ground along up
+  double ground_box = 0;    // the same plane's z in the box
+
+  Eigen::Vector3d to_box(const Eigen::Vector3d& w) const { return scale * (A * (w - origin)) + box; }
+  Eigen::Vector3d to_world(const Eigen::Vector3d& x) const { return A.transpose() * (x - box) / scale + origin; }
+  // A world-frame vector (an acceleration) in box units: s A v.
+  Eigen::Vector3d vector_to_box(const Eigen::Vector3d& v) const { return scale * (A * v); }
+};
+
+// The up direction the cameras agree on: the mean of their "up" axes (-y in
+// COLMAP's camera frame), normalised. Throws when they cancel out.
+Eigen::Vector3d up_from_cameras(const std::vector<Camera>& cameras);
+
+// The surface an object rests on: the SfM points within 1.5 radii of the
+// object's centre (across up) and below its lowest tenth, their highest
+// tenth (a table top, a floor). Without 10 such points, the object's own
+// lowest Gaussian. Heights are along `up`.
+double ground_below(const std::vector<Eigen::Vector3d>& points, const std::vector<Eigen::Vector3d>& object,
+                    const Eigen::Vector3d& up);
+
+// Interior filling: occupied cells (any of `surface`'s positions) on a grid
+// of cell `cell` over [0, 1]^3; a free cell is inside when rays along all six
+// axis directions meet an occupied cell. Returns the inside cells' centres.
+std::vector<Eigen::Vector3d> fill_interior(const std::vector<Eigen::Vector3d>& surface, double cell);
+
+struct SimFrameStats {
+  int frame = 0;
+  double time = 0;        // s, simulated
+  double wall_s = 0;      // s, to simulate it
+  int substeps = 0;       // of dt() each: the frame time over the stable substep at the last frame's top speed
+  MpmDiagnostics all;     // every particle
+  MpmDiagnostics object;  // material 0
+  std::array<double, 3> object_centre{};  // world frame
+};
+
+class Simulation {
+ public:
+  // `scene`: every Gaussian of the model; `selected[g]`: Gaussian g belongs to
+  // the object; `cameras` give the up direction, `points` the ground.
+  Simulation(Runtime& rt, const GaussianSet& scene, const std::vector<uint8_t>& selected,
+             const std::vector<Camera>& cameras, const std::vector<Eigen::Vector3d>& points,
+             const SimulationSettings& settings);
+
+  const SimulationFrame& frame() const { return frame_; }
+  // The substep of the last frame (the first: at the speed gravity and the
+  // force can give in one frame).
+  double dt() const { return dt_; }
+  size_t object_gaussians() const { return object_gaussians_; }
+  size_t fill_particles() const { return fill_particles_; }
+  size_t background_gaussians() const { return background_gaussians_; }
+  size_t particles() const { return particles_.size(); }
+
+  // Simulates one frame, the object's force on when `forces_on`. The
+  // substep is --dt when given (refused by the constructor when unstable at
+  // rest), else the largest stable one at the particles' top speed so far.
+  SimFrameStats advance(bool forces_on);
+  // Stats of the current state without simulating (frame 0).
+  SimFrameStats stats() const;
+
+  // The scene as it stands now, for a camera at `campos` (colours baked for
+  // that view; the PLY export passes the trained SH instead: bake = false).
+  GaussianSet gaussians(const Eigen::Vector3d& campos, bool bake = true);
+
+  nlohmann::json describe() const;
+
+ private:
+  Runtime& rt_;
+  SimulationSettings settings_;
+  SimulationFrame frame_;
+  GaussianSet scene_;
+  std::unique_ptr<MpmSolver> solver_;
+  MpmParticles particles_;
+  std::vector<int32_t> moving_;    // Gaussians that follow a particle
+  std::vector<int32_t> particle_;  // [moving] their particles
+  size_t object_gaussians_ = 0, fill_particles_ = 0, background_gaussians_ = 0;
+  double dt_ = 0;
+  int frames_done_ = 0;
+  double max_speed_ = 0;   // top particle speed expected in the next frame
+  double speed_gain_ = 0;  // what gravity and the force can add in one frame
+  DeviceBuffer d_particle_, d_scales0_, d_quats0_, d_sh0_, d_frame_, d_means_, d_scales_, d_quats_, d_sh_;
+};
+
+}  // namespace ag2gs

@@ -1,0 +1,197 @@
+// `ag2gs simulate` end to end on a small generated scene and a short stage-1
+// model: frames, PLYs and simulation.json are written; a free object falls
+// as gravity says in the world's units; the same command gives the same bits
+// with 1 and 2 threads; bad input is refused before anything is written.
+#include <gtest/gtest.h>
+#include <unistd.h>
+
+#include <cmath>
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <iterator>
+#include <nlohmann/json.hpp>
+#include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
+#include <string>
+
+#include "cli_test_util.h"
+#include "synth/synth_scene.h"
+
+namespace fs = std::filesystem;
+using nlohmann::json;
+
+namespace ag2gs {
+namespace {
+
+struct Fixture {
+  fs::path root, scene, model, selection;
+};
+
+// A 64x48 scene (8 views, one held out), 150 iterations of stage 1, and a
+// selection: the anchors of a click on an object (made once per process).
+const Fixture& fixture() {
+  static const Fixture f = [] {
+    Fixture x;
+    x.root = fs::path(testing::TempDir()) / ("ag2gs_simulate_" + std::to_string(::getpid()));
+    fs::remove_all(x.root);
+    x.scene = x.root / "scene";
+    x.model = x.root / "model";
+    SynthOptions o;
+    o.seed = 4;
+    o.width = 64;
+    o.height = 48;
+    o.views = 8;
+    o.points = 800;
+    o.feature_dim = 84;
+    write_synth_scene(x.scene.string(), o);
+    auto r = test::run_cli("train " + x.scene.string() + " -o " + x.model.string() +
+                           " --iters 150 --stages 1 --eval --seed 1 --quiet --sky-degree -1");
+    EXPECT_EQ(r.code, 0) << r.output;
+    r = test::run_cli("query " + x.model.string() + " --scene " + x.scene.string() +
+                      " --view view_001 --click 32,30 -o " + (x.root / "query").string() + " --quiet");
+    EXPECT_EQ(r.code, 0) << r.output;
+    x.selection = x.root / "query" / "selection.json";
+    return x;
+  }();
+  return f;
+}
+
+std::string simulate_cmd(const fs::path& out, const std::string& extra) {
+  const Fixture& f = fixture();
+  return "simulate " + f.model.string() + " --scene " + f.scene.string() + " --selection " + f.selection.string() +
+         " -o " + out.string() + " --grid 16 --E 1e5 " + extra + " --quiet";
+}
+
+fs::path fresh(const std::string& name) {
+  const fs::path p = fixture().root / name;
+  fs::remove_all(p);
+  return p;
+}
+
+std::string read_file(const fs::path& p) {
+  std::ifstream f(p, std::ios::binary);
+  return std::string(std::istreambuf_iterator<char>(f), {});
+}
+
+TEST(Simulate, WritesFramesPlysAndARecordOfEveryFrame) {
+  const fs::path out = fresh("basic");
+  const auto r = test::run_cli(simulate_cmd(out, "--frames 3 --ply-every 2 --views view_001,view_002"));
+  ASSERT_EQ(r.code, 0) << r.output;
+  for (const char* v : {"view_001", "view_002"})
+    for (const char* f : {"0000.png", "0001.png", "0002.png", "0003.png"})
+      EXPECT_TRUE(fs::exists(out / "frames" / v / f)) << v << "/" << f;
+  EXPECT_TRUE(fs::exists(out / "ply" / "frame_0000.ply"));
+  EXPECT_TRUE(fs::exists(out / "ply" / "frame_0002.ply"));
+  EXPECT_FALSE(fs::exists(out / "ply" / "frame_0001.ply"));
+  const json j = json::parse(std::ifstream(out / "simulation.json"));
+  ASSERT_EQ(j["per_frame"].size(), 4u);
+  EXPECT_EQ(j["query"]["type"], "selection");
+  EXPECT_EQ(j["material"], "jelly");
+  const json& p = j["simulation"]["particles"];
+  EXPECT_GT(p["object_gaussians"].get<size_t>(), 0u);
+  EXPECT_EQ(p["total"].get<size_t>(), p["object_gaussians"].get<size_t>() + p["interior_fill"].get<size_t>() +
+                                          p["background_gaussians"].get<size_t>());
+  for (size_t f = 1; f < 4; ++f) {
+    const json& fr = j["per_frame"][f];
+    EXPECT_GT(fr["substeps"].get<int>(), 0);
+    EXPECT_TRUE(std::isfinite(fr["kinetic_energy"].get<double>()));
+    EXPECT_GT(fr["kinetic_energy"].get<double>(), 0) << "the push moves the object";
+  }
+  EXPECT_EQ(j["per_frame"][0]["kinetic_energy"].get<double>(), 0.0);
+  // The first frame is the model as trained: the same pixels `render` gives.
+  const fs::path renders = fixture().root / "renders";
+  fs::remove_all(renders);
+  const auto rr = test::run_cli("render " + fixture().model.string() + " --scene " + fixture().scene.string() +
+                                " --views view_001 -o " + renders.string() + " --quiet");
+  ASSERT_EQ(rr.code, 0) << rr.output;
+  const cv::Mat a = cv::imread((out / "frames/view_001/0000.png").string()),
+                b = cv::imread((renders / "rgb/view_001.png").string());
+  ASSERT_FALSE(a.empty());
+  ASSERT_FALSE(b.empty());
+  ASSERT_EQ(a.size(), b.size());
+  cv::Mat diff;
+  cv::absdiff(a, b, diff);
+  double worst = 0;
+  cv::minMaxLoc(diff.reshape(1), nullptr, &worst);
+  // Float rounding only: the moved Gaussians' covariance goes through an SVD
+  // and their colour through the baked DC coefficient.
+  EXPECT_LE(worst, 2.0) << "frame 0 differs from the render by " << worst << " levels";
+}
+
+TEST(Simulate, AFreeObjectFallsAsGravitySaysInWorldUnits) {
+  // Alone (no background), no push, the ground far below: the object falls
+  // freely, every particle at one velocity, so its centre follows
+  // g t^2 / 2 + g t dt / 2 (the scheme's exact error, tests/test_mpm.cpp) in
+  // the box's metres, and that over the box scale in world units, along
+  // --gravity.
+  const fs::path out = fresh("fall");
+  const auto r =
+      test::run_cli(simulate_cmd(out, "--frames 2 --no-background --push 0 --ground -3 --gravity 0,0,-9.8 --up 0,0,1"));
+  ASSERT_EQ(r.code, 0) << r.output;
+  const json j = json::parse(std::ifstream(out / "simulation.json"));
+  const double scale = j["simulation"]["box_scale"].get<double>();
+  const json& f0 = j["per_frame"][0]["object_centre_of_mass"];
+  const json& f2 = j["per_frame"][2]["object_centre_of_mass"];
+  const double t = 2 / 25.0;
+  double dt_sum = 0;  // substeps differ by frame: the dt term is g t (sum of dt) / 2 per frame's share
+  for (int f = 1; f <= 2; ++f) dt_sum += (1 / 25.0) * (1 / 25.0) / j["per_frame"][f]["substeps"].get<int>();
+  const double drop_box = 9.8 * t * t / 2 + 9.8 * dt_sum / 2;
+  EXPECT_NEAR(f2[0].get<double>(), f0[0].get<double>(), 1e-4 / scale);
+  EXPECT_NEAR(f2[1].get<double>(), f0[1].get<double>(), 1e-4 / scale);
+  const double drop_world = f0[2].get<double>() - f2[2].get<double>();
+  std::printf("drop %.6f world units, expected %.6f (box scale %.4f)\n", drop_world, drop_box / scale, scale);
+  EXPECT_NEAR(drop_world * scale, drop_box, 0.01 * drop_box);
+}
+
+TEST(Simulate, SameBitsWithOneAndTwoThreads) {
+  std::string bytes[2], json_text[2];
+  for (int threads = 1; threads <= 2; ++threads) {
+    const fs::path out = fresh("threads_" + std::to_string(threads));
+    setenv("POCL_MAX_PTHREAD_COUNT", std::to_string(threads).c_str(), 1);
+    const auto r = test::run_cli(simulate_cmd(out, "--frames 2 --ply-every 2"));
+    unsetenv("POCL_MAX_PTHREAD_COUNT");
+    ASSERT_EQ(r.code, 0) << r.output;
+    bytes[threads - 1] = read_file(out / "ply" / "frame_0002.ply") + read_file(out / "frames/view_001/0002.png");
+    json j = json::parse(std::ifstream(out / "simulation.json"));
+    for (json& f : j["per_frame"]) f.erase("wall_seconds");
+    json_text[threads - 1] = j["per_frame"].dump();
+  }
+  EXPECT_EQ(bytes[0], bytes[1]);
+  EXPECT_EQ(json_text[0], json_text[1]);
+}
+
+TEST(Simulate, BadInputIsRefusedBeforeAnythingIsWritten) {
+  const Fixture& f = fixture();
+  const fs::path out = fresh("refused");
+  const std::vector<std::pair<std::string, std::string>> cases = {
+      {"--dt 0.01", "above the largest stable substep"},
+      {"--material rubber", "--material"},
+      {"--force-frames 5:2", "--force-frames 5:2"},
+      {"--force 1,2", "--force 1,2: give three numbers"},
+      {"--views nope", "no view named 'nope'"},
+      {"--nu 0.5", "nu must lie in (-1, 0.5)"},
+      {"--object-size 2", "--object-size"},
+  };
+  for (const auto& [extra, message] : cases) {
+    const auto r = test::run_cli(simulate_cmd(out, extra));
+    EXPECT_NE(r.code, 0) << extra;
+    EXPECT_NE(r.output.find(message), std::string::npos) << extra << "\n" << r.output;
+    EXPECT_FALSE(fs::exists(out)) << extra;
+  }
+  auto r = test::run_cli("simulate " + f.model.string() + " --scene " + f.scene.string() + " --selection " +
+                         f.selection.string() + " -o " + (f.model / "sim").string() + " --quiet");
+  EXPECT_NE(r.code, 0);
+  EXPECT_NE(r.output.find("lies inside the model folder"), std::string::npos) << r.output;
+  EXPECT_FALSE(fs::exists(f.model / "sim"));
+  const fs::path empty = f.root / "empty.json";
+  std::ofstream(empty) << R"({"anchors": []})";
+  r = test::run_cli("simulate " + f.model.string() + " --scene " + f.scene.string() + " --selection " + empty.string() +
+                    " -o " + out.string() + " --quiet");
+  EXPECT_NE(r.code, 0);
+  EXPECT_NE(r.output.find("nothing to simulate"), std::string::npos) << r.output;
+  EXPECT_FALSE(fs::exists(out));
+}
+
+}  // namespace
+}  // namespace ag2gs
