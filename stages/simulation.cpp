@@ -70,11 +70,14 @@ double ground_below(const std::vector<Eigen::Vector3d>& points, const std::vecto
   for (const Eigen::Vector3d& p : object) radii.push_back(across(p));
   const double radius = quantile(radii, 0.9);
   const double low = quantile(heights, 0.1);
-  std::vector<double> below;
-  for (const Eigen::Vector3d& p : points)
-    if (p.dot(up) < low && across(p) < 1.5 * radius) below.push_back(p.dot(up));
-  if (below.size() < 10) return *std::min_element(heights.begin(), heights.end());
-  return quantile(below, 0.9);
+  // Widen the search when few points lie close under the object.
+  for (double reach : {1.5, 3.0, 6.0}) {
+    std::vector<double> below;
+    for (const Eigen::Vector3d& p : points)
+      if (p.dot(up) < low && across(p) < reach * radius) below.push_back(p.dot(up));
+    if (below.size() >= 10) return quantile(below, 0.9);
+  }
+  return *std::min_element(heights.begin(), heights.end());
 }
 
 std::vector<Eigen::Vector3d> fill_interior(const std::vector<Eigen::Vector3d>& surface, double cell) {

@@ -60,9 +60,9 @@ struct SimulationFrame {
 Eigen::Vector3d up_from_cameras(const std::vector<Camera>& cameras);
 
 // The surface an object rests on: the SfM points within 1.5 radii of the
-// object's centre (across up) and below its lowest tenth, their highest
-// tenth (a table top, a floor). Without 10 such points, the object's own
-// lowest Gaussian. Heights are along `up`.
+// object's centre (across up; 3 or 6 when fewer than 10 lie there) and below
+// its lowest tenth, their highest tenth (a table top, a floor). Without 10
+// such points, the object's own lowest Gaussian. Heights are along `up`.
 double ground_below(const std::vector<Eigen::Vector3d>& points, const std::vector<Eigen::Vector3d>& object,
                     const Eigen::Vector3d& up);
 
@@ -110,6 +110,8 @@ class Simulation {
   GaussianSet gaussians(const Eigen::Vector3d& campos, bool bake = true);
 
   nlohmann::json describe() const;
+  // The solver, for tests and tools that set particle states directly.
+  MpmSolver& solver() { return *solver_; }
 
  private:
   Runtime& rt_;

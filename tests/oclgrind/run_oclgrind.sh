@@ -118,6 +118,10 @@ step propagation "$build/test_anchor_graph" --gtest_filter='PropagationLoss.Devi
 step expander "$build/test_anchors" --gtest_filter='Expander.ForwardMatchesReference:Expander.ExtremeLogitsStayFinite'
 step sky "$build/test_sky" \
   --gtest_filter='Sky.ComposeMatchesTheDoubleReference:Sky.ConstantStartAndArchiveRoundTrip:Sky.FitRecoversAKnownSky'
+# The MLS-MPM solver's substep against its double reference (every material),
+# and the Gaussians that follow the particles.
+step mpm "$build/test_mpm" --gtest_filter='Mpm.FewParticlesMatchTheDoubleReference'
+step simulation "$build/test_simulation" --gtest_filter='Simulation.GaussiansFollowTheirParticles'
 
 # The program end to end on a 32x32 generated scene with masks and features:
 # stage 1 with growth, the mask losses and the regularisers, stage 2's

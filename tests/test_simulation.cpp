@@ -1,0 +1,148 @@
+// The simulation stage (stages/simulation.h): interior filling, the ground
+// under an object, the up direction, and the Gaussians that follow their
+// particles (kernels/mpm.cl, mpm_gaussians) against a double-precision
+// reference of F Sigma F^T and of the SH colour at the turned view direction.
+#include <gtest/gtest.h>
+
+#include <Eigen/Dense>
+#include <cmath>
+#include <random>
+#include <vector>
+
+#include "stages/simulation.h"
+#include "tests/reference/reference_renderer.h"
+#include "tests/test_util.h"
+
+namespace ag2gs {
+namespace {
+
+using Eigen::Matrix3d;
+using Eigen::Vector3d;
+
+TEST(Simulation, FillInteriorFillsAClosedShellAndNotAnOpenCup) {
+  // A sphere shell of radius 0.2 sampled densely, on a grid of 1/32.
+  const double cell = 1.0 / 32;
+  std::vector<Vector3d> shell, cup;
+  for (int i = 0; i < 200; ++i)
+    for (int j = 0; j < 100; ++j) {
+      const double th = M_PI * (j + 0.5) / 100, ph = 2 * M_PI * i / 200;
+      const Vector3d p = Vector3d(0.5, 0.5, 0.5) +
+                         0.2 * Vector3d(std::sin(th) * std::cos(ph), std::sin(th) * std::sin(ph), std::cos(th));
+      shell.push_back(p);
+      if (p(2) < 0.55) cup.push_back(p);  // the top cut off: open upwards
+    }
+  const std::vector<Vector3d> inside = fill_interior(shell, cell);
+  // Every filled cell lies inside the sphere, and they fill most of it.
+  for (const Vector3d& c : inside) EXPECT_LT((c - Vector3d(0.5, 0.5, 0.5)).norm(), 0.2 + cell);
+  const double volume = inside.size() * cell * cell * cell, sphere = 4.0 / 3 * M_PI * 0.2 * 0.2 * 0.2;
+  std::printf("filled %zu cells, %.4f of the sphere's volume\n", inside.size(), volume / sphere);
+  EXPECT_GT(volume, 0.6 * sphere);
+  // An open cup: a ray up from inside meets nothing, so nothing is filled there.
+  for (const Vector3d& c : fill_interior(cup, cell)) EXPECT_LT(c(2), 0.55 + cell);
+  EXPECT_TRUE(fill_interior({}, cell).empty());
+}
+
+TEST(Simulation, GroundIsTheSurfaceUnderTheObject) {
+  // A table top at height 1 (with a floor at 0 further out), an object above.
+  std::mt19937 rng(3);
+  std::uniform_real_distribution<double> u(-1, 1);
+  std::vector<Vector3d> points, object;
+  for (int i = 0; i < 400; ++i) points.emplace_back(u(rng), u(rng), 1.0 + 0.002 * u(rng));
+  for (int i = 0; i < 400; ++i) points.emplace_back(3 * u(rng), 3 * u(rng), 0.0);
+  for (int i = 0; i < 300; ++i) object.emplace_back(0.1 * u(rng), 0.1 * u(rng), 1.05 + 0.05 * (u(rng) + 1));
+  EXPECT_NEAR(ground_below(points, object, Vector3d::UnitZ()), 1.0, 0.003);
+  // Without points under it: the object's own lowest Gaussian.
+  EXPECT_NEAR(ground_below({}, object, Vector3d::UnitZ()), 1.05, 0.01);
+  // Up from cameras: COLMAP cameras looking at the origin from around it, all upright.
+  std::vector<Camera> cams;
+  for (int i = 0; i < 6; ++i) {
+    const double a = 2 * M_PI * i / 6;
+    cams.push_back(test::look_at(Vector3d(3 * std::cos(a), 3 * std::sin(a), 1.0), Vector3d::Zero(), 32, 32, 30));
+  }
+  const Vector3d up = up_from_cameras(cams);
+  EXPECT_GT(up.dot(Vector3d::UnitZ()), 0.9) << up.transpose();
+}
+
+TEST(Simulation, GaussiansFollowTheirParticles) {
+  // Five Gaussians with SH of degree 3; each particle gets its own F (a
+  // rotation times a stretch) and a shift; the kernel's means, covariances
+  // and baked colours against the definitions in double.
+  GaussianSet set;
+  set.sh_degree = 3;
+  const int K = 16;
+  std::mt19937 rng(11);
+  std::uniform_real_distribution<double> u(-1, 1);
+  const int n = 5;
+  set.resize(n);
+  for (int g = 0; g < n; ++g) {
+    for (int c = 0; c < 3; ++c) {
+      set.means[3 * g + c] = static_cast<float>(0.3 * u(rng));
+      set.scales[3 * g + c] = static_cast<float>(0.02 + 0.01 * u(rng));
+    }
+    const Eigen::Quaterniond q = Eigen::Quaterniond(1 + u(rng), u(rng), u(rng), u(rng)).normalized();
+    set.quats[4 * g] = static_cast<float>(q.w());
+    set.quats[4 * g + 1] = static_cast<float>(q.x());
+    set.quats[4 * g + 2] = static_cast<float>(q.y());
+    set.quats[4 * g + 3] = static_cast<float>(q.z());
+    set.opacities[g] = 0.8f;
+    for (int k = 0; k < 3 * K; ++k) set.sh[3 * K * g + k] = static_cast<float>(0.3 * u(rng));
+  }
+  SimulationSettings ss;
+  ss.with_background = false;
+  ss.grid = 32;
+  ss.up = Vector3d(0.2, 0.1, 1.0);
+  ss.ground = -1.0;
+  ss.object.E = 1e5;
+  Simulation sim(test::runtime(), set, std::vector<uint8_t>(n, 1), {}, {}, ss);
+  ASSERT_EQ(sim.particles(), static_cast<size_t>(n)) << "5 scattered Gaussians enclose nothing";
+  MpmParticles p;
+  sim.solver().download(p);
+  std::vector<Matrix3d> Fs;
+  for (int i = 0; i < n; ++i) {
+    const Matrix3d R = Eigen::AngleAxisd(0.7 * u(rng), Vector3d(u(rng), u(rng), u(rng)).normalized()).matrix();
+    Matrix3d S = Matrix3d::Identity() + 0.2 * Matrix3d::Random();
+    S = 0.5 * (S + S.transpose()).eval() + 0.5 * Matrix3d::Identity();  // symmetric positive definite
+    const Matrix3d F = R * S;
+    Fs.push_back(F);
+    for (int k = 0; k < 9; ++k) p.F[9 * i + k] = static_cast<float>(F(k / 3, k % 3));
+    for (int k = 0; k < 3; ++k) p.x[3 * i + k] += static_cast<float>(0.01 * u(rng));
+  }
+  sim.solver().upload(p);
+  const Vector3d campos(2.0, -1.0, 0.5);
+  const GaussianSet out = sim.gaussians(campos);
+  const SimulationFrame& fr = sim.frame();
+  for (int g = 0; g < n; ++g) {
+    // Mean: the particle taken back to the world.
+    const Vector3d x(p.x[3 * g], p.x[3 * g + 1], p.x[3 * g + 2]);
+    const Vector3d mean = fr.to_world(x);
+    for (int c = 0; c < 3; ++c) EXPECT_NEAR(out.means[3 * g + c], mean(c), 1e-5) << g;
+    // Covariance: Fw R0 S0^2 R0^T Fw^T with Fw = A^T F A.
+    const Matrix3d Fw = fr.A.transpose() * Fs[g] * fr.A;
+    const Eigen::Quaterniond q0(set.quats[4 * g], set.quats[4 * g + 1], set.quats[4 * g + 2], set.quats[4 * g + 3]);
+    const Vector3d s0(set.scales[3 * g], set.scales[3 * g + 1], set.scales[3 * g + 2]);
+    const Matrix3d cov0 = q0.normalized().matrix() * s0.cwiseAbs2().asDiagonal() * q0.normalized().matrix().transpose();
+    const Matrix3d want = Fw * cov0 * Fw.transpose();
+    const Eigen::Quaterniond q(out.quats[4 * g], out.quats[4 * g + 1], out.quats[4 * g + 2], out.quats[4 * g + 3]);
+    const Vector3d s(out.scales[3 * g], out.scales[3 * g + 1], out.scales[3 * g + 2]);
+    const Matrix3d got = q.normalized().matrix() * s.cwiseAbs2().asDiagonal() * q.normalized().matrix().transpose();
+    EXPECT_LT((got - want).norm(), 1e-4 * want.norm()) << g << "\n" << got << "\nwant\n" << want;
+    // Colour: the trained SH at the view direction turned back by F's rotation.
+    Eigen::JacobiSVD<Matrix3d> svd(Fw, Eigen::ComputeFullU | Eigen::ComputeFullV);
+    const Matrix3d RF = svd.matrixU() * svd.matrixV().transpose();
+    const Vector3d d = RF.transpose() * (mean - campos).normalized();
+    double b[16];
+    ref::sh_values(3, d, b);
+    for (int c = 0; c < 3; ++c) {
+      double want_c = 0;
+      for (int k = 0; k < K; ++k) want_c += b[k] * set.sh[(g * K + k) * 3 + c];
+      EXPECT_NEAR(out.sh[(g * K) * 3 + c] * 0.28209479177387814, want_c, 2e-5) << g << " channel " << c;
+      for (int k = 1; k < K; ++k) EXPECT_EQ(out.sh[(g * K + k) * 3 + c], 0.f);
+    }
+  }
+  // Without baking, the trained SH stay.
+  const GaussianSet raw = sim.gaussians(campos, false);
+  EXPECT_EQ(raw.sh, set.sh);
+}
+
+}  // namespace
+}  // namespace ag2gs
