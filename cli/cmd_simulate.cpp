@@ -44,7 +44,11 @@ struct SimulateArgs {
   QueryConfig config;
   std::string model, scene, selection, out, sparse;
   std::string material = "jelly";
-  double E = 2e8, nu = 0.4, density = 1000;
+  // E: the paper's 2e8 needs 5,600 substeps per frame at grid 64 (the
+  // elastic wave crosses a cell in 7e-6 s): 66 s a frame, 33 minutes for 30
+  // frames on 2 CPU cores. 2e6, the paper's background stiffness, takes 590
+  // substeps and 7 s a frame (docs/benchmarks.md, "Physics").
+  double E = 2e6, nu = 0.4, density = 1000;
   double background_E = 2e6, background_nu = 0.3;
   bool no_background = false;
   int frames = 30;
@@ -54,6 +58,7 @@ struct SimulateArgs {
   std::string gravity, force, force_frames = "0:5", up;
   std::optional<double> ground;
   double object_size = 0.4;
+  double friction = 0.5;
   double push = 20;
   std::string views;
   int ply_every = 10;
@@ -110,6 +115,7 @@ void cmd_simulate(const GlobalOptions& global, SimulateArgs a) {
   if (!a.up.empty()) ss.up = parse_vector(a.up, "--up");
   ss.ground = a.ground;
   ss.object_size = a.object_size;
+  ss.friction = a.friction;
   ss.min_opacity = a.min_opacity;
   if (!a.force.empty()) ss.force = parse_vector(a.force, "--force");
   const auto [force_from, force_to] = parse_frames(a.force_frames);
@@ -318,7 +324,10 @@ void register_simulate(CLI::App& app, GlobalOptions& global) {
   r->add_option("--selection", a->selection, "Simulate the anchors of a selection.json written by `ag2gs query`");
   r->add_option("--material", a->material, "The object's material: jelly (default), metal, sand or plasticine")
       ->check(CLI::IsMember({"jelly", "metal", "sand", "plasticine"}));
-  r->add_option("--E", a->E, "The object's Young's modulus in Pa (default 2e8)")->check(positive_number());
+  r->add_option("--E", a->E,
+                "The object's Young's modulus in Pa (default 2e6; the paper's 2e8 is 100x stiffer and takes 10x "
+                "the substeps)")
+      ->check(positive_number());
   r->add_option("--nu", a->nu, "The object's Poisson's ratio (default 0.4)");
   r->add_option("--density", a->density, "Density in kg/m^3 of every material (default 1000)")
       ->check(positive_number());
@@ -347,6 +356,9 @@ void register_simulate(CLI::App& app, GlobalOptions& global) {
   r->add_option("--ground", a->ground,
                 "Height of the ground plane along up, world units (default: the surface the SfM points show under "
                 "the object)");
+  r->add_option("--friction", a->friction,
+                "Coulomb friction of the ground plane (default 0.5; 0: things slide on it freely)")
+      ->check(non_negative_number());
   r->add_option("--object-size", a->object_size,
                 "The object's largest side in the simulation's metres (default 0.4; the box is 1 m across)");
   r->add_option("--min-opacity", a->min_opacity,

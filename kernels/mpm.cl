@@ -230,15 +230,19 @@ __kernel void mpm_particle_stress(int n, float dt, float inv_dx, int forces_on,
   for (int i = 0; i < 9; ++i) o[7 + i] = k * tau.m[i] + m * C[9 * p + i];
 }
 
-// One work-item per node of the node box [nlo, nlo + ndim); the particles'
-// base cells span [clo, clo + cdim) and cell_start indexes that box.
-__kernel void mpm_grid(int grid, float dt, float dx, float inv_dx, int4 nlo, int4 ndim, int4 clo, int4 cdim,
-                       float4 gravity, float ground,
+// One work-item per active node: `active` lists the nodes of the node box
+// [nlo, nlo + ndim) that some particle reaches (the others are never read).
+// The particles' base cells span [clo, clo + cdim) and cell_start indexes
+// that box.
+__kernel void mpm_grid(int n_active, int grid, float dt, float dx, float inv_dx, int4 nlo, int4 ndim, int4 clo,
+                       int4 cdim, float4 gravity, float ground, float friction,
+                       __global const int* active,      // [n_active] node ids in the node box
                        __global const int* cell_start,  // [cells of the cell box + 1] into the sorted particles
                        __global const float* pdata,     // [N,PD_SIZE] sorted
                        __global float* grid_v) {        // [nodes of the node box,4] velocity, mass
-  const int id = get_global_id(0);
-  if (id >= ndim.x * ndim.y * ndim.z) return;
+  const int a = get_global_id(0);
+  if (a >= n_active) return;
+  const int id = active[a];
   const int3 node = (int3)(id / (ndim.y * ndim.z), (id / ndim.z) % ndim.y, id % ndim.z) + nlo.xyz;
   float3 mom = (float3)(0.f);
   float m = 0.f;
@@ -272,8 +276,16 @@ __kernel void mpm_grid(int grid, float dt, float dx, float inv_dx, int4 nlo, int
     if (node.x > grid - MPM_BOUND && vel.x > 0.f) vel.x = 0.f;
     if (node.y > grid - MPM_BOUND && vel.y > 0.f) vel.y = 0.f;
     if (node.z > grid - MPM_BOUND && vel.z > 0.f) vel.z = 0.f;
-    // The ground: nodes at or below it stop moving down (they may leave it).
-    if (ground >= 0.f && (float)node.z * dx <= ground && vel.z < 0.f) vel.z = 0.f;
+    // The ground: nodes at or below it stop moving down (they may leave it),
+    // and Coulomb friction takes up to friction x the normal speed lost off
+    // their sliding speed.
+    if (ground >= 0.f && (float)node.z * dx <= ground && vel.z < 0.f) {
+      const float vt = sqrt(vel.x * vel.x + vel.y * vel.y);
+      const float keep = vt > 0.f ? fmax(1.f + friction * vel.z / vt, 0.f) : 0.f;
+      vel.x *= keep;
+      vel.y *= keep;
+      vel.z = 0.f;
+    }
   }
   vstore4((float4)(vel, m), id, grid_v);
 }

@@ -39,6 +39,7 @@ void SimulationSettings::validate() const {
   if (!(object_size > 0 && object_size <= 0.8))
     throw std::invalid_argument("--object-size must lie in (0, 0.8] (box units; the box is 1 across)");
   if (!(min_opacity >= 0 && min_opacity < 1)) throw std::invalid_argument("--min-opacity must lie in [0, 1)");
+  if (!(friction >= 0) || !std::isfinite(friction)) throw std::invalid_argument("--friction must be a number >= 0");
   if (up && !(up->norm() > 0 && up->allFinite())) throw std::invalid_argument("--up must be a nonzero vector");
   if (gravity && !gravity->allFinite()) throw std::invalid_argument("--gravity must be finite");
   if (!force.allFinite()) throw std::invalid_argument("--force must be finite");
@@ -239,6 +240,7 @@ Simulation::Simulation(Runtime& rt, const GaussianSet& scene, const std::vector<
   MpmConfig config;
   config.grid = g;
   config.ground = frame_.ground_box;
+  config.friction = settings_.friction;
   const Eigen::Vector3d gravity =
       settings_.gravity ? Eigen::Vector3d(frame_.A * *settings_.gravity) : Eigen::Vector3d(0, 0, -9.8);
   config.gravity = {gravity(0), gravity(1), gravity(2)};
@@ -383,6 +385,7 @@ nlohmann::json Simulation::describe() const {
           {"up", vec(frame_.up)},
           {"ground_world", frame_.ground_world},
           {"ground_box", frame_.ground_box},
+          {"ground_friction", settings_.friction},
           {"box_scale", frame_.scale},
           {"object_size", settings_.object_size},
           {"min_opacity", settings_.min_opacity},

@@ -31,6 +31,7 @@ struct SimulationSettings {
   Eigen::Vector3d force = Eigen::Vector3d::Zero();  // world frame, m/s^2, on the object while forces are on
   std::optional<Eigen::Vector3d> up;                // world frame; default from the cameras
   std::optional<double> ground;                     // height along up (world units); default from the SfM points
+  double friction = 0.5;                            // Coulomb friction of the ground
   float min_opacity = 0.02f;                        // Gaussians below this opacity stay out of the simulation
   double object_size = 0.4;                         // the object's largest side, in box units (metres)
 

@@ -144,6 +144,19 @@ TEST(Simulate, AFreeObjectFallsAsGravitySaysInWorldUnits) {
   EXPECT_NEAR(drop_world * scale, drop_box, 0.01 * drop_box);
 }
 
+TEST(Simulate, WithoutForcesTheSceneStaysAsTrained) {
+  // No gravity, no push: no particle has a stress or a velocity, so every
+  // frame is frame 0, bit for bit.
+  const fs::path out = fresh("rest");
+  const auto r = test::run_cli(simulate_cmd(out, "--frames 2 --push 0 --gravity 0,0,0 --ply-every 1"));
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_EQ(read_file(out / "frames/view_001/0002.png"), read_file(out / "frames/view_001/0000.png"));
+  EXPECT_EQ(read_file(out / "ply/frame_0002.ply"), read_file(out / "ply/frame_0000.ply"));
+  const json j = json::parse(std::ifstream(out / "simulation.json"));
+  EXPECT_EQ(j["per_frame"][2]["kinetic_energy"].get<double>(), 0.0);
+  EXPECT_EQ(j["per_frame"][2]["max_strain"].get<double>(), 0.0);
+}
+
 TEST(Simulate, SameBitsWithOneAndTwoThreads) {
   std::string bytes[2], json_text[2];
   for (int threads = 1; threads <= 2; ++threads) {
@@ -172,6 +185,10 @@ TEST(Simulate, BadInputIsRefusedBeforeAnythingIsWritten) {
       {"--views nope", "no view named 'nope'"},
       {"--nu 0.5", "nu must lie in (-1, 0.5)"},
       {"--object-size 2", "--object-size"},
+      {"--E 0", "--E"},
+      {"--grid 8", "--grid"},
+      {"--frames 0", "--frames"},
+      {"--gravity 0,0", "--gravity 0,0: give three numbers"},
   };
   for (const auto& [extra, message] : cases) {
     const auto r = test::run_cli(simulate_cmd(out, extra));

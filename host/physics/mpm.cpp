@@ -127,11 +127,14 @@ MpmSolver::MpmSolver(Runtime& rt, const MpmConfig& config, std::vector<MpmMateri
       keys_(&rt),
       order_(&rt),
       cell_start_(&rt),
+      active_(&rt),
       pdata_(&rt),
       grid_v_(&rt) {
   if (config_.grid < 8 || config_.grid > 512)
     throw std::invalid_argument("simulation grid " + std::to_string(config_.grid) + " is outside 8..512 cells");
   if (!(config_.cfl > 0 && config_.cfl <= 1)) throw std::invalid_argument("the CFL number must be in (0, 1]");
+  if (!(config_.friction >= 0) || !std::isfinite(config_.friction))
+    throw std::invalid_argument("the ground's friction coefficient must be a finite number >= 0");
   if (materials_.empty()) throw std::invalid_argument("the simulation needs at least one material");
   std::vector<float> params;
   for (const MpmMaterial& m : materials_) {
@@ -237,6 +240,24 @@ void MpmSolver::sort_by_cell() {
   for (size_t i = 0; i < n_; ++i) order_host_[next[local(keys_host_[i])]++] = static_cast<int32_t>(i);
   order_.upload(order_host_);
   cell_start_.upload(start_host_);
+  // The nodes some particle reaches: base cell + 0..2 on each axis, in
+  // increasing id order, in the node box (the cell box grown by 2).
+  const int nd[3] = {d[0] + 2, d[1] + 2, d[2] + 2};
+  active_mark_.assign(static_cast<size_t>(nd[0]) * nd[1] * nd[2], 0);
+  for (int i = 0; i < d[0]; ++i)
+    for (int j = 0; j < d[1]; ++j)
+      for (int k = 0; k < d[2]; ++k) {
+        const size_t c = (static_cast<size_t>(i) * d[1] + j) * d[2] + k;
+        if (start_host_[c + 1] == start_host_[c]) continue;
+        for (int a = 0; a < 3; ++a)
+          for (int b = 0; b < 3; ++b)
+            for (int e = 0; e < 3; ++e)
+              active_mark_[(static_cast<size_t>(i + a) * nd[1] + (j + b)) * nd[2] + (k + e)] = 1;
+      }
+  active_host_.clear();
+  for (size_t id = 0; id < active_mark_.size(); ++id)
+    if (active_mark_[id]) active_host_.push_back(static_cast<int32_t>(id));
+  active_.upload(active_host_);
 }
 
 void MpmSolver::step(double dt, bool forces_on) {
@@ -262,9 +283,11 @@ void MpmSolver::step(double dt, bool forces_on) {
   for (int k = 0; k < 3; ++k) gravity.s[k] = static_cast<float>(config_.gravity[k]);
   gravity.s[3] = 0.f;
   cl::Kernel kg = rt_.kernel("mpm.cl", "mpm_grid", kNoDefines);
-  set_kernel_args(kg, static_cast<cl_int>(g), static_cast<float>(dt), dx, inv_dx, clo, ndim, clo, cdim, gravity,
-                  static_cast<float>(config_.ground), cell_start_, pdata_, grid_v_);
-  rt_.launch("mpm_grid", kg, cl::NDRange(round_up(nodes, wg)), cl::NDRange(wg));
+  const size_t n_active = active_host_.size();
+  set_kernel_args(kg, static_cast<cl_int>(n_active), static_cast<cl_int>(g), static_cast<float>(dt), dx, inv_dx, clo,
+                  ndim, clo, cdim, gravity, static_cast<float>(config_.ground), static_cast<float>(config_.friction),
+                  active_, cell_start_, pdata_, grid_v_);
+  rt_.launch("mpm_grid", kg, cl::NDRange(round_up(n_active, wg)), cl::NDRange(wg));
 
   cl::Kernel kp = rt_.kernel("mpm.cl", "mpm_g2p", kNoDefines);
   set_kernel_args(kp, static_cast<cl_int>(n_), static_cast<cl_int>(g), static_cast<float>(dt), dx, inv_dx, clo, ndim,

@@ -56,6 +56,7 @@ struct MpmConfig {
   int grid = 64;                                 // cells per side of the unit box
   std::array<double, 3> gravity = {0, 0, -9.8};  // m/s^2
   double ground = -1;                            // height of the ground plane (z); < 0 = none
+  double friction = 0;                           // Coulomb friction of the ground (0 = it slips)
   double cfl = 0.3;                              // dt <= cfl * dx / (wave speed + |v|max)
 };
 
@@ -127,9 +128,11 @@ class MpmSolver {
   DeviceBuffer keys_;        // [N] base cell of each particle
   DeviceBuffer order_;       // [N] particles sorted by cell (stable)
   DeviceBuffer cell_start_;  // [cells+1] into order_
+  DeviceBuffer active_;      // [active nodes] node ids the particles reach
   DeviceBuffer pdata_;       // [N,16] per sorted particle: x, m, m v (+ forces), affine Q (9)
   DeviceBuffer grid_v_;      // [cells,4] velocity, mass
-  std::vector<int32_t> keys_host_, order_host_, start_host_;
+  std::vector<int32_t> keys_host_, order_host_, start_host_, active_host_;
+  std::vector<uint8_t> active_mark_;
   std::array<int, 3> lo_{}, hi_{};  // the cells the particles occupy (inclusive), for the grid pass
 };
 
