@@ -2,11 +2,11 @@
 // results, run to run and whatever the number of PoCL threads (the blend
 // backward writes per-intersection slots and reduces them in a fixed order;
 // no floating-point atomics anywhere).
+#include <unistd.h>
+
 #include <cstdio>
 #include <cstdlib>
 #include <fstream>
-
-#include <unistd.h>
 
 #include "test_util.h"
 
@@ -53,24 +53,7 @@ TEST(DeterminismWorker, WriteHash) {
 }
 
 TEST(Determinism, SameBitsAcrossThreadCounts) {
-  char exe[4096];
-  ssize_t len = readlink("/proc/self/exe", exe, sizeof exe - 1);
-  ASSERT_GT(len, 0);
-  exe[len] = 0;
-  std::string hashes[2];
-  for (int threads = 1; threads <= 2; ++threads) {
-    // The pid keeps the layout variants of this test, which ctest runs in
-    // parallel, from reading each other's files.
-    std::string file =
-        testing::TempDir() + "ag2gs_hash_" + std::to_string(getpid()) + "_" + std::to_string(threads);
-    std::string cmd = "POCL_MAX_PTHREAD_COUNT=" + std::to_string(threads) + " AG2GS_HASH_OUT=" + file + " " + exe +
-                      " --gtest_filter=DeterminismWorker.WriteHash > /dev/null 2>&1";
-    ASSERT_EQ(std::system(cmd.c_str()), 0) << cmd;
-    std::ifstream f(file);
-    std::getline(f, hashes[threads - 1]);
-    ASSERT_FALSE(hashes[threads - 1].empty());
-    std::remove(file.c_str());
-  }
+  const auto hashes = test::lines_by_thread_count("DeterminismWorker.WriteHash");
   EXPECT_EQ(hashes[0], hashes[1]) << "1 thread vs 2 threads";
   EXPECT_EQ(hashes[0], std::to_string(render_hash())) << "child vs this process";
 }

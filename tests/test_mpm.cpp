@@ -568,22 +568,7 @@ TEST(MpmWorker, WriteHash) {
 }
 
 TEST(Mpm, SameBitsAcrossThreadCounts) {
-  char exe[4096];
-  const ssize_t len = readlink("/proc/self/exe", exe, sizeof exe - 1);
-  ASSERT_GT(len, 0);
-  exe[len] = 0;
-  std::string hashes[2];
-  for (int threads = 1; threads <= 2; ++threads) {
-    const std::string file =
-        testing::TempDir() + "ag2gs_mpm_hash_" + std::to_string(getpid()) + "_" + std::to_string(threads);
-    const std::string cmd = "POCL_MAX_PTHREAD_COUNT=" + std::to_string(threads) + " AG2GS_HASH_OUT=" + file + " " +
-                            exe + " --gtest_filter=MpmWorker.WriteHash > /dev/null 2>&1";
-    ASSERT_EQ(std::system(cmd.c_str()), 0) << cmd;
-    std::ifstream f(file);
-    std::getline(f, hashes[threads - 1]);
-    ASSERT_FALSE(hashes[threads - 1].empty());
-    std::remove(file.c_str());
-  }
+  const auto hashes = lines_by_thread_count("MpmWorker.WriteHash");
   EXPECT_EQ(hashes[0], hashes[1]) << "1 thread vs 2 threads";
   EXPECT_EQ(hashes[0], std::to_string(run_hash())) << "child vs this process";
 }

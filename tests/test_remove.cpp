@@ -20,7 +20,6 @@
 #include "cli_test_util.h"
 #include "host/io/model_io.h"
 #include "stages/anchor_model.h"
-#include "synth/synth_scene.h"
 
 namespace fs = std::filesystem;
 using nlohmann::json;
@@ -32,31 +31,15 @@ struct Fixture {
   fs::path root, scene, model;
 };
 
-// A 64x48 scene (8 views, one held out) and 150 iterations of stage 1,
-// made once per process. Without the learned sky (the default would choose
-// one here: 20% of its pixels are open at a 2-px radius): 150 iterations
-// with it leave the objects half transparent (alpha 0.33 at the click
-// below; the sky starts as the fit to the photos, docs/design.md section
-// 5.7), and a click needs alpha 0.5. The sky's own path is
-// SkyIsCopiedAndShownBehind.
+// test::make_small_trained_model, made once per process (the sky's own path
+// is SkyIsCopiedAndShownBehind).
 const Fixture& fixture() {
   static const Fixture f = [] {
     Fixture x;
     x.root = fs::path(testing::TempDir()) / ("ag2gs_remove_" + std::to_string(::getpid()));
-    fs::remove_all(x.root);
     x.scene = x.root / "scene";
     x.model = x.root / "model";
-    SynthOptions o;
-    o.seed = 4;
-    o.width = 64;
-    o.height = 48;
-    o.views = 8;
-    o.points = 800;
-    o.feature_dim = 84;
-    write_synth_scene(x.scene.string(), o);
-    const auto r = test::run_cli("train " + x.scene.string() + " -o " + x.model.string() +
-                                 " --iters 150 --stages 1 --eval --seed 1 --quiet --sky-degree -1");
-    EXPECT_EQ(r.code, 0) << r.output;
+    test::make_small_trained_model(x.root);
     return x;
   }();
   return f;

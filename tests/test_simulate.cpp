@@ -16,7 +16,6 @@
 #include <string>
 
 #include "cli_test_util.h"
-#include "synth/synth_scene.h"
 
 namespace fs = std::filesystem;
 using nlohmann::json;
@@ -28,28 +27,17 @@ struct Fixture {
   fs::path root, scene, model, selection;
 };
 
-// A 64x48 scene (8 views, one held out), 150 iterations of stage 1, and a
-// selection: the anchors of a click on an object (made once per process).
+// test::make_small_trained_model and a selection: the anchors of a click on
+// an object (made once per process).
 const Fixture& fixture() {
   static const Fixture f = [] {
     Fixture x;
     x.root = fs::path(testing::TempDir()) / ("ag2gs_simulate_" + std::to_string(::getpid()));
-    fs::remove_all(x.root);
     x.scene = x.root / "scene";
     x.model = x.root / "model";
-    SynthOptions o;
-    o.seed = 4;
-    o.width = 64;
-    o.height = 48;
-    o.views = 8;
-    o.points = 800;
-    o.feature_dim = 84;
-    write_synth_scene(x.scene.string(), o);
-    auto r = test::run_cli("train " + x.scene.string() + " -o " + x.model.string() +
-                           " --iters 150 --stages 1 --eval --seed 1 --quiet --sky-degree -1");
-    EXPECT_EQ(r.code, 0) << r.output;
-    r = test::run_cli("query " + x.model.string() + " --scene " + x.scene.string() +
-                      " --view view_001 --click 32,30 -o " + (x.root / "query").string() + " --quiet");
+    test::make_small_trained_model(x.root);
+    const auto r = test::run_cli("query " + x.model.string() + " --scene " + x.scene.string() +
+                                 " --view view_001 --click 32,30 -o " + (x.root / "query").string() + " --quiet");
     EXPECT_EQ(r.code, 0) << r.output;
     x.selection = x.root / "query" / "selection.json";
     return x;

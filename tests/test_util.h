@@ -3,11 +3,15 @@
 #pragma once
 
 #include <gtest/gtest.h>
+#include <unistd.h>
 
 #include <Eigen/Geometry>
+#include <array>
 #include <cmath>
 #include <cstdint>
 #include <cstdio>
+#include <cstdlib>
+#include <fstream>
 #include <random>
 #include <string>
 #include <vector>
@@ -152,6 +156,32 @@ inline uint64_t hash_bytes(const void* data, size_t bytes, uint64_t h = 14695981
 template <typename T>
 uint64_t hash_vec(const std::vector<T>& v, uint64_t h = 1469598103934665603ull) {
   return hash_bytes(v.data(), v.size() * sizeof(T), h);
+}
+
+// Runs this test program's `worker` test (--gtest_filter) in a child process
+// with 1 and then 2 PoCL threads; the worker writes one line to the file
+// named by $AG2GS_HASH_OUT (and skips when that is unset). Returns the two
+// lines. The pid keeps tests that ctest runs in parallel (the layout
+// variants) from reading each other's files.
+inline std::array<std::string, 2> lines_by_thread_count(const std::string& worker) {
+  std::array<std::string, 2> lines;
+  char exe[4096];
+  const ssize_t len = readlink("/proc/self/exe", exe, sizeof exe - 1);
+  EXPECT_GT(len, 0);
+  if (len <= 0) return lines;
+  exe[len] = 0;
+  for (int threads = 1; threads <= 2; ++threads) {
+    const std::string file =
+        testing::TempDir() + "ag2gs_hash_" + std::to_string(getpid()) + "_" + worker + "_" + std::to_string(threads);
+    const std::string cmd = "POCL_MAX_PTHREAD_COUNT=" + std::to_string(threads) + " AG2GS_HASH_OUT=" + file + " " +
+                            exe + " --gtest_filter=" + worker + " > /dev/null 2>&1";
+    EXPECT_EQ(std::system(cmd.c_str()), 0) << cmd;
+    std::ifstream f(file);
+    std::getline(f, lines[threads - 1]);
+    EXPECT_FALSE(lines[threads - 1].empty()) << cmd;
+    std::remove(file.c_str());
+  }
+  return lines;
 }
 
 }  // namespace ag2gs::test

@@ -1,15 +1,20 @@
 // ag2gs_bench_mpm: speed of the MLS-MPM solver (host/physics/mpm.h) against
-// its error, for jelly cubes of 2 particles per cell and axis at grids of 32,
-// 64 and 128 cells: time per substep (median of 3 runs) and per kernel, the
-// free-fall error against the parabola (the scheme's exact error is dt / t of
-// the drop, so what is reported beyond that is the solver's), and the energy
-// of an elastic bounce (never above the start; what it lost is numerical
-// dissipation).
+// its error.
+// 1. Accuracy, for jelly cubes of 2 particles per cell and axis at each grid:
+//    time per substep (median of 3 runs) and per kernel, the free-fall error
+//    against the parabola (the scheme's exact error is dt / t of the drop, so
+//    what is reported beyond that is the solver's), and the energy of an
+//    elastic bounce (never above the start; what it lost is numerical
+//    dissipation).
+// 2. Scale: a cube of N particles (--particles, default 100k and 1M) at each
+//    grid, time per substep, and time per frame at 25 frames/s for the
+//    defaults of `simulate` (E = 2e6, nu 0.4, 1000 kg/m^3).
 #include <CLI/CLI.hpp>
 #include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <map>
 #include <vector>
 
 #include "host/device/cl_runtime.h"
@@ -60,6 +65,10 @@ int main(int argc, char** argv) {
   app.add_option("--device", device, "OpenCL device index (default: the first)");
   app.add_option("--seconds", seconds, "Simulated time per case (default 0.05)");
   app.add_option("--grids", grids, "Grid sizes (default 32 64 128)");
+  std::vector<int> counts = {100000, 1000000};
+  int scale_steps = 3;
+  app.add_option("--particles", counts, "Particle counts of the scale table (default 100000 1000000)");
+  app.add_option("--scale-steps", scale_steps, "Substeps timed per scale case (default 3)");
   CLI11_PARSE(app, argc, argv);
   Runtime rt(device);
   std::printf("device: %s\n\n", rt.info().name.c_str());
@@ -121,6 +130,39 @@ int main(int argc, char** argv) {
                 dt, steps, ms[1], p.size() / (ms[1] / 1000), err, emax / e0, eend / e0, km("mpm_keys"),
                 km("mpm_particle_stress"), km("mpm_grid"), km("mpm_g2p"));
     std::fflush(stdout);
+  }
+  std::printf("\n| grid | particles | ms / substep | substeps / frame (E 2e6, 25 fps) | s / frame |\n");
+  std::printf("| --- | ---: | ---: | ---: | ---: |\n");
+  for (int g : grids) {
+    if (g < 64) continue;
+    for (int n : counts) {
+      const double dx = 1.0 / g;
+      // n particles in a cube at 2 per cell and axis, or denser when that
+      // cube would not fit inside the walls.
+      double spacing = dx / 2;
+      if (std::cbrt(static_cast<double>(n)) * spacing > 1 - 10 * dx)
+        spacing = (1 - 10 * dx) / std::cbrt(static_cast<double>(n));
+      const double side = std::cbrt(static_cast<double>(n)) * spacing;
+      MpmParticles p = cube(0.5, 0.5, 0.5, side, spacing);
+      MpmMaterial m;
+      m.E = 2e6;
+      m.nu = 0.4;
+      MpmConfig cfg;
+      cfg.grid = g;
+      cfg.ground = 0.5 - side / 2 - dx;
+      MpmSolver s(rt, cfg, {m});
+      s.upload(p);
+      s.step(1e-5, false);  // warm-up: kernel builds, buffers
+      rt.queue().finish();
+      const auto t0 = std::chrono::steady_clock::now();
+      for (int k = 0; k < scale_steps; ++k) s.step(1e-5, false);
+      rt.queue().finish();
+      const double ms =
+          std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count() / scale_steps;
+      const int per_frame = static_cast<int>(std::ceil(0.04 / s.max_stable_dt(1.0)));
+      std::printf("| %d | %zu | %.1f | %d | %.1f |\n", g, p.size(), ms, per_frame, ms * per_frame / 1000);
+      std::fflush(stdout);
+    }
   }
   return 0;
 }
