@@ -201,6 +201,13 @@ Simulation::Simulation(Runtime& rt, const GaussianSet& scene, const std::vector<
     const Eigen::Vector3d x = frame_.to_box(position(i));
     if (!inside(x)) continue;
     if (!selected[i] && !settings_.with_background) continue;
+    // The support itself (background Gaussians within a cell of the ground
+    // or below it) stays: the ground plane stands in for it. As particles,
+    // a floor of soft background material tears under whatever slides on it.
+    if (!selected[i] && x(2) < frame_.ground_box + dx) {
+      ++support_gaussians_;
+      continue;
+    }
     moving_.push_back(static_cast<int32_t>(i));
     particle_.push_back(static_cast<int32_t>(xs.size()));
     xs.push_back(x);

@@ -123,7 +123,7 @@ class Simulation {
   MpmParticles particles_;
   std::vector<int32_t> moving_;    // Gaussians that follow a particle
   std::vector<int32_t> particle_;  // [moving] their particles
-  size_t object_gaussians_ = 0, fill_particles_ = 0, background_gaussians_ = 0;
+  size_t object_gaussians_ = 0, fill_particles_ = 0, background_gaussians_ = 0, support_gaussians_ = 0;
   double dt_ = 0;
   int frames_done_ = 0;
   double max_speed_ = 0;   // top particle speed expected in the next frame

@@ -64,7 +64,7 @@ std::string read_file(const fs::path& p) {
 
 TEST(Simulate, WritesFramesPlysAndARecordOfEveryFrame) {
   const fs::path out = fresh("basic");
-  const auto r = test::run_cli(simulate_cmd(out, "--frames 3 --ply-every 2 --views view_001,view_002"));
+  const auto r = test::run_cli(simulate_cmd(out, "--frames 3 --ply-every 2 --views view_001,view_002 --background"));
   ASSERT_EQ(r.code, 0) << r.output;
   for (const char* v : {"view_001", "view_002"})
     for (const char* f : {"0000.png", "0001.png", "0002.png", "0003.png"})
