@@ -81,7 +81,7 @@ double ground_below(const std::vector<Eigen::Vector3d>& points, const std::vecto
   return *std::min_element(heights.begin(), heights.end());
 }
 
-std::vector<Eigen::Vector3d> fill_interior(const std::vector<Eigen::Vector3d>& surface, double cell) {
+std::vector<Eigen::Vector3d> fill_solid(const std::vector<Eigen::Vector3d>& surface, double cell) {
   const int n = std::max(1, static_cast<int>(std::ceil(1.0 / cell)));
   auto id = [n](int i, int j, int k) { return (static_cast<size_t>(i) * n + j) * n + k; };
   std::vector<uint8_t> occ(static_cast<size_t>(n) * n * n, 0);
@@ -94,13 +94,34 @@ std::vector<Eigen::Vector3d> fill_interior(const std::vector<Eigen::Vector3d>& s
     }
     if (inside) occ[id(c[0], c[1], c[2])] = 1;
   }
-  // blocked[a][dir]: an occupied cell lies before (dir 0) / after (dir 1)
-  // this cell along axis a.
+  // Grow or shrink a cell set by one cell (26 neighbours).
+  auto morph = [&](const std::vector<uint8_t>& in, bool grow) {
+    std::vector<uint8_t> out(in.size(), 0);
+    for (int i = 0; i < n; ++i)
+      for (int j = 0; j < n; ++j)
+        for (int k = 0; k < n; ++k) {
+          bool any = false, all = true;
+          for (int a = -1; a <= 1; ++a)
+            for (int b = -1; b <= 1; ++b)
+              for (int c = -1; c <= 1; ++c) {
+                const int x = i + a, y = j + b, z = k + c;
+                const bool v = x >= 0 && y >= 0 && z >= 0 && x < n && y < n && z < n && in[id(x, y, z)];
+                any = any || v;
+                all = all && v;
+              }
+          out[id(i, j, k)] = grow ? any : all;
+        }
+    return out;
+  };
+  // Close gaps of a cell between the Gaussians (they may lie sparser than
+  // the grid), then find the cells the closed shell encloses: seen[a][dir],
+  // a shell cell lies before (dir 0) / after (dir 1) this cell along axis a.
+  const std::vector<uint8_t> shell = morph(occ, true);
   std::vector<uint8_t> seen[3][2];
   for (int a = 0; a < 3; ++a)
     for (int dir = 0; dir < 2; ++dir) {
       std::vector<uint8_t>& s = seen[a][dir];
-      s.assign(occ.size(), 0);
+      s.assign(shell.size(), 0);
       for (int u = 0; u < n; ++u)
         for (int v = 0; v < n; ++v) {
           uint8_t any = 0;
@@ -112,20 +133,24 @@ std::vector<Eigen::Vector3d> fill_interior(const std::vector<Eigen::Vector3d>& s
             c[(a + 2) % 3] = v;
             const size_t i = id(c[0], c[1], c[2]);
             s[i] = any;
-            any = any | occ[i];
+            any = any | shell[i];
           }
         }
     }
+  std::vector<uint8_t> solid = shell;
+  for (size_t c = 0; c < solid.size(); ++c) {
+    bool enclosed = true;
+    for (int a = 0; a < 3 && enclosed; ++a) enclosed = seen[a][0][c] && seen[a][1][c];
+    solid[c] = solid[c] || enclosed;
+  }
+  // Shrink back by the cell the closing added, keeping every occupied cell.
+  const std::vector<uint8_t> core = morph(solid, false);
   std::vector<Eigen::Vector3d> out;
   for (int i = 0; i < n; ++i)
     for (int j = 0; j < n; ++j)
-      for (int k = 0; k < n; ++k) {
-        const size_t c = id(i, j, k);
-        if (occ[c]) continue;
-        bool enclosed = true;
-        for (int a = 0; a < 3 && enclosed; ++a) enclosed = seen[a][0][c] && seen[a][1][c];
-        if (enclosed) out.emplace_back((i + 0.5) * cell, (j + 0.5) * cell, (k + 0.5) * cell);
-      }
+      for (int k = 0; k < n; ++k)
+        if (core[id(i, j, k)] || occ[id(i, j, k)])
+          out.emplace_back((i + 0.5) * cell, (j + 0.5) * cell, (k + 0.5) * cell);
   return out;
 }
 
@@ -220,8 +245,10 @@ Simulation::Simulation(Runtime& rt, const GaussianSet& scene, const std::vector<
     }
   }
   if (object_gaussians_ == 0) throw std::runtime_error("the object does not fit the simulation box");
-  // Two particles per cell and axis inside the closed volume.
-  for (const Eigen::Vector3d& c : fill_interior(object_box, dx))
+  // Two particles per cell and axis in every cell of the closed solid, so
+  // that the object holds together where its Gaussians lie sparser than
+  // the grid.
+  for (const Eigen::Vector3d& c : fill_solid(object_box, dx))
     for (int s = 0; s < 8; ++s) {
       const Eigen::Vector3d x = c + 0.25 * dx * Eigen::Vector3d(s & 1 ? 1 : -1, s & 2 ? 1 : -1, s & 4 ? 1 : -1);
       if (!inside(x)) continue;

@@ -67,10 +67,13 @@ Eigen::Vector3d up_from_cameras(const std::vector<Camera>& cameras);
 double ground_below(const std::vector<Eigen::Vector3d>& points, const std::vector<Eigen::Vector3d>& object,
                     const Eigen::Vector3d& up);
 
-// Interior filling: occupied cells (any of `surface`'s positions) on a grid
-// of cell `cell` over [0, 1]^3; a free cell is inside when rays along all six
-// axis directions meet an occupied cell. Returns the inside cells' centres.
-std::vector<Eigen::Vector3d> fill_interior(const std::vector<Eigen::Vector3d>& surface, double cell);
+// The cells of the solid an object's Gaussians (`surface`, positions in
+// [0, 1]^3) bound, on a grid of cell `cell`: the occupied cells, closed by
+// one cell (a dilation, so that Gaussians a cell or two apart still make a
+// wall), every cell that rays along all six axis directions from it meet a
+// wall cell, and then eroded by one cell again (the occupied cells always
+// stay). Returns the cells' centres.
+std::vector<Eigen::Vector3d> fill_solid(const std::vector<Eigen::Vector3d>& surface, double cell);
 
 struct SimFrameStats {
   int frame = 0;

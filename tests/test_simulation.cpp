@@ -19,27 +19,36 @@ namespace {
 using Eigen::Matrix3d;
 using Eigen::Vector3d;
 
-TEST(Simulation, FillInteriorFillsAClosedShellAndNotAnOpenCup) {
-  // A sphere shell of radius 0.2 sampled densely, on a grid of 1/32.
+TEST(Simulation, FillSolidFillsAClosedShellAndNotAnOpenCup) {
+  // A sphere shell of radius 0.2, sampled sparsely (Gaussians about 1.5
+  // cells apart), on a grid of 1/32.
   const double cell = 1.0 / 32;
   std::vector<Vector3d> shell, cup;
-  for (int i = 0; i < 200; ++i)
-    for (int j = 0; j < 100; ++j) {
-      const double th = M_PI * (j + 0.5) / 100, ph = 2 * M_PI * i / 200;
+  for (int i = 0; i < 60; ++i)
+    for (int j = 0; j < 30; ++j) {
+      const double th = M_PI * (j + 0.5) / 30, ph = 2 * M_PI * i / 60;
       const Vector3d p = Vector3d(0.5, 0.5, 0.5) +
                          0.2 * Vector3d(std::sin(th) * std::cos(ph), std::sin(th) * std::sin(ph), std::cos(th));
       shell.push_back(p);
       if (p(2) < 0.55) cup.push_back(p);  // the top cut off: open upwards
     }
-  const std::vector<Vector3d> inside = fill_interior(shell, cell);
-  // Every filled cell lies inside the sphere, and they fill most of it.
-  for (const Vector3d& c : inside) EXPECT_LT((c - Vector3d(0.5, 0.5, 0.5)).norm(), 0.2 + cell);
-  const double volume = inside.size() * cell * cell * cell, sphere = 4.0 / 3 * M_PI * 0.2 * 0.2 * 0.2;
-  std::printf("filled %zu cells, %.4f of the sphere's volume\n", inside.size(), volume / sphere);
-  EXPECT_GT(volume, 0.6 * sphere);
-  // An open cup: a ray up from inside meets nothing, so nothing is filled there.
-  for (const Vector3d& c : fill_interior(cup, cell)) EXPECT_LT(c(2), 0.55 + cell);
-  EXPECT_TRUE(fill_interior({}, cell).empty());
+  const std::vector<Vector3d> solid = fill_solid(shell, cell);
+  // Every cell lies within a cell of the sphere, and together they make
+  // its volume grown by the half cell of the occupied cells around it:
+  // (1 + (cell / 2) / 0.2)^3 = 1.25.
+  for (const Vector3d& c : solid) EXPECT_LT((c - Vector3d(0.5, 0.5, 0.5)).norm(), 0.2 + cell);
+  const double volume = solid.size() * cell * cell * cell, sphere = 4.0 / 3 * M_PI * 0.2 * 0.2 * 0.2;
+  std::printf("solid of %zu cells, %.3f of the sphere's volume\n", solid.size(), volume / sphere);
+  EXPECT_NEAR(volume / sphere, 1.25, 0.1);
+  // The open cup: its wall only (within two cells of the sphere), nothing
+  // above the cut, no inside.
+  const std::vector<Vector3d> walls = fill_solid(cup, cell);
+  for (const Vector3d& c : walls) {
+    EXPECT_LT(c(2), 0.55 + 2 * cell);
+    EXPECT_GT((c - Vector3d(0.5, 0.5, 0.5)).norm(), 0.2 - 2.5 * cell);
+  }
+  EXPECT_LT(walls.size() * cell * cell * cell, 0.5 * sphere);
+  EXPECT_TRUE(fill_solid({}, cell).empty());
 }
 
 TEST(Simulation, GroundIsTheSurfaceUnderTheObject) {
@@ -94,7 +103,8 @@ TEST(Simulation, GaussiansFollowTheirParticles) {
   ss.ground = -1.0;
   ss.object.E = 1e5;
   Simulation sim(test::runtime(), set, std::vector<uint8_t>(n, 1), {}, {}, ss);
-  ASSERT_EQ(sim.particles(), static_cast<size_t>(n)) << "5 scattered Gaussians enclose nothing";
+  // The Gaussians' particles come first, then those that fill their cells.
+  ASSERT_EQ(sim.object_gaussians(), static_cast<size_t>(n));
   MpmParticles p;
   sim.solver().download(p);
   std::vector<Matrix3d> Fs;
