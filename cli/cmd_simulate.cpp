@@ -180,9 +180,12 @@ void cmd_simulate(const GlobalOptions& global, SimulateArgs a) {
                sel.count * static_cast<size_t>(K), a.material);
   Simulation sim(rt, gaussians, selected, cameras, scene->points(), ss);
   spdlog::info(
-      "simulation: {} particles ({} of the object's Gaussians, {} filling its inside, {} background Gaussians), grid "
-      "{}^3, up ({:.3f}, {:.3f}, {:.3f}), ground at {:.4g}; stable substep at rest {:.3g} s",
-      sim.particles(), sim.object_gaussians(), sim.fill_particles(), sim.background_gaussians(), a.grid,
+      "simulation: {} particles ({} of the object's Gaussians, {} filling its solid, {}), grid {}^3, up ({:.3f}, "
+      "{:.3f}, {:.3f}), ground at {:.4g}; stable substep at rest {:.3g} s",
+      sim.particles(), sim.object_gaussians(), sim.fill_particles(),
+      a.background ? fmt::format("{} background Gaussians", sim.background_gaussians())
+                   : std::string("the rest of the scene still"),
+      a.grid,
       sim.frame().up(0), sim.frame().up(1), sim.frame().up(2), sim.frame().ground_world,
       sim.describe()["max_stable_dt_at_rest"].get<double>());
 
