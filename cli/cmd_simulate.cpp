@@ -185,15 +185,15 @@ void cmd_simulate(const GlobalOptions& global, SimulateArgs a) {
       sim.particles(), sim.object_gaussians(), sim.fill_particles(),
       a.background ? fmt::format("{} background Gaussians", sim.background_gaussians())
                    : std::string("the rest of the scene still"),
-      a.grid,
-      sim.frame().up(0), sim.frame().up(1), sim.frame().up(2), sim.frame().ground_world,
+      a.grid, sim.frame().up(0), sim.frame().up(1), sim.frame().up(2), sim.frame().ground_world,
       sim.describe()["max_stable_dt_at_rest"].get<double>());
 
   TrainConfig tc;
   if (tm.archive.meta.contains("train") && tm.archive.meta["train"].contains("config")) {
     try {
       tc = TrainConfig::from_json(tm.archive.meta["train"]["config"]);
-    } catch (const std::exception&) {
+    } catch (const std::exception& e) {
+      spdlog::warn("{}: its training config cannot be read ({}); rendering over a black background", tm.file, e.what());
     }
   }
   Sky sky(rt);

@@ -3,11 +3,14 @@
 
 #include <gtest/gtest.h>
 #include <sys/wait.h>
+#include <unistd.h>
 
 #include <array>
+#include <csignal>
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
+#include <functional>
 #include <string>
 
 #include "synth/synth_scene.h"
@@ -30,6 +33,49 @@ inline CliResult run_cli(const std::string& args) {
   while (fgets(buf.data(), buf.size(), p)) r.output += buf.data();
   const int status = pclose(p);
   r.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  return r;
+}
+
+// Starts `$AG2GS_BINARY args` with stdout and stderr on a pipe, sends `sig`
+// after the first printed line for which `when` is true, and returns the
+// exit status (-1 unless it exited) with everything it printed (plus a note
+// when no line matched).
+inline CliResult run_cli_interrupted_when(const std::string& args, const std::function<bool(const std::string&)>& when,
+                                          int sig = SIGINT) {
+  const char* bin = std::getenv("AG2GS_BINARY");
+  const std::string cmd = "exec " + std::string(bin ? bin : "./ag2gs") + " " + args + " 2>&1";
+  int fd[2];
+  if (::pipe(fd) != 0) return {-1, "pipe failed"};
+  const pid_t pid = ::fork();
+  if (pid == 0) {
+    ::dup2(fd[1], 1);
+    ::close(fd[0]);
+    ::close(fd[1]);
+    ::execl("/bin/sh", "sh", "-c", cmd.c_str(), static_cast<char*>(nullptr));
+    ::_exit(127);
+  }
+  ::close(fd[1]);
+  CliResult r{-1, ""};
+  bool sent = false;
+  std::string line;
+  char c;
+  while (::read(fd[0], &c, 1) == 1) {
+    r.output += c;
+    if (c != '\n') {
+      line += c;
+      continue;
+    }
+    if (!sent && when(line)) {
+      ::kill(pid, sig);
+      sent = true;
+    }
+    line.clear();
+  }
+  ::close(fd[0]);
+  int status = 0;
+  ::waitpid(pid, &status, 0);
+  r.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  if (!sent) r.output += "\n[test: no line asked for the interrupt]";
   return r;
 }
 

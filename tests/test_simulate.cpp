@@ -162,6 +162,20 @@ TEST(Simulate, SameBitsWithOneAndTwoThreads) {
   EXPECT_EQ(json_text[0], json_text[1]);
 }
 
+TEST(Simulate, CtrlCLeavesNothingBehind) {
+  // Without --quiet: the interrupt comes after the first frame's line.
+  const fs::path out = fresh("interrupted");
+  const std::string cmd = "simulate " + fixture().model.string() + " --scene " + fixture().scene.string() +
+                          " --selection " + fixture().selection.string() + " -o " + out.string() +
+                          " --grid 16 --E 1e5 --frames 200";
+  const auto cut = test::run_cli_interrupted_when(
+      cmd, [](const std::string& line) { return line.find("frame   1/200") != std::string::npos; });
+  EXPECT_EQ(cut.code, 130) << cut.output;
+  EXPECT_FALSE(fs::exists(out));
+  for (const auto& e : fs::directory_iterator(fixture().root))
+    EXPECT_EQ(e.path().filename().string().find("interrupted.partial"), std::string::npos) << e.path();
+}
+
 TEST(Simulate, BadInputIsRefusedBeforeAnythingIsWritten) {
   const Fixture& f = fixture();
   const fs::path out = fresh("refused");

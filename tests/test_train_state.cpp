@@ -28,7 +28,9 @@ namespace fs = std::filesystem;
 namespace ag2gs {
 namespace {
 
-std::string sample_scene() { return test::source_path("data_samples/synth_small"); }
+std::string sample_scene() {
+  return test::source_path("data_samples/synth_small");
+}
 
 std::vector<float> download(DeviceBuffer& b, size_t n) {
   std::vector<float> v;
@@ -257,47 +259,16 @@ TEST(TrainState, ResumeRefusesAnotherConfigOrScene) {
   EXPECT_EQ(ok.iteration(), 1);
 }
 
-// Starts `$AG2GS_BINARY args` with stdout and stderr on a pipe, sends `sig`
-// once a progress line of iteration >= `after` has appeared, and returns the
-// exit status (-1 unless it exited) with everything it printed.
+// test::run_cli_interrupted_when, once a progress line of iteration >=
+// `after` has appeared ("info: it      7/120  loss ...").
 test::CliResult run_cli_interrupted(const std::string& args, int after, int sig = SIGINT) {
-  const char* bin = std::getenv("AG2GS_BINARY");
-  const std::string cmd = "exec " + std::string(bin ? bin : "./ag2gs") + " " + args + " 2>&1";
-  int fd[2];
-  if (::pipe(fd) != 0) return {-1, "pipe failed"};
-  const pid_t pid = ::fork();
-  if (pid == 0) {
-    ::dup2(fd[1], 1);
-    ::close(fd[0]);
-    ::close(fd[1]);
-    ::execl("/bin/sh", "sh", "-c", cmd.c_str(), static_cast<char*>(nullptr));
-    ::_exit(127);
-  }
-  ::close(fd[1]);
-  test::CliResult r{-1, ""};
-  bool sent = false;
-  std::string line;
-  char c;
-  while (::read(fd[0], &c, 1) == 1) {
-    r.output += c;
-    if (c != '\n') {
-      line += c;
-      continue;
-    }
-    // Progress lines: "info: it      7/120  loss ..."
-    const size_t at = line.find(" it ");
-    if (!sent && at != std::string::npos && std::atoi(line.c_str() + at + 4) >= after) {
-      ::kill(pid, sig);
-      sent = true;
-    }
-    line.clear();
-  }
-  ::close(fd[0]);
-  int status = 0;
-  ::waitpid(pid, &status, 0);
-  r.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  if (!sent) r.output += "\n[test: no progress line reached iteration " + std::to_string(after) + "]";
-  return r;
+  return test::run_cli_interrupted_when(
+      args,
+      [after](const std::string& line) {
+        const size_t at = line.find(" it ");
+        return at != std::string::npos && std::atoi(line.c_str() + at + 4) >= after;
+      },
+      sig);
 }
 
 TEST(TrainState, CtrlCSavesACheckpointThatResumesToTheSameBytes) {
@@ -319,7 +290,8 @@ TEST(TrainState, CtrlCSavesACheckpointThatResumesToTheSameBytes) {
   EXPECT_LT(at, 120) << "the run finished before the interrupt: make it longer";
   EXPECT_EQ(read_ply(dir.file("cut/point_cloud.ply")).size(), AnchorModel::from_archive(ck).gaussians());
 
-  const test::CliResult resumed = test::run_cli("train " + scene + " -o " + dir.file("cut") + " --resume --log-every 0");
+  const test::CliResult resumed =
+      test::run_cli("train " + scene + " -o " + dir.file("cut") + " --resume --log-every 0");
   ASSERT_EQ(resumed.code, 0) << resumed.output;
   EXPECT_NE(resumed.output.find("resuming"), std::string::npos) << resumed.output;
   test::expect_same_model_files(dir.file("straight"), dir.file("cut"),
