@@ -63,17 +63,18 @@ inline mat3 mat3_usv(mat3 U, float3 s, mat3 V) {
 
 // SVD of F = U diag(sig) V^T with U, V rotations (det +1); the smallest
 // singular value carries the sign of det F (an inverted element). From the
-// eigenvectors of F^T F by cyclic Jacobi rotations, a fixed number of sweeps
-// (6: 3x3 symmetric Jacobi converges quadratically; float precision is
-// reached after 4 on the matrices the tests draw).
+// eigenvectors of F^T F by cyclic Jacobi rotations: at most 4 sweeps (3x3
+// symmetric Jacobi converges quadratically), a rotation skipped once its
+// off-diagonal entry is below float resolution of the diagonal (rotating
+// it away would move the diagonal by less than a rounding).
 inline void svd3(mat3 F, mat3* Uo, float3* so, mat3* Vo) {
   mat3 A = mat3_mul(mat3_transpose(F), F);
   mat3 V = {{1.f, 0.f, 0.f, 0.f, 1.f, 0.f, 0.f, 0.f, 1.f}};
-  for (int sweep = 0; sweep < 6; ++sweep) {
+  for (int sweep = 0; sweep < 4; ++sweep) {
     for (int pair = 0; pair < 3; ++pair) {
       const int p = pair == 2 ? 1 : 0, q = pair == 0 ? 1 : 2;
       const float apq = A.m[3 * p + q];
-      if (fabs(apq) < 1e-30f) continue;
+      if (fabs(apq) <= 1e-7f * (fabs(A.m[3 * p + p]) + fabs(A.m[3 * q + q])) || fabs(apq) < 1e-30f) continue;
       const float theta = (A.m[3 * q + q] - A.m[3 * p + p]) / (2.f * apq);
       const float t = (theta >= 0.f ? 1.f : -1.f) / (fabs(theta) + sqrt(theta * theta + 1.f));
       const float c = 1.f / sqrt(t * t + 1.f), s = t * c;
