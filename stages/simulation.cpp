@@ -3,6 +3,7 @@
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
 #include <map>
@@ -83,29 +84,46 @@ double ground_below(const std::vector<Eigen::Vector3d>& points, const std::vecto
 
 std::vector<Eigen::Vector3d> fill_solid(const std::vector<Eigen::Vector3d>& surface, double cell) {
   const int n = std::max(1, static_cast<int>(std::ceil(1.0 / cell)));
-  auto id = [n](int i, int j, int k) { return (static_cast<size_t>(i) * n + j) * n + k; };
-  std::vector<uint8_t> occ(static_cast<size_t>(n) * n * n, 0);
+  // The occupied cells of the grid over [0, 1]^3, in the box around them
+  // grown by 2 cells (everything below happens within a cell of them).
+  std::vector<std::array<int, 3>> cells;
+  std::array<int, 3> lo = {n, n, n}, hi = {-1, -1, -1};
   for (const Eigen::Vector3d& p : surface) {
-    int c[3];
+    std::array<int, 3> c;
     bool inside = true;
     for (int a = 0; a < 3; ++a) {
       c[a] = static_cast<int>(std::floor(p(a) / cell));
       inside = inside && c[a] >= 0 && c[a] < n;
     }
-    if (inside) occ[id(c[0], c[1], c[2])] = 1;
+    if (!inside) continue;
+    cells.push_back(c);
+    for (int a = 0; a < 3; ++a) {
+      lo[a] = std::min(lo[a], c[a]);
+      hi[a] = std::max(hi[a], c[a]);
+    }
   }
+  if (cells.empty()) return {};
+  std::array<int, 3> d;
+  for (int a = 0; a < 3; ++a) {
+    lo[a] = std::max(lo[a] - 2, 0);
+    hi[a] = std::min(hi[a] + 2, n - 1);
+    d[a] = hi[a] - lo[a] + 1;
+  }
+  auto id = [&d](int i, int j, int k) { return (static_cast<size_t>(i) * d[1] + j) * d[2] + k; };
+  std::vector<uint8_t> occ(static_cast<size_t>(d[0]) * d[1] * d[2], 0);
+  for (const auto& c : cells) occ[id(c[0] - lo[0], c[1] - lo[1], c[2] - lo[2])] = 1;
   // Grow or shrink a cell set by one cell (26 neighbours).
   auto morph = [&](const std::vector<uint8_t>& in, bool grow) {
     std::vector<uint8_t> out(in.size(), 0);
-    for (int i = 0; i < n; ++i)
-      for (int j = 0; j < n; ++j)
-        for (int k = 0; k < n; ++k) {
+    for (int i = 0; i < d[0]; ++i)
+      for (int j = 0; j < d[1]; ++j)
+        for (int k = 0; k < d[2]; ++k) {
           bool any = false, all = true;
           for (int a = -1; a <= 1; ++a)
             for (int b = -1; b <= 1; ++b)
               for (int c = -1; c <= 1; ++c) {
                 const int x = i + a, y = j + b, z = k + c;
-                const bool v = x >= 0 && y >= 0 && z >= 0 && x < n && y < n && z < n && in[id(x, y, z)];
+                const bool v = x >= 0 && y >= 0 && z >= 0 && x < d[0] && y < d[1] && z < d[2] && in[id(x, y, z)];
                 any = any || v;
                 all = all && v;
               }
@@ -122,11 +140,12 @@ std::vector<Eigen::Vector3d> fill_solid(const std::vector<Eigen::Vector3d>& surf
     for (int dir = 0; dir < 2; ++dir) {
       std::vector<uint8_t>& s = seen[a][dir];
       s.assign(shell.size(), 0);
-      for (int u = 0; u < n; ++u)
-        for (int v = 0; v < n; ++v) {
+      const int du = d[(a + 1) % 3], dv = d[(a + 2) % 3], dw = d[a];
+      for (int u = 0; u < du; ++u)
+        for (int v = 0; v < dv; ++v) {
           uint8_t any = 0;
-          for (int w0 = 0; w0 < n; ++w0) {
-            const int w = dir == 0 ? w0 : n - 1 - w0;
+          for (int w0 = 0; w0 < dw; ++w0) {
+            const int w = dir == 0 ? w0 : dw - 1 - w0;
             int c[3];
             c[a] = w;
             c[(a + 1) % 3] = u;
@@ -146,11 +165,11 @@ std::vector<Eigen::Vector3d> fill_solid(const std::vector<Eigen::Vector3d>& surf
   // Shrink back by the cell the closing added, keeping every occupied cell.
   const std::vector<uint8_t> core = morph(solid, false);
   std::vector<Eigen::Vector3d> out;
-  for (int i = 0; i < n; ++i)
-    for (int j = 0; j < n; ++j)
-      for (int k = 0; k < n; ++k)
+  for (int i = 0; i < d[0]; ++i)
+    for (int j = 0; j < d[1]; ++j)
+      for (int k = 0; k < d[2]; ++k)
         if (core[id(i, j, k)] || occ[id(i, j, k)])
-          out.emplace_back((i + 0.5) * cell, (j + 0.5) * cell, (k + 0.5) * cell);
+          out.emplace_back((lo[0] + i + 0.5) * cell, (lo[1] + j + 0.5) * cell, (lo[2] + k + 0.5) * cell);
   return out;
 }
 
