@@ -45,9 +45,9 @@ struct SimulateArgs {
   std::string model, scene, selection, out, sparse;
   std::string material = "jelly";
   // E: the paper's 2e8 needs 5,600 substeps per frame at grid 64 (the
-  // elastic wave crosses a cell in 7e-6 s): 66 s a frame, 33 minutes for 30
-  // frames on 2 CPU cores. 2e6, the paper's background stiffness, takes 590
-  // substeps and 7 s a frame (docs/benchmarks.md, "Physics").
+  // elastic wave crosses a cell in 7e-6 s): 46-66 s a frame, 25-33 minutes
+  // for 30 frames on 2 CPU cores. 2e6, the paper's background stiffness,
+  // takes about 570 substeps (docs/benchmarks.md, "Physics").
   double E = 2e6, nu = 0.4, density = 1000;
   double background_E = 2e6, background_nu = 0.3;
   // The rest of the scene in the box as particles: off by default. On the
