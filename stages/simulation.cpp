@@ -283,7 +283,10 @@ Simulation::Simulation(Runtime& rt, const GaussianSet& scene, const std::vector<
     return (i * g + j) * g + k;
   };
   for (const Eigen::Vector3d& x : xs) ++per_cell[cell_of(x)];
-  const std::vector<MpmMaterial> materials = {settings_.object, settings_.background};
+  // The background material only when it has particles: its stiffness
+  // would otherwise shorten the substep for nothing.
+  std::vector<MpmMaterial> materials = {settings_.object};
+  if (settings_.with_background) materials.push_back(settings_.background);
   for (size_t p = 0; p < xs.size(); ++p) {
     const float vol = static_cast<float>(dx * dx * dx / per_cell[cell_of(xs[p])]);
     particles_.add({static_cast<float>(xs[p](0)), static_cast<float>(xs[p](1)), static_cast<float>(xs[p](2))}, vol,
@@ -307,8 +310,9 @@ Simulation::Simulation(Runtime& rt, const GaussianSet& scene, const std::vector<
     std::snprintf(buf, sizeof buf,
                   "--dt %.3g s is above the largest stable substep, %.3g s, for E = %.3g Pa at grid %d (the elastic "
                   "wave would cross a cell in one substep): use --dt %.3g or leave --dt out",
-                  settings_.dt, solver_->max_stable_dt(0), std::max(settings_.object.E, settings_.background.E), g,
-                  solver_->max_stable_dt(0));
+                  settings_.dt, solver_->max_stable_dt(0),
+                  settings_.with_background ? std::max(settings_.object.E, settings_.background.E) : settings_.object.E,
+                  g, solver_->max_stable_dt(0));
     throw std::invalid_argument(buf);
   }
   // The speed gravity and the force can add within one frame.
