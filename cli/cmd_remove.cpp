@@ -142,7 +142,6 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
                                 " would fine-tune a fill it does not place (leave one of them out)");
   if (a.iters < 0) a.iters = a.no_fill ? 0 : kDefaultFillIters;
   a.config.validate();
-  std::error_code ec;
   const fs::path out = check_new_output_folder(a.out, a.model);
   if (!a.inpainted.empty() && !fs::is_directory(a.inpainted))
     throw std::invalid_argument("--inpainted " + a.inpainted + " is not a folder");
@@ -196,16 +195,9 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
   InterruptGuard interrupts;
 
   // ---- holes and targets, written into a folder beside OUT_DIR first
-  const fs::path tmp = out.parent_path() / (out.filename().string() + ".partial." + std::to_string(::getpid()));
-  fs::remove_all(tmp, ec);
-  auto stop_if_interrupted = [&](const char* during) {
-    if (!InterruptGuard::interrupted()) return;
-    fs::remove_all(tmp, ec);
-    spdlog::warn("{} during {}: nothing was written ({} does not exist); run the command again",
-                 InterruptGuard::signal_name(), during, a.out);
-    InterruptGuard::exit_after_saving();
-  };
-  try {
+  StagedFolder staged(out, a.out);
+  const fs::path& tmp = staged.path();
+  {
     fs::create_directories(tmp / "holes");
     fs::create_directories(tmp / "targets");
     // Children of kept anchors that show the object go with it (opacity 0).
@@ -270,7 +262,7 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
       const double el = seconds_since(t_holes);
       spdlog::info("[{}/{}] {}: object {} px, hole {} px  {:.1f} s elapsed, ETA {:.1f} s", i + 1, train_views.size(),
                    sv.name, h.object_pixels, h.hole_pixels, el, el / (i + 1) * (train_views.size() - i - 1));
-      stop_if_interrupted("the hole search");
+      staged.stop_if_interrupted("the hole search");
     }
     const double holes_s = seconds_since(t_holes);
 
@@ -343,7 +335,7 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
           psnr_sum = 0;
           psnr_n = 0;
         }
-        stop_if_interrupted("the fine-tune");
+        staged.stop_if_interrupted("the fine-tune");
       }
       result = tuner.model();
     } else if (a.iters > 0) {
@@ -431,16 +423,11 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
     AtomicFile f((tmp / "removal.json").string());
     f.write(report.dump(2) + "\n");
     f.commit();
-    stop_if_interrupted("writing");
-    if (fs::exists(out)) fs::remove(out);  // an empty folder (checked above)
-    fs::rename(tmp, out);
+    staged.commit();
     spdlog::info(
         "wrote {}: model.ag2gs and point_cloud.ply without the object ({} anchors kept, {} added, {} "
         "Gaussians), holes/ and targets/ for {} training views, removal.json ({:.1f} s)",
         a.out, kept_anchors, fill_kept, result.gaussians(), train_views.size(), seconds_since(t_start));
-  } catch (...) {
-    fs::remove_all(tmp, ec);
-    throw;
   }
 }
 

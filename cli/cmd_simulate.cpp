@@ -206,10 +206,9 @@ void cmd_simulate(const GlobalOptions& global, SimulateArgs a) {
   Renderer renderer(rt);
 
   InterruptGuard interrupts;
-  const fs::path tmp = out.parent_path() / (out.filename().string() + ".partial." + std::to_string(::getpid()));
-  std::error_code ec;
-  fs::remove_all(tmp, ec);
-  try {
+  StagedFolder staged(out, a.out);
+  const fs::path& tmp = staged.path();
+  {
     std::vector<std::unique_ptr<cv::VideoWriter>> videos;
     for (int v : views) {
       const SceneView& sv = scene->views()[v];
@@ -281,12 +280,7 @@ void cmd_simulate(const GlobalOptions& global, SimulateArgs a) {
           f, a.frames, st.substeps, sim.dt(), forces_on ? "  force on" : "", st.all.kinetic, st.object_centre[0],
           st.object_centre[1], st.object_centre[2], st.all.max_strain, st.wall_s,
           fmt_duration(sim_s / f * (a.frames - f)));
-      if (InterruptGuard::interrupted()) {
-        fs::remove_all(tmp, ec);
-        spdlog::warn("{} during the simulation: nothing was written ({} does not exist); run the command again",
-                     InterruptGuard::signal_name(), a.out);
-        InterruptGuard::exit_after_saving();
-      }
+      staged.stop_if_interrupted("the simulation");
     }
     for (auto& v : videos)
       if (v) v->release();
@@ -307,13 +301,9 @@ void cmd_simulate(const GlobalOptions& global, SimulateArgs a) {
     AtomicFile jf((tmp / "simulation.json").string());
     jf.write(report.dump(2) + "\n");
     jf.commit();
-    if (fs::exists(out)) fs::remove(out);  // an empty folder (checked above)
-    fs::rename(tmp, out);
+    staged.commit();
     spdlog::info("wrote {}: frames/ ({} views x {} frames), {}simulation.json ({:.1f} s simulating, {} substeps)",
                  a.out, views.size(), a.frames + 1, a.ply_every > 0 ? "ply/, " : "", sim_s, substeps_total);
-  } catch (...) {
-    fs::remove_all(tmp, ec);
-    throw;
   }
 }
 

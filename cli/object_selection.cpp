@@ -1,7 +1,13 @@
 #include "cli/object_selection.h"
 
+#include <spdlog/spdlog.h>
+#include <unistd.h>
+
 #include <fstream>
 #include <stdexcept>
+#include <system_error>
+
+#include "cli/run_guard.h"
 
 namespace fs = std::filesystem;
 
@@ -22,6 +28,37 @@ fs::path check_new_output_folder(const std::string& out_arg, const std::string& 
   if (fs::exists(out) && !(fs::is_directory(out) && fs::is_empty(out)))
     throw std::invalid_argument("-o " + out_arg + " exists and is not empty; give a new folder (nothing was written)");
   return out;
+}
+
+StagedFolder::StagedFolder(const fs::path& out, const std::string& out_arg)
+    : out_(out),
+      tmp_(out.parent_path() / (out.filename().string() + ".partial." + std::to_string(::getpid()))),
+      out_arg_(out_arg) {
+  std::error_code ec;
+  fs::remove_all(tmp_, ec);
+  fs::create_directories(tmp_);
+}
+
+StagedFolder::~StagedFolder() {
+  if (committed_) return;
+  std::error_code ec;
+  fs::remove_all(tmp_, ec);
+}
+
+void StagedFolder::stop_if_interrupted(const std::string& during) {
+  if (!InterruptGuard::interrupted()) return;
+  std::error_code ec;
+  fs::remove_all(tmp_, ec);
+  spdlog::warn("{} during {}: nothing was written ({} does not exist); run the command again",
+               InterruptGuard::signal_name(), during, out_arg_);
+  InterruptGuard::exit_after_saving();
+}
+
+void StagedFolder::commit() {
+  stop_if_interrupted("writing");
+  if (fs::exists(out_)) fs::remove(out_);  // an empty folder (check_new_output_folder)
+  fs::rename(tmp_, out_);
+  committed_ = true;
 }
 
 std::vector<int32_t> read_selection_file(const std::string& path, size_t anchors) {

@@ -18,6 +18,32 @@ namespace ag2gs::cli {
 // model folder or inside it, or exists and is not empty.
 std::filesystem::path check_new_output_folder(const std::string& out, const std::string& model_dir);
 
+// A new output folder built beside OUT_DIR as OUT_DIR.partial.<pid> and
+// renamed into place only when complete. Whatever stops the command first
+// (an exception, or Ctrl-C / SIGTERM seen by stop_if_interrupted) leaves
+// neither folder behind. Needs an InterruptGuard alive around it.
+class StagedFolder {
+ public:
+  // `out`: check_new_output_folder's path; `out_arg`: -o as given (messages).
+  StagedFolder(const std::filesystem::path& out, const std::string& out_arg);
+  ~StagedFolder();  // removes the partial folder unless committed
+  StagedFolder(const StagedFolder&) = delete;
+  StagedFolder& operator=(const StagedFolder&) = delete;
+
+  const std::filesystem::path& path() const { return tmp_; }
+  // After a signal: removes the partial folder, says that nothing was
+  // written and exits with the signal's status.
+  void stop_if_interrupted(const std::string& during);
+  // Checks for a signal once more, then puts the folder in place of OUT_DIR
+  // (nothing, or the empty folder check_new_output_folder allowed).
+  void commit();
+
+ private:
+  std::filesystem::path out_, tmp_;
+  std::string out_arg_;
+  bool committed_ = false;
+};
+
 // The anchors listed in a `query` selection.json; throws naming the file
 // when it cannot be read or lists an id outside the model's `anchors`.
 std::vector<int32_t> read_selection_file(const std::string& path, size_t anchors);
