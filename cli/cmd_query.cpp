@@ -124,12 +124,17 @@ std::vector<float> load_query_embedding(const QueryRequest& a, const std::string
   return it->second;
 }
 
-void write_mask_png(const std::string& path, const std::vector<uint8_t>& mask, int width, int height) {
+std::vector<uint8_t> encode_mask_png(const std::vector<uint8_t>& mask, int width, int height) {
   cv::Mat img(height, width, CV_8UC1);
   for (int y = 0; y < height; ++y)
     for (int x = 0; x < width; ++x) img.at<uint8_t>(y, x) = mask[static_cast<size_t>(y) * width + x] ? 255 : 0;
   std::vector<uint8_t> bytes;
-  if (!cv::imencode(".png", img, bytes)) throw std::runtime_error(path + ": could not encode the mask as PNG");
+  if (!cv::imencode(".png", img, bytes)) throw std::runtime_error("could not encode the mask as PNG");
+  return bytes;
+}
+
+void write_mask_png(const std::string& path, const std::vector<uint8_t>& mask, int width, int height) {
+  const std::vector<uint8_t> bytes = encode_mask_png(mask, width, height);
   AtomicFile f(path);
   f.write(bytes.data(), bytes.size());
   f.commit();

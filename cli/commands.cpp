@@ -30,6 +30,7 @@ void register_commands(CLI::App& app, GlobalOptions& global) {
   register_eval(app, global);
   register_remove(app, global);
   register_simulate(app, global);
+  register_view(app, global);
 }
 
 namespace {

@@ -46,6 +46,7 @@ void register_query(CLI::App& app, GlobalOptions& global);          // query (cm
 void register_eval(CLI::App& app, GlobalOptions& global);           // eval (cmd_eval.cpp)
 void register_remove(CLI::App& app, GlobalOptions& global);         // remove (cmd_remove.cpp)
 void register_simulate(CLI::App& app, GlobalOptions& global);       // simulate (cmd_simulate.cpp)
+void register_view(CLI::App& app, GlobalOptions& global);           // view (viewer/view_server.cpp)
 // The QueryConfig flags shared by query and eval (cmd_query.cpp).
 void add_query_config_options(CLI::App* sub, QueryConfig& config);
 
@@ -83,7 +84,9 @@ struct TrainedModel {
 // language features, which a text query needs. Throws naming the file and
 // the fix.
 TrainedModel load_trained_model(const std::string& model_dir, bool with_language);
-// A 0/1 mask [H,W] as an 8-bit PNG (0/255), written atomically.
+// A 0/1 mask [H,W] as the bytes of an 8-bit PNG (0/255).
+std::vector<uint8_t> encode_mask_png(const std::vector<uint8_t>& mask, int width, int height);
+// The same PNG, written atomically.
 void write_mask_png(const std::string& path, const std::vector<uint8_t>& mask, int width, int height);
 // Runs the parsed subcommand; returns the process exit code.
 int run_selected(CLI::App& app, const GlobalOptions& global);

@@ -7,7 +7,7 @@ PACKAGES=(
   build-essential cmake pkg-config
   ocl-icd-opencl-dev opencl-headers opencl-clhpp-headers pocl-opencl-icd clinfo
   libeigen3-dev libopencv-dev libspdlog-dev libgtest-dev
-  libcli11-dev nlohmann-json3-dev
+  libcli11-dev nlohmann-json3-dev libcpp-httplib-dev
   colmap
 )
 # --test: also what the test suite needs beyond the build: clang with its

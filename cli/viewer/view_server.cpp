@@ -1,0 +1,290 @@
+// view: a local web page to look around a trained model, click an object,
+// type a query and see the selection. An HTTP server (cpp-httplib) in front
+// of a ViewSession; the page (cli/viewer/page.html) is compiled into the
+// program, so it works offline. The API is documented in docs/formats.md.
+#include <spdlog/spdlog.h>
+
+#include <atomic>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <mutex>
+#include <sstream>
+#include <thread>
+
+#include "cli/commands.h"
+#include "cli/run_guard.h"
+#include "cli/viewer/view_session.h"
+
+// Last: httplib.h pulls in <resolv.h>, whose `_res` macro breaks Eigen's
+// headers (a parameter of that name) when they come after it.
+#include <httplib.h>
+
+namespace ag2gs::cli {
+
+const std::string& viewer_page();  // generated from cli/viewer/page.html
+
+namespace {
+
+// Request bodies are small JSON objects; anything larger is refused (413).
+constexpr size_t kMaxBody = 64 * 1024;
+
+struct ViewArgs {
+  ViewOptions options;
+  std::string host = "127.0.0.1";
+  int port = 8080;
+};
+
+void send_json(httplib::Response& res, const nlohmann::json& j, int status = 200) {
+  res.status = status;
+  // Messages may quote what a request sent, which need not be UTF-8.
+  res.set_content(j.dump(-1, ' ', false, nlohmann::json::error_handler_t::replace), "application/json");
+}
+
+void send_error(httplib::Response& res, int status, const std::string& message) {
+  send_json(res, {{"error", message}}, status);
+}
+
+// A finite number from a query parameter; `what` names it in the message.
+double number_param(const httplib::Request& req, const char* name) {
+  if (!req.has_param(name)) throw std::invalid_argument(std::string("missing parameter ") + name);
+  const std::string s = req.get_param_value(name);
+  size_t used = 0;
+  double v = 0;
+  try {
+    v = std::stod(s, &used);
+  } catch (const std::exception&) {
+    used = 0;
+  }
+  if (used == 0 || used != s.size() || !std::isfinite(v))
+    throw std::invalid_argument(std::string(name) + "='" + s + "' is not a finite number");
+  return v;
+}
+
+int int_param(const httplib::Request& req, const char* name, int fallback) {
+  if (!req.has_param(name)) return fallback;
+  const double v = number_param(req, name);
+  if (v != std::floor(v) || std::fabs(v) > 1e9) throw std::invalid_argument(std::string(name) + " must be a whole number");
+  return static_cast<int>(v);
+}
+
+std::vector<double> number_list(const std::string& s, const char* name) {
+  std::vector<double> out;
+  std::stringstream ss(s);
+  std::string item;
+  while (std::getline(ss, item, ',')) {
+    size_t used = 0;
+    double v = 0;
+    try {
+      v = std::stod(item, &used);
+    } catch (const std::exception&) {
+      used = 0;
+    }
+    if (used == 0 || used != item.size() || !std::isfinite(v))
+      throw std::invalid_argument(std::string(name) + ": '" + item + "' is not a finite number");
+    out.push_back(v);
+  }
+  return out;
+}
+
+// The camera a render or click names: ?view=NAME, or ?pose=...&fx=..&w=..
+Camera camera_of(const ViewSession& session, const httplib::Request& req) {
+  if (req.has_param("view")) return session.view_camera(req.get_param_value("view"));
+  if (!req.has_param("pose")) throw std::invalid_argument("give view=NAME or pose=R11,...,R33,t1,t2,t3 with fx, fy, cx, cy, w, h");
+  return ViewSession::pose_camera(number_list(req.get_param_value("pose"), "pose"), number_param(req, "fx"),
+                                  number_param(req, "fy"), number_param(req, "cx"), number_param(req, "cy"),
+                                  int_param(req, "w", 0), int_param(req, "h", 0));
+}
+
+double json_number(const nlohmann::json& j, const char* key) {
+  if (!j.contains(key) || !j[key].is_number())
+    throw std::invalid_argument(std::string("\"") + key + "\" must be a number");
+  const double v = j[key].get<double>();
+  if (!std::isfinite(v)) throw std::invalid_argument(std::string("\"") + key + "\" must be finite");
+  return v;
+}
+
+std::string json_string(const nlohmann::json& j, const char* key) {
+  if (!j.contains(key) || !j[key].is_string()) throw std::invalid_argument(std::string("\"") + key + "\" must be a string");
+  return j[key].get<std::string>();
+}
+
+nlohmann::json parse_body(const httplib::Request& req) {
+  nlohmann::json j;
+  try {
+    j = req.body.empty() ? nlohmann::json::object() : nlohmann::json::parse(req.body);
+  } catch (const nlohmann::json::exception& e) {
+    throw std::invalid_argument(std::string("the request body is not JSON: ") + e.what());
+  }
+  if (!j.is_object()) throw std::invalid_argument("the request body must be a JSON object");
+  return j;
+}
+
+nlohmann::json run_query_request(ViewSession& session, const nlohmann::json& j) {
+  if (j.contains("text")) return session.text(json_string(j, "text"));
+  if (j.contains("view")) return session.click_view(json_string(j, "view"), json_number(j, "x"), json_number(j, "y"));
+  if (j.contains("pose")) {
+    if (!j["pose"].is_array()) throw std::invalid_argument("\"pose\" must be an array of 12 numbers");
+    std::vector<double> pose;
+    for (const auto& v : j["pose"]) {
+      if (!v.is_number()) throw std::invalid_argument("\"pose\" must be an array of 12 numbers");
+      pose.push_back(v.get<double>());
+    }
+    const double w = json_number(j, "w"), h = json_number(j, "h");
+    const Camera cam = ViewSession::pose_camera(pose, json_number(j, "fx"), json_number(j, "fy"), json_number(j, "cx"),
+                                                json_number(j, "cy"), static_cast<int>(std::clamp(w, -1.0, 1e6)),
+                                                static_cast<int>(std::clamp(h, -1.0, 1e6)));
+    return session.click_camera(cam, json_number(j, "x"), json_number(j, "y"));
+  }
+  throw std::invalid_argument(
+      "give {\"view\": NAME, \"x\": X, \"y\": Y} (a click in a training view's full-size pixels), {\"pose\": [...], "
+      "\"fx\", \"fy\", \"cx\", \"cy\", \"w\", \"h\", \"x\", \"y\"} (a click in a posed camera) or {\"text\": PHRASE}");
+}
+
+void cmd_view(const GlobalOptions& global, const ViewArgs& a) {
+  if (a.port < 0 || a.port > 65535) throw std::invalid_argument("--port: from 0 (any free port) to 65535");
+  if (a.options.resolution < 0) throw std::invalid_argument("-r must be >= 1 (it divides the camera resolution)");
+  InterruptGuard guard;
+  const auto t0 = std::chrono::steady_clock::now();
+  Runtime rt(global.device);
+  ViewSession session(rt, a.options);
+  const nlohmann::json info0 = session.info();
+  spdlog::info("device [{}] {}; {} anchors, {} Gaussians, {} views, text queries {}; ready in {:.1f} s", rt.info().index,
+               rt.info().name, info0["anchors"].get<size_t>(), info0["gaussians"].get<size_t>(),
+               info0["views"].size(), session.info()["text_queries"].get<bool>() ? "on" : "off (no --vocab)",
+               std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
+
+  std::mutex lock;  // one request at a time touches the session (renders are serialised)
+  httplib::Server svr;
+  svr.set_payload_max_length(kMaxBody);
+  svr.set_read_timeout(10, 0);
+  svr.set_exception_handler([](const httplib::Request&, httplib::Response& res, std::exception_ptr ep) {
+    try {
+      std::rethrow_exception(ep);
+    } catch (const std::invalid_argument& e) {
+      send_error(res, 400, e.what());
+    } catch (const std::exception& e) {
+      spdlog::error("request failed: {}", e.what());
+      send_error(res, 500, e.what());
+    } catch (...) {
+      send_error(res, 500, "unknown error");
+    }
+  });
+  svr.set_error_handler(httplib::Server::HandlerWithResponse(
+      [](const httplib::Request& req, httplib::Response& res) -> httplib::Server::HandlerResponse {
+    if (!res.body.empty()) return httplib::Server::HandlerResponse::Unhandled;
+    send_error(res, res.status,
+               res.status == 404 ? "no such endpoint: " + req.method + " " + req.path
+               : res.status == 413 ? "request body over " + std::to_string(kMaxBody) + " bytes"
+                                   : "HTTP " + std::to_string(res.status));
+    return httplib::Server::HandlerResponse::Handled;
+  }));
+
+  svr.Get("/", [](const httplib::Request&, httplib::Response& res) {
+    res.set_header("Cache-Control", "no-store");
+    res.set_content(viewer_page(), "text/html; charset=utf-8");
+  });
+  svr.Get("/api/info", [&](const httplib::Request&, httplib::Response& res) {
+    std::lock_guard<std::mutex> g(lock);
+    send_json(res, session.info());
+  });
+  svr.Get("/api/render", [&](const httplib::Request& req, httplib::Response& res) {
+    const ViewMode mode = parse_view_mode(req.has_param("mode") ? req.get_param_value("mode") : "rgb");
+    const int quality = int_param(req, "quality", 85);
+    std::lock_guard<std::mutex> g(lock);
+    const Camera cam = camera_of(session, req);
+    double ms = 0;
+    const std::vector<uint8_t> jpeg = session.render_jpeg(cam, mode, quality, &ms);
+    res.set_header("X-Render-Ms", std::to_string(ms));
+    res.set_header("Cache-Control", "no-store");
+    res.set_content(reinterpret_cast<const char*>(jpeg.data()), jpeg.size(), "image/jpeg");
+  });
+  svr.Post("/api/query", [&](const httplib::Request& req, httplib::Response& res) {
+    const nlohmann::json body = parse_body(req);
+    std::lock_guard<std::mutex> g(lock);
+    const nlohmann::json r = run_query_request(session, body);
+    spdlog::info("query {}: {} anchors, {} Gaussians in {:.1f} ms", r["query"].dump(), r["anchors"].get<size_t>(),
+                 r["gaussians"].get<size_t>(), r["ms"].get<double>());
+    send_json(res, r);
+  });
+  svr.Get("/api/mask", [&](const httplib::Request& req, httplib::Response& res) {
+    if (!req.has_param("view")) throw std::invalid_argument("give view=NAME");
+    std::lock_guard<std::mutex> g(lock);
+    const std::vector<uint8_t> png = session.mask_png(req.get_param_value("view"));
+    res.set_header("Cache-Control", "no-store");
+    res.set_content(reinterpret_cast<const char*>(png.data()), png.size(), "image/png");
+  });
+  svr.Get("/api/selection.ply", [&](const httplib::Request&, httplib::Response& res) {
+    std::lock_guard<std::mutex> g(lock);
+    const std::vector<uint8_t> ply = session.selection_ply();
+    res.set_header("Content-Disposition", "attachment; filename=\"selection.ply\"");
+    res.set_content(reinterpret_cast<const char*>(ply.data()), ply.size(), "application/octet-stream");
+  });
+  svr.Post("/api/clear", [&](const httplib::Request&, httplib::Response& res) {
+    std::lock_guard<std::mutex> g(lock);
+    session.clear();
+    send_json(res, {{"anchors", 0}, {"gaussians", 0}});
+  });
+  svr.Post("/api/visibility", [&](const httplib::Request& req, httplib::Response& res) {
+    const nlohmann::json body = parse_body(req);
+    const Visibility v = parse_visibility(json_string(body, "selection"));
+    std::lock_guard<std::mutex> g(lock);
+    session.set_visibility(v);
+    send_json(res, {{"selection", visibility_name(v)}});
+  });
+
+  int port = a.port;
+  if (port == 0) {
+    port = svr.bind_to_any_port(a.host);
+    if (port < 0) throw std::runtime_error("could not listen on " + a.host + " (any port)");
+  } else if (!svr.bind_to_port(a.host, port)) {
+    throw std::runtime_error("could not listen on " + a.host + ":" + std::to_string(port) +
+                             " (in use, or not an address of this machine); choose another with --port N, or "
+                             "--port 0 for any free one");
+  }
+  if (a.host != "127.0.0.1" && a.host != "localhost" && a.host != "::1")
+    spdlog::warn("listening on {}: other machines on the network can reach this viewer", a.host);
+  std::printf("ag2gs view: serving %s at http://%s:%d/ (Ctrl-C to stop)\n", a.options.model.c_str(),
+              a.host.find(':') != std::string::npos ? ("[" + a.host + "]").c_str() : a.host.c_str(), port);
+  std::fflush(stdout);
+
+  std::atomic<bool> done{false};
+  std::thread watcher([&] {
+    while (!done) {
+      if (InterruptGuard::interrupted()) {
+        svr.stop();
+        return;
+      }
+      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    }
+  });
+  const bool ok = svr.listen_after_bind();
+  done = true;
+  watcher.join();
+  if (InterruptGuard::interrupted()) {
+    spdlog::info("stopped ({})", InterruptGuard::signal_name());
+    return;
+  }
+  if (!ok) throw std::runtime_error("the server stopped unexpectedly");
+}
+
+}  // namespace
+
+void register_view(CLI::App& app, GlobalOptions& global) {
+  auto a = std::make_shared<ViewArgs>();
+  auto* v = app.add_subcommand("view", "Serve a web page to look around a model and select objects interactively");
+  v->add_option("model", a->options.model, "Model folder written by `ag2gs train` (MODEL_DIR/model.ag2gs)")->required();
+  v->add_option("--scene", a->options.scene,
+                "Scene directory the model was trained on: its training views to jump to and click in");
+  v->add_option("--vocab", a->options.vocab, "Text vocabulary JSON {\"phrase\": [D floats], ...} for text queries");
+  v->add_option("--port", a->port, "TCP port (default 8080; 0 = any free port, printed)");
+  v->add_option("--host", a->host,
+                "Address to listen on (default 127.0.0.1: this machine only; 0.0.0.0 opens it to the network)");
+  v->add_option("--sparse", a->options.sparse,
+                "COLMAP model folder inside the scene (default sparse/0/, else sparse/ when it holds the model)");
+  v->add_option("-r,--resolution", a->options.resolution,
+                "Divide the training views' cameras by R (default: the model's training -r)");
+  set_action(v, [&global, a] { cmd_view(global, *a); });
+}
+
+}  // namespace ag2gs::cli
