@@ -11,10 +11,11 @@ PACKAGES=(
   colmap
 )
 # --test: also what the test suite needs beyond the build: clang with its
-# libFuzzer and sanitizer runtimes (the fuzz smoke test) and Oclgrind (the
-# simulated GPU the oclgrind tests run every kernel on).
+# libFuzzer and sanitizer runtimes (the fuzz smoke test), Oclgrind (the
+# simulated GPU the oclgrind tests run every kernel on), and headless
+# Chromium with its WebDriver and Selenium (the viewer's browser test).
 if [ "${1:-}" = "--test" ]; then
-  PACKAGES+=(clang libclang-rt-14-dev oclgrind)
+  PACKAGES+=(clang libclang-rt-14-dev oclgrind chromium chromium-driver python3-selenium)
 fi
 
 missing=()

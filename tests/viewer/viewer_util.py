@@ -91,3 +91,46 @@ class Viewer:
 def read(path):
     with open(path, "rb") as f:
         return f.read()
+
+
+def read_png_grey(source):
+    """A non-interlaced greyscale PNG of 8 or 16 bits (a path or its bytes) as (width, height, rows of ints),
+    standard library only (the generator's gt/<view>.png object ids are 16-bit, which browsers reduce to 8)."""
+    import struct
+    import zlib
+    data = source if isinstance(source, bytes) else read(source)
+    path = "the PNG" if isinstance(source, bytes) else source
+    if data[:8] != b"\x89PNG\r\n\x1a\n":
+        raise ValueError(path + ": not a PNG")
+    pos, idat, width = 8, b"", None
+    while pos < len(data):
+        n, kind = struct.unpack(">I4s", data[pos:pos + 8])
+        chunk = data[pos + 8:pos + 8 + n]
+        if kind == b"IHDR":
+            width, height, depth, colour, _, _, interlace = struct.unpack(">IIBBBBB", chunk)
+            if colour != 0 or depth not in (8, 16) or interlace:
+                raise ValueError(path + ": only non-interlaced 8/16-bit greyscale is read here")
+        elif kind == b"IDAT":
+            idat += chunk
+        pos += 12 + n
+    raw, bpp = zlib.decompress(idat), depth // 8
+    stride = width * bpp
+    rows, prev = [], bytearray(stride)
+    for y in range(height):
+        f, line = raw[y * (stride + 1)], bytearray(raw[y * (stride + 1) + 1:(y + 1) * (stride + 1)])
+        for i in range(stride):
+            a = line[i - bpp] if i >= bpp else 0
+            b, c = prev[i], prev[i - bpp] if i >= bpp else 0
+            if f == 1:
+                line[i] = (line[i] + a) & 255
+            elif f == 2:
+                line[i] = (line[i] + b) & 255
+            elif f == 3:
+                line[i] = (line[i] + (a + b) // 2) & 255
+            elif f == 4:
+                p = a + b - c
+                pa, pb, pc = abs(p - a), abs(p - b), abs(p - c)
+                line[i] = (line[i] + (a if pa <= pb and pa <= pc else b if pb <= pc else c)) & 255
+        rows.append([int.from_bytes(line[x * bpp:(x + 1) * bpp], "big") for x in range(width)])
+        prev = line
+    return width, height, rows

@@ -1,0 +1,220 @@
+#!/usr/bin/python3
+"""`ag2gs view`'s page in a real browser: headless Chromium driven by
+WebDriver (Debian chromium, chromium-driver, python3-selenium).
+
+The page loads without console errors, a drag changes the picture, a click on
+an object's pixel highlights that object (the highlighted pixels are the
+pixels of /api/mask), a text query selects the named object (against the
+generated scene's exact object ids), keys move between views. A screenshot is
+kept at BUILD/test_view/viewer.png.
+
+Needs the models of tests/viewer/make_models.sh (the CTest fixture view_models).
+"""
+import os
+import shutil
+import time
+import unittest
+
+from selenium import webdriver
+from selenium.webdriver.chrome.service import Service
+from selenium.webdriver.common.action_chains import ActionChains
+from selenium.webdriver.common.by import By
+from selenium.webdriver.common.keys import Keys
+
+from viewer_util import SCENE, VOCAB, Viewer, read_png_grey, test_dir
+
+MODEL = os.path.join(test_dir(), "model")
+
+# In the page: compares the displayed picture with the rgb render of the same
+# view and with the selection's mask; the pixels that the highlight changed
+# (summed channel difference above 90 of 765) against the mask's pixels. JPEG
+# blurs colour over 2x2 blocks and rings at edges, so the IoU leaves out a
+# band of 2 pixels on either side of the mask's outline ("iou"; "iou_all"
+# counts every pixel).
+HIGHLIGHT_JS = """
+const [view, done] = arguments;
+const load = (src) => new Promise((ok, bad) => { const i = new Image(); i.onload = () => ok(i); i.onerror = bad; i.src = src; });
+const pixels = (img) => { const c = document.createElement("canvas"); c.width = img.naturalWidth; c.height = img.naturalHeight;
+  const g = c.getContext("2d"); g.drawImage(img, 0, 0); return g.getImageData(0, 0, c.width, c.height).data; };
+(async () => {
+  const shown = pixels(document.getElementById("frame"));
+  const plain = pixels(await load(`/api/render?view=${view}&mode=rgb&quality=88`));
+  const mask = pixels(await load(`/api/mask?view=${view}`));
+  const w = document.getElementById("frame").naturalWidth, n = mask.length / 4, m = (i) => mask[4 * i] > 127;
+  let both = 0, either = 0, bothAll = 0, eitherAll = 0, inMask = 0, changed = 0;
+  for (let i = 0; i < n; i++) {
+    const p = 4 * i, x = i % w, y = (i - x) / w, h = n / w;
+    const d = Math.abs(shown[p] - plain[p]) + Math.abs(shown[p+1] - plain[p+1]) + Math.abs(shown[p+2] - plain[p+2]);
+    const hi = d > 90;
+    let band = false;
+    for (let dy = -2; dy <= 2 && !band; dy++) for (let dx = -2; dx <= 2; dx++) {
+      const xx = x + dx, yy = y + dy;
+      if (xx >= 0 && yy >= 0 && xx < w && yy < h && m(yy * w + xx) !== m(i)) { band = true; break; }
+    }
+    inMask += m(i); changed += hi; bothAll += m(i) && hi; eitherAll += m(i) || hi;
+    if (!band) { both += m(i) && hi; either += m(i) || hi; }
+  }
+  done({ iou: both / Math.max(either, 1), iou_all: bothAll / Math.max(eitherAll, 1), mask: inMask, changed });
+})().catch((e) => done({ error: String(e) }));
+"""
+
+def chromium():
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = shutil.which("chromium") or "/usr/bin/chromium"
+    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--window-size=1100,760",
+                "--force-device-scale-factor=1"):
+        opts.add_argument(arg)
+    opts.set_capability("goog:loggingPrefs", {"browser": "ALL"})
+    driver_path = shutil.which("chromedriver") or "/usr/bin/chromedriver"
+    return webdriver.Chrome(service=Service(driver_path), options=opts)
+
+
+class ViewBrowser(unittest.TestCase):
+    @classmethod
+    def setUpClass(cls):
+        cls.v = Viewer(MODEL, "--scene", SCENE, "--vocab", VOCAB)
+        cls.d = chromium()
+        cls.d.set_script_timeout(60)
+
+    @classmethod
+    def tearDownClass(cls):
+        cls.d.quit()
+        cls.v.stop()
+
+    def state(self, key):
+        return self.d.execute_script("return window.ag2gs[arguments[0]];", key)
+
+    def wait_for(self, what, predicate, timeout=60):
+        deadline = time.time() + timeout
+        while time.time() < deadline:
+            value = predicate()
+            if value:
+                return value
+            time.sleep(0.05)
+        self.fail("timed out waiting for %s (last error: %s)\n%s" % (what, self.state("lastError"), self.v.output[-2000:]))
+
+    def settled(self, frames_before):
+        """Waits for a full-quality frame after frames_before and nothing in flight."""
+        self.wait_for("a settled frame", lambda: self.d.execute_script(
+            "const s = window.ag2gs; return s.frames > arguments[0] && !s.inFlight && !s.pending && !s.moving "
+            "&& s.shown && !s.shown.includes('quality=40');", frames_before))
+
+    def picture(self):
+        return self.d.execute_script(
+            "const i = document.getElementById('frame'), c = document.createElement('canvas');"
+            "c.width = i.naturalWidth; c.height = i.naturalHeight; c.getContext('2d').drawImage(i, 0, 0);"
+            "return c.toDataURL('image/png');")
+
+    def console_errors(self):
+        return [e for e in self.d.get_log("browser") if e["level"] == "SEVERE"]
+
+    def click_view_pixel(self, x, y):
+        """Clicks the displayed picture at a pixel of the served render (its centre)."""
+        frame = self.d.find_element(By.ID, "frame")
+        size = frame.size
+        w, h = self.d.execute_script("return [window.ag2gs.w, window.ag2gs.h];")
+        dx = (x + 0.5) * size["width"] / w - size["width"] / 2
+        dy = (y + 0.5) * size["height"] / h - size["height"] / 2
+        ActionChains(self.d).move_to_element_with_offset(frame, dx, dy).click().perform()
+
+    def test_the_page(self):
+        d = self.d
+        d.get(self.v.base + "/")
+        self.wait_for("the first frame", lambda: self.state("frames") >= 1)
+        self.settled(0)
+        self.assertIn("view_000", self.state("shown"))
+        self.assertIn("anchors", d.find_element(By.ID, "stats").text)
+        self.assertEqual(len(d.find_elements(By.CSS_SELECTOR, "#views option")), 16)
+
+        # A drag orbits: the picture changes and comes back at full quality.
+        before = self.picture()
+        frames = self.state("frames")
+        frame = d.find_element(By.ID, "frame")
+        chain = ActionChains(d).move_to_element(frame).click_and_hold()
+        for _ in range(8):
+            chain.move_by_offset(12, 3)
+        chain.release().perform()
+        self.settled(frames)
+        self.assertIn("pose=", self.state("shown"))
+        self.assertFalse(self.state("atView"))
+        self.assertNotEqual(self.picture(), before, "a drag must change the picture")
+        self.assertIsNone(self.state("lastQuery"), "a drag is not a click")
+
+        # R goes back to the view; the picture is the view's again.
+        frames = self.state("frames")
+        d.find_element(By.TAG_NAME, "body").send_keys("r")
+        self.settled(frames)
+        self.assertTrue(self.state("atView"))
+        self.assertIn("view=view_000", self.state("shown"))
+
+        # A click on the blue mug in view_000 (the scene's click list: 70, 62)
+        # selects it, and the highlight covers the pixels of /api/mask.
+        frames = self.state("frames")
+        self.click_view_pixel(70, 62)
+        self.wait_for("the click's selection", lambda: self.state("lastQuery"))
+        self.settled(frames)
+        self.assertIn("mode=selection", self.state("shown"))
+        q = self.state("lastQuery")
+        self.assertEqual(q["query"]["pixel"], [70, 62])
+        expected = self.v.json("/api/info")[1]["selection"]["anchors"]
+        self.assertEqual(q["anchors"], expected)
+        r = d.execute_async_script(HIGHLIGHT_JS, "view_000")
+        self.assertNotIn("error", r)
+        print("click highlight: IoU %.3f with /api/mask away from its outline, %.3f over every pixel (%d mask pixels, "
+              "%d changed)" % (r["iou"], r["iou_all"], r["mask"], r["changed"]))
+        self.assertGreater(r["mask"], 50)
+        self.assertGreater(r["iou"], 0.97)
+        self.assertGreater(r["iou_all"], 0.7)
+        d.save_screenshot(os.path.join(test_dir(), "viewer.png"))
+
+        # A text query selects the named object: its mask against the
+        # generated scene's exact object ids (gt/<view>.png; the blue mug is 3).
+        d.find_element(By.ID, "clear").click()
+        self.wait_for("the clear", lambda: self.v.json("/api/info")[1]["selection"]["anchors"] == 0)
+        box = d.find_element(By.ID, "query")
+        box.send_keys("blue mug", Keys.ENTER)
+        self.wait_for("the text query", lambda: (self.state("lastQuery") or {}).get("query", {}).get("type") == "text")
+        status, _, png = self.v.request("/api/mask?view=view_003")
+        self.assertEqual(status, 200)
+        w, h, mask = read_png_grey(png)
+        gw, gh, gt = read_png_grey(os.path.join(SCENE, "gt", "view_003.png"))
+        self.assertEqual((w, h), (gw, gh))
+        both = sum(m > 127 and g == 3 for mr, gr in zip(mask, gt) for m, g in zip(mr, gr))
+        either = sum(m > 127 or g == 3 for mr, gr in zip(mask, gt) for m, g in zip(mr, gr))
+        r = {"iou": both / max(either, 1)}
+        print("text query 'blue mug': IoU %.3f with the object's true pixels in view_003" % r["iou"])
+        self.assertGreater(r["iou"], 0.7)
+
+        # Keys: ] is the next view, H hides the selection.
+        frames = self.state("frames")
+        d.find_element(By.TAG_NAME, "body").send_keys("]")
+        self.settled(frames)
+        self.assertIn("view=view_001", self.state("shown"))
+        d.find_element(By.TAG_NAME, "body").send_keys("h")
+        self.wait_for("hide", lambda: self.v.json("/api/info")[1]["visibility"] == "hide")
+        self.assertIn("on", d.find_element(By.ID, "hide").get_attribute("class"))
+        d.find_element(By.ID, "show").click()
+        self.wait_for("show", lambda: self.v.json("/api/info")[1]["visibility"] == "show")
+
+        # Frames per second while the camera moves (previews: half size,
+        # quality 40; one request in flight), for the record: the page orbits
+        # a little every animation frame for 3 s.
+        r = d.execute_async_script("""
+          const done = arguments[0], s = window.ag2gs, f0 = s.frames, t0 = performance.now();
+          s.moving = true;
+          const step = () => {
+            if (performance.now() - t0 < 3000) { s.moving = true; orbit(0.01, 0); requestAnimationFrame(step); }
+            else done({ frames: s.frames - f0, seconds: (performance.now() - t0) / 1000, w: s.w, h: s.h });
+          };
+          requestAnimationFrame(step);""")
+        print("while moving: %d preview frames of %dx%d in %.1f s (%.1f frames/s)" % (
+            r["frames"], r["w"] // 2, r["h"] // 2, r["seconds"], r["frames"] / r["seconds"]))
+        self.assertGreater(r["frames"], 3)
+        self.settled(self.state("frames") - 1)
+
+        self.assertEqual(self.console_errors(), [])
+        self.assertIsNone(self.state("lastError"))
+
+
+if __name__ == "__main__":
+    unittest.main(verbosity=2)
