@@ -45,19 +45,23 @@ void send_error(httplib::Response& res, int status, const std::string& message) 
   send_json(res, {{"error", message}}, status);
 }
 
-// A finite number from a query parameter; `what` names it in the message.
+// s as a finite number, all of it (no trailing characters).
+bool parse_finite(const std::string& s, double* v) {
+  size_t used = 0;
+  try {
+    *v = std::stod(s, &used);
+  } catch (const std::exception&) {
+    return false;
+  }
+  return used > 0 && used == s.size() && std::isfinite(*v);
+}
+
+// A finite number from a query parameter.
 double number_param(const httplib::Request& req, const char* name) {
   if (!req.has_param(name)) throw std::invalid_argument(std::string("missing parameter ") + name);
   const std::string s = req.get_param_value(name);
-  size_t used = 0;
   double v = 0;
-  try {
-    v = std::stod(s, &used);
-  } catch (const std::exception&) {
-    used = 0;
-  }
-  if (used == 0 || used != s.size() || !std::isfinite(v))
-    throw std::invalid_argument(std::string(name) + "='" + s + "' is not a finite number");
+  if (!parse_finite(s, &v)) throw std::invalid_argument(std::string(name) + "='" + s + "' is not a finite number");
   return v;
 }
 
@@ -73,15 +77,8 @@ std::vector<double> number_list(const std::string& s, const char* name) {
   std::stringstream ss(s);
   std::string item;
   while (std::getline(ss, item, ',')) {
-    size_t used = 0;
     double v = 0;
-    try {
-      v = std::stod(item, &used);
-    } catch (const std::exception&) {
-      used = 0;
-    }
-    if (used == 0 || used != item.size() || !std::isfinite(v))
-      throw std::invalid_argument(std::string(name) + ": '" + item + "' is not a finite number");
+    if (!parse_finite(item, &v)) throw std::invalid_argument(std::string(name) + ": '" + item + "' is not a finite number");
     out.push_back(v);
   }
   return out;

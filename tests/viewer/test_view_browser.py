@@ -171,9 +171,11 @@ class ViewBrowser(unittest.TestCase):
         # generated scene's exact object ids (gt/<view>.png; the blue mug is 3).
         d.find_element(By.ID, "clear").click()
         self.wait_for("the clear", lambda: self.v.json("/api/info")[1]["selection"]["anchors"] == 0)
+        self.wait_for("download disabled", lambda: not d.find_element(By.ID, "download").is_enabled())
         box = d.find_element(By.ID, "query")
         box.send_keys("blue mug", Keys.ENTER)
         self.wait_for("the text query", lambda: (self.state("lastQuery") or {}).get("query", {}).get("type") == "text")
+        self.assertTrue(d.find_element(By.ID, "download").is_enabled())
         status, _, png = self.v.request("/api/mask?view=view_003")
         self.assertEqual(status, 200)
         w, h, mask = read_png_grey(png)
