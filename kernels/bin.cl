@@ -57,6 +57,7 @@ __kernel void scan_add(int n, __global uint* out, __global const uint* block_sum
 __kernel void emit_isects(int n,
                           __global const uint* order,    // [N] depth order
                           __global const int4* rects,    // [N]
+                          __global const float* records, // [N,REC_SIZE] of project_fwd
                           __global const uint* offsets,  // [N] exclusive scan in depth order
                           __global const uint* counts_sorted,  // [N]
                           int tiles_x,
@@ -70,8 +71,12 @@ __kernel void emit_isects(int n,
   int4 r = rects[g];
   uint e = offsets[s];
   isect_start[g] = e;
+  // The tiles project_fwd counted: the same test on the same floats.
+  __global const float* q = records + (size_t)g * REC_SIZE;
+  float k = fmax(2.f * q[REC_THR], 0.f);
   for (int ty = r.y; ty <= r.w; ++ty)
     for (int tx = r.x; tx <= r.z; ++tx) {
+      if (!tile_touched(q[REC_U], q[REC_V], q[REC_CA], q[REC_CB], q[REC_CC], k, tx, ty)) continue;
       tile_keys[e] = (uint)(ty * tiles_x + tx);
       isect_vals[e] = e;
       isect_gid[e] = g;

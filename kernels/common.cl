@@ -281,6 +281,35 @@ inline int row_culled(__global const float* q, float dy, float dx0, float dx1) {
   return 0.5f * dy2 * q[REC_CM] > q[REC_THR] + 0.01f + 1e-5f * terms;
 }
 
+// Whether the ellipse q(d) = cA dx^2 + 2 cB dx dy + cC dy^2 <= k around
+// (u, v) reaches a pixel centre of tile (tx, ty). q is convex, so its
+// minimum over the rectangle of the tile's pixel centres is 0 when (u, v)
+// lies inside and otherwise on an edge, where it is the edge line's own
+// minimum clamped to the edge. Blending skips a Gaussian at every pixel
+// with q > k (alpha < 1/255, k = 2 ln(255 o)), so binning leaves out the
+// tiles of its bounding box that this test rejects and every picture and
+// gradient keeps its bits; the margin (as row_culled's) covers rounding in
+// blending's evaluation. project_fwd counts with it and emit_isects emits
+// with it, from the same floats (records) and with FP_CONTRACT OFF, so the
+// two agree exactly.
+inline float edge_min_q(float cA, float cB, float cC, float e, float lo, float hi, int e_is_x) {
+  // The edge at x = e (e_is_x) or y = e; the free coordinate in [lo, hi].
+  float a = e_is_x ? cA : cC, c = e_is_x ? cC : cA;
+  float f = clamp(-cB * e / c, lo, hi);
+  float q = a * e * e + 2.f * cB * e * f + c * f * f;
+  float terms = a * e * e + 2.f * fabs(cB * e * f) + c * f * f;
+  return q - 2e-5f * terms;
+}
+
+inline int tile_touched(float u, float v, float cA, float cB, float cC, float k, int tx, int ty) {
+  float x0 = (float)(tx * TILE) + 0.5f - u, x1 = (float)(tx * TILE) + ((float)TILE - 0.5f) - u;
+  float y0 = (float)(ty * TILE) + 0.5f - v, y1 = (float)(ty * TILE) + ((float)TILE - 0.5f) - v;
+  if (x0 <= 0.f && 0.f <= x1 && y0 <= 0.f && 0.f <= y1) return 1;
+  float lim = k + 0.02f;
+  return edge_min_q(cA, cB, cC, x0, y0, y1, 1) <= lim || edge_min_q(cA, cB, cC, x1, y0, y1, 1) <= lim ||
+         edge_min_q(cA, cB, cC, y0, x0, x1, 0) <= lim || edge_min_q(cA, cB, cC, y1, x0, x1, 0) <= lim;
+}
+
 // Load one plane's VW pixels of this row (0 outside the image).
 inline vfloat load_row(__global const float* plane, PixelRow r, int width) {
   if (!ANY(r.inside)) return (vfloat)0.f;

@@ -47,7 +47,8 @@ __kernel void project_fwd(
 
   // Opacity-aware extent: alpha >= 1/255 inside sigma <= k/2, k = 2 ln(255 o);
   // the ellipse's bounding box has half-widths sqrt(k a), sqrt(k c).
-  float k = fmax(2.f * log(255.f * opacity), 0.f);
+  float thr = log(255.f * opacity);
+  float k = fmax(2.f * thr, 0.f);
   float ex = sqrt(k * pr.a) * 1.001f + 0.01f;
   float ey = sqrt(k * pr.c) * 1.001f + 0.01f;
   // Pixel i's centre is i + 0.5: tiles whose centres may lie in [u - ex, u + ex].
@@ -80,10 +81,14 @@ __kernel void project_fwd(
   r[REC_M] = dist_depth(z, cam[CAM_DNEAR], cam[CAM_DFAR]);
   vstore3(rgb, 0, r + REC_RGB);
   vstore3(feat, 0, r + REC_FEAT);
-  r[REC_THR] = log(255.f * opacity);
+  r[REC_THR] = thr;
   r[REC_CM] = cC - cB * cB / cA;
   rects[g] = rect;
-  tile_counts[g] = (uint)((rect.z - rect.x + 1) * (rect.w - rect.y + 1));
+  // The tiles of the box that the ellipse reaches (tile_touched).
+  uint touched = 0;
+  for (int ty = rect.y; ty <= rect.w; ++ty)
+    for (int tx = rect.x; tx <= rect.z; ++tx) touched += tile_touched(u, v, cA, cB, cC, k, tx, ty) ? 1u : 0u;
+  tile_counts[g] = touched;
   depth_keys[g] = as_uint(z);  // z > 0: float bits order like the values
   radii[g] = (int)ceil(fmax(ex, ey));
 }

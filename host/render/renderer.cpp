@@ -239,7 +239,7 @@ void Renderer::forward(const DeviceGaussians& g, const Camera& cam, const Render
   sorted_isect_vals_ = &isect_vals_;
   if (M > 0) {
     cl::Kernel emit = rt_.kernel("bin.cl", "emit_isects", bin_defines());
-    set_kernel_args(emit, ni, *sorted_order_, rects_, offsets_, counts_sorted_, tiles_x_, tile_keys_, isect_vals_,
+    set_kernel_args(emit, ni, *sorted_order_, rects_, records_, offsets_, counts_sorted_, tiles_x_, tile_keys_, isect_vals_,
                     isect_gid_, isect_start_);
     rt_.launch("bin", emit, cl::NDRange(n), cl::NDRange(64));
     int bits = 1;
