@@ -8,12 +8,12 @@
 #include <utility>
 
 #include "host/core/counter_rng.h"
+#include "host/core/gaussians.h"
 
 namespace ag2gs {
 
 namespace {
 
-constexpr double kShC0 = 0.28209479177387814;
 constexpr int kCellBits = 20;
 constexpr uint64_t kCellMask = (uint64_t(1) << kCellBits) - 1;
 constexpr double kQuatPerturbation = 1e-2;  // half-width of the initial xyz perturbation

@@ -11,6 +11,7 @@
 #include <stdexcept>
 
 #include "host/core/counter_rng.h"
+#include "host/core/gaussians.h"
 #include "host/io/ply_io.h"
 
 namespace fs = std::filesystem;
@@ -20,7 +21,6 @@ namespace ag2gs {
 namespace {
 
 constexpr int kRest = 15;  // SH rest coefficients per channel (degree 3)
-constexpr double kC0 = 0.28209479177387814;
 constexpr double kSplitScaleDivisor = 1.6;  // 3DGS: 0.8 x the number of samples (2)
 
 
@@ -180,7 +180,7 @@ FreeGaussians FreeGaussians::from_points(const std::vector<Eigen::Vector3d>& poi
       g.mean[i * 3 + c] = static_cast<float>(p[c]);
       g.log_scale[i * 3 + c] = static_cast<float>(s);
       const double colour = ids[i] < static_cast<int>(colors.size()) ? colors[ids[i]][c] / 255.0 : 0.5;
-      g.sh_dc[i * 3 + c] = static_cast<float>((colour - 0.5) / kC0);
+      g.sh_dc[i * 3 + c] = static_cast<float>((colour - 0.5) / kShC0);
     }
     g.quat[i * 4] = 1.f;
     g.opacity_logit[i] = opacity;

@@ -8,12 +8,12 @@
 #include <stdexcept>
 
 #include "host/core/counter_rng.h"
+#include "host/core/gaussians.h"
 #include "stages/train_common.h"
 
 namespace ag2gs {
 namespace {
 
-constexpr double kShC0 = 0.28209479177387814;
 
 double logit(double p) {
   return std::log(p / (1.0 - p));

@@ -10,6 +10,10 @@
 
 namespace ag2gs {
 
+// The degree-0 real spherical harmonic, Y_0^0 = 1 / (2 sqrt(pi)): a DC
+// coefficient c gives the colour c * kShC0 (+ 0.5 in the renderer).
+constexpr double kShC0 = 0.28209479177387814;
+
 // SH coefficients per colour channel for a degree (0..3).
 inline int sh_coeffs_for_degree(int degree) {
   return (degree + 1) * (degree + 1);

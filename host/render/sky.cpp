@@ -12,7 +12,6 @@ namespace ag2gs {
 
 namespace {
 
-constexpr double kShC0 = 0.28209479177387814;
 
 // The kernels' camera arguments: rows of R^T (camera -> world) and (fx, fy, cx, cy).
 struct SkyCamera {
