@@ -55,6 +55,25 @@ __kernel void adam_step_visible(ulong n, int row_size,
               bc2_sqrt);
 }
 
+// Prefix variant: each row of row_size values steps only its first `cols`
+// (n = rows * cols work-items). The trainer steps the SH coefficients of
+// the degrees switched on so far; the others have had only zero gradients,
+// so their moments are zero and a full step would leave them as they are.
+__kernel void adam_step_cols(ulong n, int row_size, int cols,
+                             __global float* param,       // [rows, row_size]
+                             __global const float* grad,  // [rows, row_size]
+                             __global float* exp_avg,     // [rows, row_size]
+                             __global float* exp_avg_sq,  // [rows, row_size]
+                             float one_minus_beta1, float beta2, float one_minus_beta2, float eps, float step_size,
+                             float bc2_sqrt) {
+  const size_t i = get_global_id(0);
+  if (i >= n) return;
+  // n < 2^32 (checked by the host): a 32-bit division.
+  const uint r = (uint)i / (uint)cols, c = (uint)i - r * (uint)cols;
+  adam_update((size_t)r * row_size + c, param, grad, exp_avg, exp_avg_sq, one_minus_beta1, beta2, one_minus_beta2,
+              eps, step_size, bc2_sqrt);
+}
+
 // Adds the number of NaN/Inf values of v to *count. Each work-item checks
 // NONFINITE_CHUNK values, strided by the group size (coalesced on GPUs);
 // integer atomics make the count exact whatever the order. The exponent test
@@ -69,6 +88,23 @@ __kernel void count_nonfinite(ulong n,
   for (int k = 0; k < NONFINITE_CHUNK; ++k) {
     const size_t i = base + k * lsize;
     if (i < n && (as_uint(v[i]) & 0x7f800000u) == 0x7f800000u) ++c;
+  }
+  if (c != 0) atomic_add(count, c);
+}
+
+// The same over the first `cols` values of each row of row_size (n = rows *
+// cols).
+__kernel void count_nonfinite_cols(ulong n, int row_size, int cols,
+                                   __global const float* v,  // [rows, row_size]
+                                   __global uint* count) {   // [1] accumulated
+  const size_t lsize = get_local_size(0);
+  const size_t base = get_group_id(0) * lsize * NONFINITE_CHUNK + get_local_id(0);
+  uint c = 0;
+  for (int k = 0; k < NONFINITE_CHUNK; ++k) {
+    const size_t i = base + k * lsize;
+    if (i >= n) break;
+    const uint r = (uint)i / (uint)cols, col = (uint)i - r * (uint)cols;
+    if ((as_uint(v[(size_t)r * row_size + col]) & 0x7f800000u) == 0x7f800000u) ++c;
   }
   if (c != 0) atomic_add(count, c);
 }

@@ -33,14 +33,24 @@ void ParamGroups::gather(const std::vector<int>& rows, const std::vector<int>& a
 
 uint64_t ParamGroups::count_nonfinite(Adam& adam, const std::vector<GroupStep>& steps) const {
   adam.clear_nonfinite();
-  for (const GroupStep& s : steps) adam.accumulate_nonfinite(*s.grad, groups_[s.index]->size());
+  for (const GroupStep& s : steps) {
+    const AdamGroup& g = *groups_[s.index];
+    if (s.cols >= 0)
+      adam.accumulate_nonfinite_cols(*s.grad, g.rows(), g.row_size(), s.cols);
+    else
+      adam.accumulate_nonfinite(*s.grad, g.size());
+  }
   return adam.read_nonfinite();
 }
 
 void ParamGroups::step(Adam& adam, const std::vector<GroupStep>& steps) const {
   for (const GroupStep& s : steps) {
+    if (s.rows_on && s.cols >= 0)
+      throw std::invalid_argument("adam: group '" + groups_[s.index]->name() + "' steps both some rows and some columns");
     if (s.rows_on)
       adam.step_visible(*groups_[s.index], *s.param, *s.grad, s.lr, *s.rows_on);
+    else if (s.cols >= 0)
+      adam.step_cols(*groups_[s.index], *s.param, *s.grad, s.lr, s.cols);
     else
       adam.step(*groups_[s.index], *s.param, *s.grad, s.lr);
   }

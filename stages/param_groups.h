@@ -36,6 +36,11 @@ struct GroupStep {
   // (Adam::step_visible); the others keep their values and moments bit
   // for bit (the removal's fine-tune freezes what lies far from the hole).
   const DeviceBuffer* rows_on = nullptr;
+  // >= 0: only the first `cols` values of each row step and are checked
+  // (Adam::step_cols): the SH coefficients of degrees not yet switched on
+  // have zero gradients and zero moments, so leaving them out keeps the
+  // bits. -1: the whole row. Not combined with rows_on.
+  int cols = -1;
 };
 
 class ParamGroups {

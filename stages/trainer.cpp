@@ -337,6 +337,9 @@ void Trainer::update(StepStats& st, int w, int h) {
       {kOpacity, &anchors_.opacity_logit, &grads_.opacity_logit, config_.opacity_lr},
       {kShDc, &anchors_.sh_dc, &grads_.sh_dc, config_.sh_dc_lr},
       {kShRest, &anchors_.sh_rest, &grads_.sh_rest, config_.sh_rest_lr}};
+  // Only the rest coefficients of the degrees switched on so far: the others
+  // have had zero gradients since the start (the degree never goes down).
+  updates.back().cols = 3 * (sh_coeffs_for_degree(active_sh_degree()) - 1);
   if (step_features) updates.push_back({kFeature, &anchors_.feature, &feature_grad, config_.feature_lr});
   if (sky_.enabled()) updates.push_back({kSky, &sky_.coefficients(), &sky_.gradient(), config_.sky_lr});
   st.skipped = !groups_->step_if_finite(adam_, updates, st.iteration, st.loss, &st.nonfinite);

@@ -165,6 +165,68 @@ TEST(Adam, VisibleRowsOnly) {
   EXPECT_EQ(test::hash_vec(before), test::hash_vec(after));
 }
 
+// The trainer's SH rest group steps only the coefficients of the degrees
+// switched on so far. Against full steps of the same gradients, where the
+// columns past the prefix are zero until they switch on, every bit agrees:
+// parameters, both moments and the step count.
+TEST(Adam, ColumnPrefixStepsKeepTheBitsOfFullSteps) {
+  Runtime& rt = test::runtime();
+  Adam adam(rt);
+  const size_t rows = 1237;
+  const int row_size = 45;
+  AdamGroup full(rt, "full", rows, row_size), cols(rt, "cols", rows, row_size);
+  DeviceBuffer p_full(&rt), p_cols(&rt), grad(&rt);
+  const std::vector<float> init = random_params(rows * row_size, 11);
+  p_full.upload(init);
+  p_cols.upload(init);
+  const int prefixes[] = {0, 0, 9, 9, 24, 24, 45, 45};  // degrees 0, 1, 2, 3 (3 channels each)
+  int it = 0;
+  for (int prefix : prefixes) {
+    std::vector<float> g = random_grads(rows * row_size, 400 + it++);
+    for (size_t r = 0; r < rows; ++r)
+      for (int c = prefix; c < row_size; ++c) g[r * row_size + c] = 0.f;
+    grad.upload(g);
+    adam.step(full, p_full, grad, 2.5e-3);
+    adam.step_cols(cols, p_cols, grad, 2.5e-3, prefix);
+  }
+  std::vector<float> a, b;
+  p_full.download(a, rows * row_size);
+  p_cols.download(b, rows * row_size);
+  EXPECT_EQ(test::hash_vec(a), test::hash_vec(b));
+  EXPECT_NE(test::hash_vec(a), test::hash_vec(init));
+  full.exp_avg().download(a, rows * row_size);
+  cols.exp_avg().download(b, rows * row_size);
+  EXPECT_EQ(test::hash_vec(a), test::hash_vec(b));
+  full.exp_avg_sq().download(a, rows * row_size);
+  cols.exp_avg_sq().download(b, rows * row_size);
+  EXPECT_EQ(test::hash_vec(a), test::hash_vec(b));
+  EXPECT_EQ(cols.steps(), 8);
+  // Columns past the prefix are left alone even with a gradient there.
+  std::vector<float> before, after;
+  p_cols.download(before, rows * row_size);
+  grad.upload(std::vector<float>(rows * row_size, 1.f));
+  adam.step_cols(cols, p_cols, grad, 1e-2, 3);
+  p_cols.download(after, rows * row_size);
+  size_t moved = 0, moved_outside = 0;
+  for (size_t i = 0; i < before.size(); ++i)
+    if (before[i] != after[i]) (static_cast<int>(i % row_size) < 3 ? moved : moved_outside)++;
+  EXPECT_EQ(moved, rows * 3);
+  EXPECT_EQ(moved_outside, 0u);
+  // The non-finite count over a prefix sees only the prefix.
+  std::vector<float> bad(rows * row_size, 0.f);
+  bad[5 * row_size + 2] = std::numeric_limits<float>::quiet_NaN();   // inside a 3-column prefix
+  bad[7 * row_size + 30] = std::numeric_limits<float>::infinity();  // outside it
+  grad.upload(bad);
+  adam.clear_nonfinite();
+  adam.accumulate_nonfinite_cols(grad, rows, row_size, 3);
+  EXPECT_EQ(adam.read_nonfinite(), 1u);
+  adam.clear_nonfinite();
+  adam.accumulate_nonfinite_cols(grad, rows, row_size, row_size);
+  EXPECT_EQ(adam.read_nonfinite(), 2u);
+  EXPECT_THROW(adam.step_cols(cols, p_cols, grad, 1e-2, 46), std::invalid_argument);
+  EXPECT_THROW(adam.step_cols(cols, p_cols, grad, 1e-2, -1), std::invalid_argument);
+}
+
 TEST(Adam, CountsNonFiniteValues) {
   Runtime& rt = test::runtime();
   Adam adam(rt);

@@ -136,7 +136,7 @@ Adam::Adam(Runtime& rt, AdamSettings settings) : rt_(rt), settings_(settings), c
   const AdamSettings& s = settings_;
   if (!(s.beta1 >= 0 && s.beta1 < 1) || !(s.beta2 >= 0 && s.beta2 < 1) || !(s.eps > 0))
     throw std::invalid_argument("adam: need 0 <= beta1, beta2 < 1 and eps > 0");
-  wg_ = pick_work_group(rt_, {"adam_step", "adam_step_visible", "count_nonfinite"});
+  wg_ = pick_work_group(rt_, {"adam_step", "adam_step_visible", "adam_step_cols", "count_nonfinite", "count_nonfinite_cols"});
   counter_.fill_zero(sizeof(cl_uint));
 }
 
@@ -178,6 +178,24 @@ void Adam::step(AdamGroup& group, DeviceBuffer& param, const DeviceBuffer& grad,
   rt_.launch("adam", k, cl::NDRange(n), cl::NDRange(wg_));
 }
 
+void Adam::step_cols(AdamGroup& group, DeviceBuffer& param, const DeviceBuffer& grad, double lr, int cols) {
+  if (cols < 0 || cols > group.row_size())
+    throw std::invalid_argument("adam: group '" + group.name() + "': " + std::to_string(cols) +
+                                " columns of a row of " + std::to_string(group.row_size()));
+  if (cols == group.row_size()) return step(group, param, grad, lr);
+  check_step(group, param, grad, lr);
+  if (group.size() > std::numeric_limits<cl_uint>::max())
+    throw std::invalid_argument("adam: group '" + group.name() + "' has 2^32 or more values; split it");
+  const StepCoeffs c = step_coeffs(settings_, group.steps_ + 1, lr);
+  ++group.steps_;  // the bias correction counts every step, stepped columns or not
+  const size_t n = group.rows() * static_cast<size_t>(cols);
+  if (n == 0) return;
+  cl::Kernel k = rt_.kernel("adam.cl", "adam_step_cols", kNoDefines);
+  set_kernel_args(k, static_cast<cl_ulong>(n), group.row_size(), cols, param, grad, group.exp_avg(),
+                  group.exp_avg_sq(), c.one_minus_beta1, c.beta2, c.one_minus_beta2, c.eps, c.step_size, c.bc2_sqrt);
+  rt_.launch("adam", k, cl::NDRange(n), cl::NDRange(wg_));
+}
+
 void Adam::step_visible(AdamGroup& group, DeviceBuffer& param, const DeviceBuffer& grad, double lr,
                         const DeviceBuffer& visible) {
   check_step(group, param, grad, lr);
@@ -210,6 +228,24 @@ void Adam::accumulate_nonfinite(const DeviceBuffer& buf, size_t n) {
   const size_t groups = (n + kChunk * wg_ - 1) / (kChunk * wg_);
   cl::Kernel k = rt_.kernel("adam.cl", "count_nonfinite", kNoDefines);
   set_kernel_args(k, static_cast<cl_ulong>(n), buf, counter_);
+  rt_.launch("adam", k, cl::NDRange(groups * wg_), cl::NDRange(wg_));
+}
+
+void Adam::accumulate_nonfinite_cols(const DeviceBuffer& buf, size_t rows, int row_size, int cols) {
+  if (cols < 0 || cols > row_size)
+    throw std::invalid_argument("count_nonfinite: " + std::to_string(cols) + " columns of a row of " +
+                                std::to_string(row_size));
+  if (cols == row_size) return accumulate_nonfinite(buf, rows * static_cast<size_t>(row_size));
+  const size_t n = rows * static_cast<size_t>(cols);
+  if (n == 0) return;
+  if (buf.capacity() < rows * static_cast<size_t>(row_size) * sizeof(float))
+    throw std::invalid_argument("count_nonfinite: the buffer holds fewer than " + std::to_string(rows) + " rows");
+  if (rows * static_cast<size_t>(row_size) > std::numeric_limits<cl_uint>::max())
+    throw std::invalid_argument("count_nonfinite: more than 2^32 values in one buffer");
+  constexpr size_t kChunk = 16;  // NONFINITE_CHUNK in adam.cl
+  const size_t groups = (n + kChunk * wg_ - 1) / (kChunk * wg_);
+  cl::Kernel k = rt_.kernel("adam.cl", "count_nonfinite_cols", kNoDefines);
+  set_kernel_args(k, static_cast<cl_ulong>(n), row_size, cols, buf, counter_);
   rt_.launch("adam", k, cl::NDRange(groups * wg_), cl::NDRange(wg_));
 }
 

@@ -70,6 +70,11 @@ class Adam {
   // One step for a group: param and grad hold group.size() floats; lr is this
   // step's learning rate (schedules are the caller's). Increments steps().
   void step(AdamGroup& group, DeviceBuffer& param, const DeviceBuffer& grad, double lr);
+  // The same, but only the first `cols` values of each row change (0 <= cols
+  // <= row_size; cols == row_size is step above). For columns whose gradient
+  // has always been zero, so that their moments are zero too, this gives
+  // the bits of the full step: such a value does not move.
+  void step_cols(AdamGroup& group, DeviceBuffer& param, const DeviceBuffer& grad, double lr, int cols);
   // Sparse step (3DGS's sparse Adam): only rows with visible[row] != 0 change,
   // parameters and moments of the other rows are left as they are; the step
   // count (bias correction) advances for the whole group, as in gsplat's
@@ -84,6 +89,8 @@ class Adam {
   // accumulate each gradient buffer, then read the total.
   void clear_nonfinite();
   void accumulate_nonfinite(const DeviceBuffer& buf, size_t n);
+  // Only the first `cols` values of each of `rows` rows of row_size.
+  void accumulate_nonfinite_cols(const DeviceBuffer& buf, size_t rows, int row_size, int cols);
   uint64_t read_nonfinite();
 
   int work_group() const { return wg_; }
