@@ -31,12 +31,14 @@ inline float3 sky_colour(__global const float* coef, float3 d) {
   return c;
 }
 
-// out = rgb + (1 - alpha) * sky(d). One work-item per pixel.
+// out = rgb + (1 - alpha) * sky(d), and sky(d) itself into sky_out for the
+// backward pass. One work-item per pixel.
 __kernel void sky_compose(int w, int h, float4 r0, float4 r1, float4 r2, float4 intr,
                           __global const float* coef,   // [K,3]
                           __global const float* rgb,    // [3,H,W]
                           __global const float* alpha,  // [H,W]
-                          __global float* out) {        // [3,H,W]
+                          __global float* out,          // [3,H,W]
+                          __global float* sky_out) {    // [3,H,W]
   const int p = get_global_id(0);
   const int npix = w * h;
   if (p >= npix) return;
@@ -45,6 +47,22 @@ __kernel void sky_compose(int w, int h, float4 r0, float4 r1, float4 r2, float4 
   out[p] = rgb[p] + t * s.x;
   out[npix + p] = rgb[npix + p] + t * s.y;
   out[2 * npix + p] = rgb[2 * npix + p] + t * s.z;
+  sky_out[p] = s.x;
+  sky_out[npix + p] = s.y;
+  sky_out[2 * npix + p] = s.z;
+}
+
+// sky(d) alone, [3,H,W] (a backward pass with no compose before it).
+__kernel void sky_colours(int w, int h, float4 r0, float4 r1, float4 r2, float4 intr,
+                          __global const float* coef,  // [K,3]
+                          __global float* sky_out) {   // [3,H,W]
+  const int p = get_global_id(0);
+  const int npix = w * h;
+  if (p >= npix) return;
+  const float3 s = sky_colour(coef, sky_direction(p % w, p / w, r0, r1, r2, intr));
+  sky_out[p] = s.x;
+  sky_out[npix + p] = s.y;
+  sky_out[2 * npix + p] = s.z;
 }
 
 // Backward of sky_compose for an upstream gradient g = dL/d out [3,H,W]
@@ -57,9 +75,11 @@ __kernel void sky_compose(int w, int h, float4 r0, float4 r1, float4 r2, float4 
 // the sky (host/render/sky.h, open_sky_pixels).
 // The coefficient sums run in two deterministic passes, no atomics: work-item
 // i sums the pixels [i * chunk, (i + 1) * chunk) in order into partial[i] (K*3
-// floats), then sky_grad_reduce adds the partial rows in order.
+// floats), then sky_grad_reduce adds the partial rows in order. sky(d) comes
+// from the compose pass; the basis is evaluated only for pixels of nonzero
+// weight (a zero weight adds exact zeros to the sums).
 __kernel void sky_grad_partial(int w, int h, int chunk, float4 r0, float4 r1, float4 r2, float4 intr,
-                               __global const float* coef,        // [K,3]
+                               __global const float* sky,         // [3,H,W] sky(d) per pixel
                                __global const float* grad_out,    // [3,H,W]
                                __global const float* alpha,       // [H,W]
                                int use_weight,                    // 0: every pixel weighs 1
@@ -76,21 +96,22 @@ __kernel void sky_grad_partial(int w, int h, int chunk, float4 r0, float4 r1, fl
   for (int j = 0; j < SKY_K * 3; ++j) acc[j] = 0.f;
   const int end = min(npix, (i + 1) * chunk);
   for (int p = i * chunk; p < end; ++p) {
-    const float3 d = sky_direction(p % w, p / w, r0, r1, r2, intr);
     const float3 g = (float3)(grad_out[p], grad_out[npix + p], grad_out[2 * npix + p]);
+    const float3 s = (float3)(sky[p], sky[npix + p], sky[2 * npix + p]);
+    grad_alpha[p] = (add_base ? grad_alpha[p] : 0.f) - dot(g, s);
+    const float wp = use_weight ? weight[p] : 1.f;
+    if (wp == 0.f) continue;
+    const float3 d = sky_direction(p % w, p / w, r0, r1, r2, intr);
     const float t = 1.f - alpha[p];
-    const float3 tg = (use_weight ? t * weight[p] : t) * g;
-    float3 s = (float3)(0.f);
+    const float3 tg = (use_weight ? t * wp : t) * g;
 #pragma unroll
     for (int k = 0; k < SKY_K; ++k) {
       float3 unused;
       const float b = sh_basis(k, d, &unused);
-      s += b * vload3(k, coef);
       acc[3 * k] += b * tg.x;
       acc[3 * k + 1] += b * tg.y;
       acc[3 * k + 2] += b * tg.z;
     }
-    grad_alpha[p] = (add_base ? grad_alpha[p] : 0.f) - dot(g, s);
   }
   for (int j = 0; j < SKY_K * 3; ++j) partial[i * SKY_K * 3 + j] = acc[j];
 }

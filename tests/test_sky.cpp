@@ -226,6 +226,49 @@ TEST(Sky, BackwardMatchesTheReferenceAndRepeatsBitForBit) {
   }
 }
 
+// backward() takes sky(d) from the compose() before it when that was for
+// the same camera and coefficients: the same bits as evaluating it afresh.
+// After another camera's compose, or after the coefficients were handed to
+// an optimiser and changed, it evaluates sky(d) again.
+TEST(Sky, BackwardAfterComposeGivesTheBitsOfBackwardAlone) {
+  Runtime& rt = test::runtime();
+  const int w = 41, h = 29, degree = 3;
+  const Camera cam = tilted_camera(w, h), other = tilted_camera(h, w);
+  const Planes p = random_planes(w, h, 5);
+  std::vector<float> weight;
+  for (size_t i = 0; i < p.alpha.size(); ++i) weight.push_back(i % 4 == 0 ? 0.f : 0.5f);
+  const std::vector<float> coef = random_coefficients(degree, 7), coef2 = random_coefficients(degree, 8);
+  DeviceBuffer rgb(&rt), alpha(&rt), grad(&rt), ga(&rt), wbuf(&rt), rgb_other(&rt), alpha_other(&rt);
+  rgb.upload(p.rgb);
+  alpha.upload(p.alpha);
+  grad.upload(p.grad);
+  wbuf.upload(weight);
+  rgb_other.upload(std::vector<float>(p.rgb.size(), 0.f));
+  alpha_other.upload(std::vector<float>(p.alpha.size(), 0.f));
+  auto backward = [&](Sky& sky) {
+    ga.fill_zero(p.alpha.size() * sizeof(float));
+    sky.backward(grad, alpha, cam, ga, false, &wbuf);
+    std::vector<float> a, c;
+    ga.download(a, p.alpha.size());
+    sky.gradient().download(c, coef.size());
+    return std::make_pair(test::hash_vec(a), test::hash_vec(c));
+  };
+  Sky alone(rt), composed(rt);
+  alone.set(degree, coef);
+  composed.set(degree, coef);
+  const auto ref = backward(alone);
+  composed.compose(rgb, alpha, cam);
+  EXPECT_EQ(backward(composed), ref);
+  composed.compose(rgb_other, alpha_other, other);  // another camera's sky colours
+  EXPECT_EQ(backward(composed), ref);
+  // New coefficients written through coefficients() after a compose.
+  composed.compose(rgb, alpha, cam);
+  composed.coefficients().upload(coef2);
+  alone.set(degree, coef2);
+  EXPECT_EQ(backward(composed), backward(alone));
+  EXPECT_NE(backward(alone), ref);
+}
+
 TEST(Sky, ConstantStartAndArchiveRoundTrip) {
   Runtime& rt = test::runtime();
   const std::vector<float> c = sky_constant(2, {0.25f, 0.5f, 1.f});

@@ -5,6 +5,7 @@
 #include <cmath>
 #include <map>
 #include <opencv2/imgproc.hpp>
+#include <cstring>
 #include <stdexcept>
 #include <string>
 
@@ -18,6 +19,10 @@ struct SkyCamera {
   cl_float4 r[3];
   cl_float4 intr;
 };
+
+bool same_camera(const float (&a)[16], const SkyCamera& c, int w, int h, int cw, int ch) {
+  return w == cw && h == ch && std::memcmp(a, &c, sizeof(a)) == 0;
+}
 
 SkyCamera sky_camera(const Camera& c) {
   SkyCamera s{};
@@ -60,7 +65,8 @@ std::optional<std::vector<float>> sky_from_archive(const ModelArchive& archive) 
 }
 
 Sky::Sky(Runtime& rt) : rt_(rt) {
-  for (DeviceBuffer* b : {&coef_, &grad_, &partial_, &out_}) b->bind(&rt_);
+  for (DeviceBuffer* b : {&coef_, &grad_, &partial_, &out_, &sky_}) b->bind(&rt_);
+  static_assert(sizeof(SkyCamera) == sizeof(Composed::args), "the kept camera holds the kernels' arguments");
 }
 
 std::map<std::string, std::string> Sky::defines() const {
@@ -77,6 +83,7 @@ void Sky::set(int degree, const std::vector<float>& coefficients) {
                                 " coefficient values, not " + std::to_string(coefficients.size()));
   degree_ = degree;
   values_ = values;
+  composed_ = {};
   coef_.upload(coefficients);
   grad_.reserve(values * sizeof(float));
   grad_.fill_zero(values * sizeof(float));
@@ -92,11 +99,15 @@ const DeviceBuffer& Sky::compose(const DeviceBuffer& rgb, const DeviceBuffer& al
   if (!enabled()) throw std::logic_error("Sky::compose without coefficients (Sky::set)");
   const size_t npix = static_cast<size_t>(camera.width) * camera.height;
   out_.reserve(npix * 3 * sizeof(float));
+  sky_.reserve(npix * 3 * sizeof(float));
   const SkyCamera sc = sky_camera(camera);
   cl::Kernel k = rt_.kernel("sky.cl", "sky_compose", defines());
   set_kernel_args(k, static_cast<cl_int>(camera.width), static_cast<cl_int>(camera.height), sc.r[0], sc.r[1], sc.r[2],
-                  sc.intr, coef_, rgb, alpha, out_);
+                  sc.intr, coef_, rgb, alpha, out_, sky_);
   rt_.launch("sky_compose", k, cl::NDRange((npix + 63) / 64 * 64), cl::NDRange(64));
+  composed_.width = camera.width;
+  composed_.height = camera.height;
+  std::memcpy(composed_.args, &sc, sizeof(sc));
   return out_;
 }
 
@@ -111,9 +122,19 @@ void Sky::backward(const DeviceBuffer& grad_out, const DeviceBuffer& alpha, cons
   grad_alpha.reserve(npix * sizeof(float));
   partial_.reserve(std::max<size_t>(rows, 1) * values_ * sizeof(float));
   const SkyCamera sc = sky_camera(camera);
+  if (!same_camera(composed_.args, sc, camera.width, camera.height, composed_.width, composed_.height)) {
+    sky_.reserve(npix * 3 * sizeof(float));
+    cl::Kernel c = rt_.kernel("sky.cl", "sky_colours", defines());
+    set_kernel_args(c, static_cast<cl_int>(camera.width), static_cast<cl_int>(camera.height), sc.r[0], sc.r[1],
+                    sc.r[2], sc.intr, coef_, sky_);
+    rt_.launch("sky_compose", c, cl::NDRange((npix + 63) / 64 * 64), cl::NDRange(64));
+    composed_.width = camera.width;
+    composed_.height = camera.height;
+    std::memcpy(composed_.args, &sc, sizeof(sc));
+  }
   cl::Kernel k = rt_.kernel("sky.cl", "sky_grad_partial", defines());
   set_kernel_args(k, static_cast<cl_int>(camera.width), static_cast<cl_int>(camera.height), static_cast<cl_int>(chunk),
-                  sc.r[0], sc.r[1], sc.r[2], sc.intr, coef_, grad_out, alpha, static_cast<cl_int>(weight ? 1 : 0),
+                  sc.r[0], sc.r[1], sc.r[2], sc.intr, sky_, grad_out, alpha, static_cast<cl_int>(weight ? 1 : 0),
                   weight ? *weight : coef_, static_cast<cl_int>(add ? 1 : 0), grad_alpha, static_cast<cl_int>(rows),
                   partial_);
   rt_.launch("sky_grad_partial", k, cl::NDRange((rows + 63) / 64 * 64), cl::NDRange(64));

@@ -68,7 +68,12 @@ class Sky {
   size_t values() const { return values_; }  // K * 3
   std::vector<float> download() const;
 
-  DeviceBuffer& coefficients() { return coef_; }
+  // The coefficients for an optimiser to change: the sky colours kept from
+  // the last compose() are no longer taken by backward() after this.
+  DeviceBuffer& coefficients() {
+    composed_ = {};
+    return coef_;
+  }
   // dL/d coefficients [K, 3] of the last backward().
   const DeviceBuffer& gradient() const { return grad_; }
 
@@ -77,7 +82,9 @@ class Sky {
   const DeviceBuffer& compose(const DeviceBuffer& rgb, const DeviceBuffer& alpha, const Camera& camera);
   // From dL/d out [3, H, W] (which is also dL/d rgb): writes dL/d alpha
   // [H, W] into grad_alpha (added to what it holds when add is true) and
-  // dL/d coefficients into gradient().
+  // dL/d coefficients into gradient(). It takes sky(d) from the last
+  // compose() when that was for this camera (and the coefficients did not
+  // change since), else evaluates it.
   // With `weight` [H, W], pixel p counts W(p) times in the coefficient
   // gradient (the alpha gradient is the same); without it, once.
   void backward(const DeviceBuffer& grad_out, const DeviceBuffer& alpha, const Camera& camera, DeviceBuffer& grad_alpha,
@@ -104,6 +111,12 @@ class Sky {
   int degree_ = -1;
   size_t values_ = 0;
   DeviceBuffer coef_, grad_, partial_, out_;
+  DeviceBuffer sky_;  // [3, H, W] sky(d) of the camera in composed_
+  // The camera of sky_ (kernel arguments and size); width 0: none.
+  struct Composed {
+    int width = 0, height = 0;
+    float args[16] = {};
+  } composed_;
 };
 
 }  // namespace ag2gs
