@@ -138,7 +138,7 @@ void register_baseline(CLI::App& app, GlobalOptions& global) {
                   "Iterations per SH degree step (default 0 = min(1000, iters / (sh-degree + 1)), as `train`)")
       ->check(non_negative_number());
   sub->add_option("--lambda-ssim", c.lambda_ssim, "Weight of 1 - SSIM in the loss (default 0.2)")
-      ->check(CLI::Range(0.0, 1.0));
+      ->check(finite_range(0.0, 1.0));
   sub->add_option("--lr-position", c.position_lr_init,
                   "Position learning rate at the start, x extent (default 1.6e-4)");
   sub->add_option("--lr-position-final", c.position_lr_final, "Position learning rate at the end, x extent (1.6e-6)");
@@ -160,7 +160,7 @@ void register_baseline(CLI::App& app, GlobalOptions& global) {
                   "Clone when the largest scale is at most this x extent, split otherwise (default 0.01)")
       ->check(non_negative_number());
   sub->add_option("--prune-opacity", c.prune_opacity, "Remove Gaussians with opacity below this (default 0.005)")
-      ->check(CLI::Range(0.0, 0.999));
+      ->check(finite_range(0.0, 0.999));
   sub->add_option("--opacity-reset-every", c.opacity_reset_every,
                   "Clamp every opacity to 0.01 every N iterations until --densify-until (default 3000; 0 = off)")
       ->check(non_negative_number());

@@ -364,7 +364,7 @@ void add_query_config_options(CLI::App* sub, QueryConfig& c) {
   sub->add_option("--click-front-weight", c.click_front_weight,
                   "With --click-dominant: the nearest feature group along the ray holding at least this much of the "
                   "pixel's blending weight instead of the heaviest (default 0.3; 0 = the heaviest)")
-      ->check(CLI::Range(0.0, 0.999));
+      ->check(finite_range(0.0, 0.999));
 }
 
 void add_query_request_options(CLI::App* sub, QueryRequest& r) {

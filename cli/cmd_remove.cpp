@@ -475,7 +475,7 @@ void register_remove(CLI::App& app, GlobalOptions& global) {
   r->add_option("--stray-colour", a->stray_colour,
                 "A kept child in the object's voxels is the object's when its colour is within this of the "
                 "object's there (mean absolute difference, 0..1; default 0.2)")
-      ->check(CLI::Range(0.0, 1.0));
+      ->check(finite_range(0.0, 1.0));
   r->add_option("--tune-targets", a->tune_targets,
                 "What the fine-tune fits inside the holes: inpainted (the targets/ images) or fill (the filled "
                 "model's own render, so only the seams around the holes move)")

@@ -83,14 +83,15 @@ void apply_preset(const CLI::App& sub, TrainArgs& a) {
   unless_given("--grow-budget", c.grow_budget, 0.1);
   unless_given("--init-children-at-points", c.anchors.init_children_at_points, true);
   unless_given("--recycle-opacity", c.recycle_opacity, 0.02);
+  unless_given("--final-prune-opacity", c.final_prune_opacity, 0.015);
   unless_given("--lr-offset", c.offset_lr_init, 1e-2);
   unless_given("--lr-scaling", c.scaling_lr, 0.01);
   spdlog::info(
       "preset {}: --scale-cap {} --children {} --init-layers {} --{} --grow-budget {} --recycle-opacity {} "
-      "--lr-offset {} --lr-scaling {}",
+      "--final-prune-opacity {} --lr-offset {} --lr-scaling {}",
       a.preset, c.anchors.scale_cap, c.anchors.children, c.anchors.init_layers,
       c.anchors.init_children_at_points ? "init-children-at-points" : "init-children-random", c.grow_budget,
-      c.recycle_opacity, c.offset_lr_init, c.scaling_lr);
+      c.recycle_opacity, c.final_prune_opacity, c.offset_lr_init, c.scaling_lr);
 }
 
 bool has_stage(const TrainArgs& a, int s) {
@@ -257,10 +258,13 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
     const GrowthConfig g = c.growth_config(scene->train_views().size());
     spdlog::info(
         "anchor growing{} every {} iterations from {} to {} (threshold {:.3g}); pruning: opacity < {:.3g}{}, "
-        "unseen {}",
+        "unseen {}{}",
         c.anchors.layers > 1 ? "" : " (one layer: pruning only)", c.grow_every, c.grow_from, c.effective_grow_until(),
         c.grow_threshold, c.prune_opacity, c.prune_opacity > 0 ? "" : " (off)",
-        g.prune_unseen ? "in the last " + std::to_string(g.unseen_window) + " views" : std::string("off"));
+        g.prune_unseen ? "in the last " + std::to_string(g.unseen_window) + " views" : std::string("off"),
+        c.final_prune_opacity > 0
+            ? fmt::format("; after iteration {}: mean opacity < {:.3g}", c.iterations, c.final_prune_opacity)
+            : std::string());
     spdlog::info("growth budget: {} per round{}, at most {} Gaussians{}",
                  c.grow_budget > 0 ? fmt::format("{:.0f}% of the anchors", 100 * c.grow_budget) : "no limit",
                  c.grow_budget > 0 ? " (at least 64)" : "",
@@ -447,7 +451,7 @@ void register_train(CLI::App& app, GlobalOptions& global) {
   sub->add_option("--lr-sky", c.sky_lr, "Learning rate of the sky's coefficients (default 0.01)")
       ->check(CLI::NonNegativeNumber);
   sub->add_option("--lambda-ssim", c.lambda_ssim, "Weight of 1 - SSIM in L_rgb (default 0.2)")
-      ->check(CLI::Range(0.0, 1.0));
+      ->check(finite_range(0.0, 1.0));
   sub->add_option("--w-offset", c.w_offset, "Weight of the offset regulariser L_in (default 0.5)");
   sub->add_option("--w-dist", c.w_distortion, "Weight of the depth distortion L_d (default 50)");
   sub->add_option("--dist-from", c.distortion_from, "First iteration with the distortion term (default 0)");
@@ -484,7 +488,7 @@ void register_train(CLI::App& app, GlobalOptions& global) {
   sub->add_option("--recycle-opacity", c.recycle_opacity,
                   "In growing rounds, children of a kept anchor below this opacity become copies of its most opaque "
                   "child, the two sharing its opacity (default 0.02; --preset paper 0 = off)")
-      ->check(CLI::Range(0.0, 0.999));
+      ->check(finite_range(0.0, 0.999));
   sub->add_flag("!--no-feature-ball", c.feature_ball,
                 "Let the semantic features grow without bound (default: projected into the unit ball after each "
                 "step, so the graph stages' absolute thresholds keep their meaning)");
@@ -521,7 +525,7 @@ void register_train(CLI::App& app, GlobalOptions& global) {
   sub->add_option("--grow-budget", c.grow_budget,
                   "A growing round adds at most this fraction of the anchors (at least 64; default 0.1, the "
                   "library's 0.25; 0 = no limit); the children asking hardest win")
-      ->check(CLI::Range(0.0, 1e6));
+      ->check(finite_range(0.0, 1e6));
   sub->add_option("--children", c.anchors.children, "Gaussians per anchor (default 2; --preset paper 5)")
       ->check(CLI::Range(1, 64));
   sub->add_option("--init-layer", c.anchors.init_layer,
@@ -535,17 +539,17 @@ void register_train(CLI::App& app, GlobalOptions& global) {
       ->check(CLI::Range(1, 16));
   sub->add_option("--init-scale", c.anchors.init_scale,
                   "Scale of a fresh child as a fraction of its voxel edge (default 0.5; below --scale-cap)")
-      ->check(CLI::Range(1e-4, 1023.0));
+      ->check(finite_range(1e-4, 1023.0));
   sub->add_option("--scale-cap", c.anchors.scale_cap,
                   "A child's scale is at most this many voxel edges (default 64; --preset paper 1: a child "
                   "never outgrows its voxel)")
-      ->check(CLI::Range(1.0, 1024.0));
+      ->check(finite_range(1.0, 1024.0));
   sub->add_option("--scale-cap-layers", c.anchors.scale_cap_layers,
                   "--scale-cap holds on this many of the coarsest layers (1 = the top layer only); finer layers keep "
                   "their children inside their voxels (default: every layer)")
       ->check(CLI::Range(1, 16));
   sub->add_option("--init-opacity", c.anchors.init_opacity, "Opacity of a fresh child (default 0.1)")
-      ->check(CLI::Range(1e-4, 0.9999));
+      ->check(finite_range(1e-4, 0.9999));
   sub->add_flag("--init-children-at-points,!--init-children-random", c.anchors.init_children_at_points,
                 "Seeded anchors put their children on the SfM points of their voxel, with those points' colours "
                 "(default; --init-children-random, as the official code and --preset paper: random offsets and "
@@ -561,11 +565,15 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                   "x2 per layer)");
   sub->add_option("--grow-min-seen", c.grow_min_seen,
                   "Fraction of a round's iterations a child must be visible in to grow (default 0.4)")
-      ->check(CLI::Range(0.0, 1.0));
+      ->check(finite_range(0.0, 1.0));
   sub->add_option("--prune-opacity", c.prune_opacity,
                   "In growing rounds, remove anchors whose children's mean opacity is below this (default 0.01; 0 = "
                   "off)")
-      ->check(CLI::Range(0.0, 0.999));
+      ->check(finite_range(0.0, 0.999));
+  sub->add_option("--final-prune-opacity", c.final_prune_opacity,
+                  "After the last stage-1 iteration, remove anchors whose children's mean opacity is below this "
+                  "(default 0.015; --preset paper: 0 = off)")
+      ->check(finite_range(0.0, 0.999));
   sub->add_option("--prune-unseen-window", c.prune_unseen_window,
                   "In growing rounds, remove anchors none of whose children was visible in the last N training views "
                   "(default 0 = 2 x training views; -1 = off)")
@@ -610,10 +618,10 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                   "Stage 3: a cluster takes a mask's CLIP feature when their score S exceeds this (default 0.3)");
   sub->add_option("--match-softmax", s3.language.softmax_scale,
                   "Stage 3: the matches' weights are softmax(scale * S) (default 10)")
-      ->check(CLI::Range(0.001, 80.0));
+      ->check(finite_range(0.001, 80.0));
   sub->add_option("--instance-fraction", s3.language.instance_fraction,
                   "Stage 3: a pixel belongs to a cluster holding at least this share of its weight (default 0.5)")
-      ->check(CLI::Range(0.5, 0.999));
+      ->check(finite_range(0.5, 0.999));
   sub->add_option("--preset", a->preset,
                   "default (= appearance: --scale-cap 64 --children 2 --init-layers 2 --init-children-at-points "
                   "--grow-budget 0.1 --recycle-opacity 0.02 --lr-offset 1e-2 --lr-scaling 0.01, the voxel from the "

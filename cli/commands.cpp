@@ -64,6 +64,17 @@ CLI::Validator non_negative_number() {
       ">= 0", "non-negative");
 }
 
+CLI::Validator finite_range(double lo, double hi) {
+  const std::string range = fmt::format("[{} - {}]", lo, hi);
+  return CLI::Validator(
+      [lo, hi, range](std::string& v) -> std::string {
+        double x = 0;
+        if (!parse_finite(v, &x) || !(x >= lo && x <= hi)) return "must be a number in " + range + ", not '" + v + "'";
+        return {};
+      },
+      range, "finite range");
+}
+
 CLI::Validator seed_number() {
   return CLI::Validator(
       [](std::string& v) -> std::string {

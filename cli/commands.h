@@ -26,6 +26,8 @@ struct GlobalOptions {
 // NonNegativeNumber print the largest double, 309 digits, as the bound).
 CLI::Validator positive_number();      // a finite number > 0
 CLI::Validator non_negative_number();  // a finite number >= 0
+// A finite number in [lo, hi] (CLI::Range lets 'nan' through).
+CLI::Validator finite_range(double lo, double hi);
 // A seed: a whole number from 0 to 2^64 - 1, written in digits (no sign,
 // fraction or exponent: "-1" and "1e23" would otherwise wrap silently).
 CLI::Validator seed_number();

@@ -29,6 +29,13 @@ constexpr int kRecycleStream = 16;      // anchor_uniform01 streams 16..18 (x, y
 
 }  // namespace
 
+bool mean_opacity_below(const AnchorModel& model, size_t anchor, double threshold) {
+  const int K = model.children();
+  double sum = 0;
+  for (int i = 0; i < K; ++i) sum += sigmoid(model.opacity_logit()[anchor * K + i]);
+  return sum / K < threshold;
+}
+
 // ---------------------------------------------------------------- GrowthConfig
 
 void GrowthConfig::validate() const {
@@ -235,9 +242,7 @@ GrowthResult AnchorGrowth::step(AnchorModel& model, uint64_t seed) {
   const int window = std::max(config_.unseen_window, steps_);
   for (size_t a = 0; a < A0; ++a) {
     if (config_.prune_opacity > 0) {
-      double sum = 0;
-      for (int i = 0; i < K; ++i) sum += sigmoid(model.opacity_logit()[a * K + i]);
-      if (sum / K < config_.prune_opacity) {
+      if (mean_opacity_below(model, a, config_.prune_opacity)) {
         keep[a] = 0;
         ++r.pruned_opacity;
         continue;

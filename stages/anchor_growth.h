@@ -168,6 +168,11 @@ struct GrowthStatsHost {
   std::vector<int32_t> last_seen;  // [N]
 };
 
+// Whether the mean over an anchor's children of sigmoid(opacity_logit) is
+// below `threshold`: the opacity rule of the growing rounds' pruning and of
+// the trainer's final prune.
+bool mean_opacity_below(const AnchorModel& model, size_t anchor, double threshold);
+
 class AnchorGrowth {
  public:
   AnchorGrowth(Runtime& rt, const GrowthConfig& config);  // validates config

@@ -37,6 +37,7 @@ void TrainConfig::validate() const {
     bad("sky_degree is " + std::to_string(sky_degree) + "; use -2 (from the scene), -1 (no sky) or 0 to 3");
   if (!(prune_opacity >= 0 && prune_opacity < 1)) bad("prune_opacity must be in [0, 1)");
   if (!(recycle_opacity >= 0 && recycle_opacity < 1)) bad("recycle_opacity must be in [0, 1)");
+  if (!(final_prune_opacity >= 0 && final_prune_opacity < 1)) bad("final_prune_opacity must be in [0, 1)");
   if (downscales < -1 || downscales > 6)
     bad("downscales is " + std::to_string(downscales) + "; use -1 (from the images), 0 (off) or 1 to 6");
   if (res_schedule < 0) bad("res_schedule must be 0 (from the iterations) or at least 1 iteration");
@@ -131,6 +132,7 @@ nlohmann::json TrainConfig::to_json() const {
           {"feature_ball", feature_ball},
           {"grow_same_layer", grow_same_layer},
           {"recycle_opacity", recycle_opacity},
+          {"final_prune_opacity", final_prune_opacity},
           {"grow_budget", grow_budget},
           {"max_gaussians", max_gaussians},
           {"prop_iters", effective_prop_iters()},
@@ -197,6 +199,7 @@ TrainConfig TrainConfig::from_json(const nlohmann::json& j) {
     c.feature_ball = j.value("feature_ball", false);
     c.grow_same_layer = j.value("grow_same_layer", false);
     c.recycle_opacity = j.value("recycle_opacity", 0.0);
+    c.final_prune_opacity = j.value("final_prune_opacity", 0.0);  // written before the option
     // Checkpoints from before the budgets grew without limit.
     c.grow_budget = j.value("grow_budget", 0.0);
     c.max_gaussians = j.value("max_gaussians", int64_t{0});

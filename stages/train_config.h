@@ -117,6 +117,11 @@ struct TrainConfig {
   // In the same rounds: remove anchors whose children's mean opacity is
   // below this; 0 = no pruning.
   double prune_opacity = 0.01;
+  // After the last stage-1 iteration: remove anchors whose children's mean
+  // opacity is below this (children that faded after the last growing
+  // round draw almost nothing; the default preset sets 0.02, the recycling
+  // threshold); 0 = off.
+  double final_prune_opacity = 0;
   // In the same rounds: remove anchors none of whose children was visible in
   // the last this many training views (at least a round); 0 = 2 x the number
   // of training views (two epochs: anchors that only a few views see stay),

@@ -192,6 +192,7 @@ StepStats Trainer::step(bool compute_offset_loss, const std::function<void()>& b
   update(st, size.first, size.second);
   if (before_rounds) before_rounds();
   if (!st.stage2 && growth_.due(st.iteration)) growing_round(st);
+  if (!st.stage2 && st.iteration == config_.iterations && config_.final_prune_opacity > 0) final_prune(st);
   if (opacity_reset_due(st.iteration)) reset_opacities(st);
   iteration_ = st.iteration;
   return st;
@@ -383,6 +384,31 @@ void Trainer::growing_round(StepStats& st) {
     anchors_.upload(model_);
     groups_->gather(r.child_rows, r.anchor_rows);
   }
+}
+
+void Trainer::final_prune(StepStats& st) {
+  model();  // host values current
+  const size_t before = model_.size();
+  std::vector<uint8_t> keep(before, 1);
+  size_t removed = 0;
+  for (size_t a = 0; a < before; ++a)
+    if (mean_opacity_below(model_, a, config_.final_prune_opacity)) {
+      keep[a] = 0;
+      ++removed;
+    }
+  if (removed == 0) return;
+  if (removed == before) {
+    spdlog::warn("iteration {}: every anchor's children have a mean opacity below {}; the final prune keeps them all",
+                 st.iteration, config_.final_prune_opacity);
+    return;
+  }
+  const std::vector<int> kept = model_.remove_anchors(keep);
+  anchors_.upload(model_);
+  groups_->gather(AnchorModel::child_rows(kept, model_.children()), kept);
+  growth_.reset(model_.gaussians());  // growing is over; the statistics follow the rows
+  st.pruned += static_cast<int>(removed);
+  spdlog::info("iteration {}: removed {} anchors whose children's mean opacity is below {} -> {} anchors, {} Gaussians",
+               st.iteration, removed, config_.final_prune_opacity, model_.size(), model_.gaussians());
 }
 
 void Trainer::reset_opacities(StepStats& st) {

@@ -207,6 +207,8 @@ class Trainer {
   std::pair<int, int> render_and_losses(StepStats& st, bool compute_offset_loss);
   void update(StepStats& st, int w, int h);
   void growing_round(StepStats& st);
+  // After the last stage-1 iteration (TrainConfig::final_prune_opacity).
+  void final_prune(StepStats& st);
   void reset_opacities(StepStats& st);
   // The open pixels of every training view (sky_open_, their share and
   // radius), and the sky's start (config.sky_degree >= 0).

@@ -126,6 +126,73 @@ TEST(Train, GrowingAndPruningKeepTheModelAndOptimiserConsistent) {
               static_cast<int>(a));
 }
 
+// The final prune (TrainConfig::final_prune_opacity) runs once, after the
+// last stage-1 iteration: the anchors whose children's mean opacity is below
+// the threshold go, every other anchor keeps its bits, and the optimiser
+// follows the rows (a stage-2 step after it runs). With the threshold 0
+// nothing is removed.
+TEST(Train, FinalPruneRemovesFadedAnchorsAndKeepsTheRest) {
+  SceneOptions so;
+  so.resolution = 2;
+  auto scene = Scene::open(sample_scene(), so);
+  TrainConfig cfg;
+  cfg.iterations = 30;
+  cfg.anchors.top_cells = 50;
+  cfg.white_background = true;
+  cfg.grow_from = 1000;  // no growing rounds
+  const double threshold = 0.1;  // the initial opacity: about half the anchors fall below it in 30 steps
+  size_t removed = 0;
+  for (double t : {0.0, threshold}) {
+    cfg.final_prune_opacity = t;
+    Trainer trainer(test::runtime(), *scene, cfg);
+    for (int it = 0; it + 1 < cfg.iterations; ++it) ASSERT_FALSE(trainer.step().skipped);
+    const size_t a0 = trainer.anchors();
+    StepStats last = trainer.step();
+    ASSERT_FALSE(last.skipped);
+    if (t == 0) {
+      EXPECT_EQ(trainer.anchors(), a0);
+      EXPECT_EQ(last.pruned, 0);
+      continue;
+    }
+    // The model a step without the prune would have left: the same run with t = 0.
+    Trainer ref_trainer(test::runtime(), *scene, [&] {
+      TrainConfig c = cfg;
+      c.final_prune_opacity = 0;
+      return c;
+    }());
+    for (int it = 0; it < cfg.iterations; ++it) ASSERT_FALSE(ref_trainer.step().skipped);
+    const AnchorModel& ref = ref_trainer.model();
+    const AnchorModel& m = trainer.model();
+    m.check();
+    size_t below = 0;
+    for (size_t a = 0; a < ref.size(); ++a) below += mean_opacity_below(ref, a, threshold);
+    removed = a0 - trainer.anchors();
+    std::printf("final prune at %.2f: %zu of %zu anchors removed\n", threshold, removed, a0);
+    EXPECT_EQ(static_cast<size_t>(last.pruned), removed);
+    EXPECT_EQ(removed, below);
+    EXPECT_GT(removed, 0u);
+    EXPECT_LT(removed, a0);
+    // The kept anchors, in their order, with their children's bits.
+    const int K = m.children();
+    size_t r = 0;
+    for (size_t a = 0; a < ref.size(); ++a) {
+      if (mean_opacity_below(ref, a, threshold)) continue;
+      ASSERT_LT(r, m.size());
+      for (int i = 0; i < K; ++i) {
+        ASSERT_EQ(m.opacity_logit()[r * K + i], ref.opacity_logit()[a * K + i]);
+        for (int c = 0; c < 3; ++c) ASSERT_EQ(m.offset()[(r * K + i) * 3 + c], ref.offset()[(a * K + i) * 3 + c]);
+      }
+      ++r;
+    }
+    EXPECT_EQ(r, m.size());
+    for (size_t a = 0; a < m.size(); ++a) EXPECT_FALSE(mean_opacity_below(m, a, threshold));
+    // Stage 2 goes on from the pruned model.
+    StepStats st2 = trainer.step();
+    EXPECT_TRUE(st2.stage2);
+    EXPECT_FALSE(st2.skipped);
+  }
+}
+
 TEST(Train, ViewOrderIsASeededPermutationPerEpoch) {
   SceneOptions so;
   so.resolution = 2;

@@ -193,10 +193,12 @@ TEST(TrainState, ResumedRunGivesTheBytesOfTheStraightRun) {
 }
 
 // The same with the switches against the gap to free Gaussians: recycling in
-// the growing rounds, a scale cap on the top layer, children on the SfM points.
+// the growing rounds, a scale cap on the top layer, children on the SfM points,
+// and the final prune after the last iteration (in the resumed half).
 TEST(TrainState, ResumeIsBitExactWithRecyclingAndAScaleCap) {
   TrainConfig cfg = split_config();
   cfg.recycle_opacity = 0.05;
+  cfg.final_prune_opacity = 0.1;
   cfg.anchors.scale_cap = 8.f;
   cfg.anchors.scale_cap_layers = 1;
   cfg.anchors.init_children_at_points = true;
