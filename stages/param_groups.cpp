@@ -46,7 +46,8 @@ uint64_t ParamGroups::count_nonfinite(Adam& adam, const std::vector<GroupStep>& 
 void ParamGroups::step(Adam& adam, const std::vector<GroupStep>& steps) const {
   for (const GroupStep& s : steps) {
     if (s.rows_on && s.cols >= 0)
-      throw std::invalid_argument("adam: group '" + groups_[s.index]->name() + "' steps both some rows and some columns");
+      throw std::invalid_argument("adam: group '" + groups_[s.index]->name() +
+                                  "' steps both some rows and some columns");
     if (s.rows_on)
       adam.step_visible(*groups_[s.index], *s.param, *s.grad, s.lr, *s.rows_on);
     else if (s.cols >= 0)

@@ -214,7 +214,7 @@ TEST(Adam, ColumnPrefixStepsKeepTheBitsOfFullSteps) {
   EXPECT_EQ(moved_outside, 0u);
   // The non-finite count over a prefix sees only the prefix.
   std::vector<float> bad(rows * row_size, 0.f);
-  bad[5 * row_size + 2] = std::numeric_limits<float>::quiet_NaN();   // inside a 3-column prefix
+  bad[5 * row_size + 2] = std::numeric_limits<float>::quiet_NaN();  // inside a 3-column prefix
   bad[7 * row_size + 30] = std::numeric_limits<float>::infinity();  // outside it
   grad.upload(bad);
   adam.clear_nonfinite();

@@ -224,8 +224,8 @@ TEST(Defaults, BadVoxelSizeAndBudgetAreRefusedNamingTheFlag) {
   EXPECT_NE(r.output.find("--max-gaussians 10 is below"), std::string::npos) << r.output;
   EXPECT_FALSE(std::filesystem::exists(dir.file("m/model.ag2gs")));
   for (const char* v : {"-0.1", "1", "nan", "abc"}) {
-    const test::CliResult p = test::run_cli("train " + sample_scene() + " -o " + dir.file("m") +
-                                            " --iters 5 --final-prune-opacity " + v);
+    const test::CliResult p =
+        test::run_cli("train " + sample_scene() + " -o " + dir.file("m") + " --iters 5 --final-prune-opacity " + v);
     EXPECT_NE(p.code, 0) << v;
     EXPECT_NE(p.output.find("--final-prune-opacity"), std::string::npos) << p.output;
   }

@@ -136,7 +136,8 @@ Adam::Adam(Runtime& rt, AdamSettings settings) : rt_(rt), settings_(settings), c
   const AdamSettings& s = settings_;
   if (!(s.beta1 >= 0 && s.beta1 < 1) || !(s.beta2 >= 0 && s.beta2 < 1) || !(s.eps > 0))
     throw std::invalid_argument("adam: need 0 <= beta1, beta2 < 1 and eps > 0");
-  wg_ = pick_work_group(rt_, {"adam_step", "adam_step_visible", "adam_step_cols", "count_nonfinite", "count_nonfinite_cols"});
+  wg_ = pick_work_group(
+      rt_, {"adam_step", "adam_step_visible", "adam_step_cols", "count_nonfinite", "count_nonfinite_cols"});
   counter_.fill_zero(sizeof(cl_uint));
 }
 
@@ -191,8 +192,8 @@ void Adam::step_cols(AdamGroup& group, DeviceBuffer& param, const DeviceBuffer& 
   const size_t n = group.rows() * static_cast<size_t>(cols);
   if (n == 0) return;
   cl::Kernel k = rt_.kernel("adam.cl", "adam_step_cols", kNoDefines);
-  set_kernel_args(k, static_cast<cl_ulong>(n), group.row_size(), cols, param, grad, group.exp_avg(),
-                  group.exp_avg_sq(), c.one_minus_beta1, c.beta2, c.one_minus_beta2, c.eps, c.step_size, c.bc2_sqrt);
+  set_kernel_args(k, static_cast<cl_ulong>(n), group.row_size(), cols, param, grad, group.exp_avg(), group.exp_avg_sq(),
+                  c.one_minus_beta1, c.beta2, c.one_minus_beta2, c.eps, c.step_size, c.bc2_sqrt);
   rt_.launch("adam", k, cl::NDRange(n), cl::NDRange(wg_));
 }
 

@@ -3,16 +3,15 @@
 #include <Eigen/Cholesky>
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <map>
 #include <opencv2/imgproc.hpp>
-#include <cstring>
 #include <stdexcept>
 #include <string>
 
 namespace ag2gs {
 
 namespace {
-
 
 // The kernels' camera arguments: rows of R^T (camera -> world) and (fx, fy, cx, cy).
 struct SkyCamera {
@@ -125,8 +124,8 @@ void Sky::backward(const DeviceBuffer& grad_out, const DeviceBuffer& alpha, cons
   if (!same_camera(composed_.args, sc, camera.width, camera.height, composed_.width, composed_.height)) {
     sky_.reserve(npix * 3 * sizeof(float));
     cl::Kernel c = rt_.kernel("sky.cl", "sky_colours", defines());
-    set_kernel_args(c, static_cast<cl_int>(camera.width), static_cast<cl_int>(camera.height), sc.r[0], sc.r[1],
-                    sc.r[2], sc.intr, coef_, sky_);
+    set_kernel_args(c, static_cast<cl_int>(camera.width), static_cast<cl_int>(camera.height), sc.r[0], sc.r[1], sc.r[2],
+                    sc.intr, coef_, sky_);
     rt_.launch("sky_compose", c, cl::NDRange((npix + 63) / 64 * 64), cl::NDRange(64));
     composed_.width = camera.width;
     composed_.height = camera.height;
