@@ -74,21 +74,32 @@ __kernel void adam_step_cols(ulong n, int row_size, int cols,
               eps, step_size, bc2_sqrt);
 }
 
-// Adds the number of NaN/Inf values of v to *count. Each work-item checks
-// NONFINITE_CHUNK values, strided by the group size (coalesced on GPUs);
-// integer atomics make the count exact whatever the order. The exponent test
-// does not depend on the compiler's isfinite under relaxed-math options.
 #define NONFINITE_CHUNK 16
-__kernel void count_nonfinite(ulong n,
-                              __global const float* v,  // [n]
-                              __global uint* count) {   // [1] accumulated
+// Work-item's share: NONFINITE_CHUNK values of the n = rows * cols counted,
+// value i at row i / cols, column i % cols of rows of row_size. The dense
+// kernel passes cols = row_size = 1, which the compiler folds to v[i].
+inline uint nonfinite_chunk(ulong n, uint row_size, uint cols, __global const float* v) {
   const size_t lsize = get_local_size(0);
   const size_t base = get_group_id(0) * lsize * NONFINITE_CHUNK + get_local_id(0);
   uint c = 0;
   for (int k = 0; k < NONFINITE_CHUNK; ++k) {
     const size_t i = base + k * lsize;
-    if (i < n && (as_uint(v[i]) & 0x7f800000u) == 0x7f800000u) ++c;
+    if (i >= n) break;
+    // n < 2^32 where cols < row_size (checked by the host): a 32-bit division.
+    const size_t at = cols == row_size ? i : (size_t)((uint)i / cols) * row_size + (uint)i % cols;
+    if ((as_uint(v[at]) & 0x7f800000u) == 0x7f800000u) ++c;
   }
+  return c;
+}
+
+// Adds the number of NaN/Inf values of v to *count. Each work-item checks
+// NONFINITE_CHUNK values, strided by the group size (coalesced on GPUs);
+// integer atomics make the count exact whatever the order. The exponent test
+// does not depend on the compiler's isfinite under relaxed-math options.
+__kernel void count_nonfinite(ulong n,
+                              __global const float* v,  // [n]
+                              __global uint* count) {   // [1] accumulated
+  const uint c = nonfinite_chunk(n, 1, 1, v);
   if (c != 0) atomic_add(count, c);
 }
 
@@ -97,15 +108,7 @@ __kernel void count_nonfinite(ulong n,
 __kernel void count_nonfinite_cols(ulong n, int row_size, int cols,
                                    __global const float* v,  // [rows, row_size]
                                    __global uint* count) {   // [1] accumulated
-  const size_t lsize = get_local_size(0);
-  const size_t base = get_group_id(0) * lsize * NONFINITE_CHUNK + get_local_id(0);
-  uint c = 0;
-  for (int k = 0; k < NONFINITE_CHUNK; ++k) {
-    const size_t i = base + k * lsize;
-    if (i >= n) break;
-    const uint r = (uint)i / (uint)cols, col = (uint)i - r * (uint)cols;
-    if ((as_uint(v[(size_t)r * row_size + col]) & 0x7f800000u) == 0x7f800000u) ++c;
-  }
+  const uint c = nonfinite_chunk(n, (uint)row_size, (uint)cols, v);
   if (c != 0) atomic_add(count, c);
 }
 
