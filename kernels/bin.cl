@@ -142,11 +142,16 @@ __kernel void radix_scatter(int n, int shift,
 }
 
 // ---------------------------------------------------------------- ranges
+// The blend kernels read ranges as int2, but here start and end of one tile
+// are written by different work-items, so each is written as its own int:
+// a store to one component of an int2 may be compiled as a load and store of
+// the whole pair (NVIDIA's OpenCL does), which loses the other work-item's
+// value.
 __kernel void tile_ranges(int m, __global const uint* sorted_tile_keys,  // [M]
-                          __global int2* ranges) {                      // [tiles], zeroed before
+                          __global int* ranges) {                       // [tiles, 2], zeroed before
   int i = get_global_id(0);
   if (i >= m) return;
   uint t = sorted_tile_keys[i];
-  if (i == 0 || sorted_tile_keys[i - 1] != t) ranges[t].x = i;
-  if (i == m - 1 || sorted_tile_keys[i + 1] != t) ranges[t].y = i + 1;
+  if (i == 0 || sorted_tile_keys[i - 1] != t) ranges[2 * (size_t)t] = i;
+  if (i == m - 1 || sorted_tile_keys[i + 1] != t) ranges[2 * (size_t)t + 1] = i + 1;
 }

@@ -6,9 +6,12 @@
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <regex>
+#include <sstream>
 
 #include "host/device/cl_runtime.h"
 #include "host/device/kernel_source.h"
+#include "tests/test_util.h"
 
 namespace fs = std::filesystem;
 
@@ -144,6 +147,39 @@ TEST(Runtime, BuffersGrowAndTimingsAreRecorded) {
   auto t = rt.take_timings();
   ASSERT_EQ(t.count("iota"), 1u);
   EXPECT_GE(t["iota"], 0.0);
+}
+
+// A store to one component of a vector element of a buffer (ranges[t].x = i)
+// may be compiled as a load and a store of the whole vector; two work-items
+// writing the two halves then lose one of the values. NVIDIA's OpenCL does
+// this (tile_ranges broke every render of more than one tile there), while
+// PoCL and Oclgrind store the component alone, so no run here can catch it:
+// the kernels must not contain the pattern.
+std::vector<std::string> component_stores(const std::string& source) {
+  static const std::regex store(R"((\w+\s*\[[^\]\n]*\])\s*\.\s*(x|y|z|w|s[0-9a-fA-F]+|lo|hi|even|odd)\s*([-+*/|&^]?=)(?!=))");
+  std::vector<std::string> hits;
+  std::istringstream lines(source);
+  std::string line;
+  for (int n = 1; std::getline(lines, line); ++n)
+    if (std::regex_search(line, store)) hits.push_back(std::to_string(n) + ": " + line);
+  return hits;
+}
+
+TEST(KernelSource, NoKernelStoresIntoOneComponentOfABufferVector) {
+  // The check itself: it finds the old tile_ranges store and lets reads,
+  // comparisons and private vectors pass.
+  EXPECT_EQ(component_stores("  if (i == 0) ranges[t].x = i;\n  out[2 * i].s3 += v;").size(), 2u);
+  EXPECT_TRUE(component_stores("  int2 r = ranges[t];\n  r.x = 1;\n  if (ranges[t].x == 0) {}\n").empty());
+  size_t files = 0;
+  for (const auto& entry : fs::directory_iterator(fs::path(test::source_dir()) / "kernels")) {
+    if (entry.path().extension() != ".cl" && entry.path().extension() != ".h") continue;
+    ++files;
+    std::ifstream in(entry.path());
+    std::stringstream text;
+    text << in.rdbuf();
+    for (const auto& hit : component_stores(text.str())) ADD_FAILURE() << entry.path().filename().string() << ":" << hit;
+  }
+  EXPECT_GT(files, 10u);
 }
 
 }  // namespace

@@ -75,6 +75,7 @@ std::vector<DeviceInfo> list_devices() {
       i.max_alloc = d.getInfo<CL_DEVICE_MAX_MEM_ALLOC_SIZE>();
       i.max_work_group = d.getInfo<CL_DEVICE_MAX_WORK_GROUP_SIZE>();
       i.fp64 = d.getInfo<CL_DEVICE_DOUBLE_FP_CONFIG>() != 0;
+      i.correct_div = (d.getInfo<CL_DEVICE_SINGLE_FP_CONFIG>() & CL_FP_CORRECTLY_ROUNDED_DIVIDE_SQRT) != 0;
       i.device = d;
       out.push_back(std::move(i));
     }
@@ -251,6 +252,12 @@ cl::Program Runtime::program(const std::string& file, const std::map<std::string
   header += "#define VW " + std::to_string(vector_width_) + "\n";
   std::string source = header + kernel_source("layout.h") + kernel_source("common.cl") + "\n#line 1\n" + kernel_source(file);
   std::string options = "-cl-std=CL1.2";
+  // OpenCL lets x / y and sqrt be off by a few ulp, and a GPU compiler may
+  // then divide differently in two kernels that share a helper (NVIDIA's
+  // does: the mask loss's G = F / alpha came out with other bits in its
+  // gradient kernel than in its mean). Correct rounding, where the device
+  // offers it, gives every kernel and every such device the same quotient.
+  if (info_.correct_div) options += " -cl-fp32-correctly-rounded-divide-sqrt";
   if (const char* env = std::getenv("AG2GS_CL_OPTIONS"); env) options += std::string(" ") + env;
 
   std::string key = file + "\n" + options + "\n" + info_.platform + "\n" + info_.name + "\n" + info_.driver + "\n" +

@@ -49,6 +49,7 @@ struct DeviceInfo {
   uint64_t global_mem = 0, local_mem = 0, max_alloc = 0;
   size_t max_work_group = 0;
   bool fp64 = false;
+  bool correct_div = false;  // CL_FP_CORRECTLY_ROUNDED_DIVIDE_SQRT: kernels build with it (same bits in every kernel)
   cl::Device device;
 };
 
