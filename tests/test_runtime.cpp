@@ -156,7 +156,8 @@ TEST(Runtime, BuffersGrowAndTimingsAreRecorded) {
 // PoCL and Oclgrind store the component alone, so no run here can catch it:
 // the kernels must not contain the pattern.
 std::vector<std::string> component_stores(const std::string& source) {
-  static const std::regex store(R"((\w+\s*\[[^\]\n]*\])\s*\.\s*(x|y|z|w|s[0-9a-fA-F]+|lo|hi|even|odd)\s*([-+*/|&^]?=)(?!=))");
+  static const std::regex store(
+      R"((\w+\s*\[[^\]\n]*\])\s*\.\s*(x|y|z|w|s[0-9a-fA-F]+|lo|hi|even|odd)\s*([-+*/|&^]?=)(?!=))");
   std::vector<std::string> hits;
   std::istringstream lines(source);
   std::string line;
@@ -177,7 +178,8 @@ TEST(KernelSource, NoKernelStoresIntoOneComponentOfABufferVector) {
     std::ifstream in(entry.path());
     std::stringstream text;
     text << in.rdbuf();
-    for (const auto& hit : component_stores(text.str())) ADD_FAILURE() << entry.path().filename().string() << ":" << hit;
+    for (const auto& hit : component_stores(text.str()))
+      ADD_FAILURE() << entry.path().filename().string() << ":" << hit;
   }
   EXPECT_GT(files, 10u);
 }
