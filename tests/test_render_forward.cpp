@@ -109,5 +109,42 @@ TEST(RenderForward, WithoutFeaturesSameImageZeroFeatures) {
   EXPECT_THROW(r.render_backward(og), std::logic_error);
 }
 
+// The radix sort's block (keys per work-item: 4096 on CPUs, 256 on GPUs)
+// sets only its parallelism: a stable sort has one result, so every block
+// gives the same pictures and gradients, bit for bit, a partial last block
+// and a single block included.
+TEST(RenderForward, RadixBlockChangesNoBit) {
+  test::SceneSpec spec;
+  spec.n = 12000;
+  GaussianSet g = test::random_scene(spec, 23);
+  Camera cam = test::look_at_origin(333, 250);
+  auto run = [&](const char* block, RenderOutput* out, std::vector<float>* grad_means) {
+    setenv("AG2GS_RADIX_BLOCK", block, 1);
+    Renderer r(test::runtime());
+    unsetenv("AG2GS_RADIX_BLOCK");
+    *out = r.render(g, cam, RenderSettings{});
+    OutputGrads og;
+    og.rgb.assign(out->rgb.size(), 0.f);
+    for (size_t i = 0; i < og.rgb.size(); ++i) og.rgb[i] = static_cast<float>((i * 7919) % 13) / 13.f - 0.5f;
+    *grad_means = r.render_backward(og).means;
+  };
+  RenderOutput ref, other;
+  std::vector<float> ref_grad, grad;
+  run("4096", &ref, &ref_grad);
+  for (const char* block : {"256", "33", "65536"}) {
+    run(block, &other, &grad);
+    EXPECT_TRUE(ref.rgb == other.rgb) << "block " << block;
+    EXPECT_TRUE(ref.alpha == other.alpha) << "block " << block;
+    EXPECT_TRUE(ref.depth == other.depth) << "block " << block;
+    EXPECT_TRUE(ref.n_contrib == other.n_contrib) << "block " << block;
+    EXPECT_TRUE(ref_grad == grad) << "block " << block;
+  }
+  setenv("AG2GS_RADIX_BLOCK", "0", 1);
+  EXPECT_THROW(Renderer{test::runtime()}, std::invalid_argument);
+  setenv("AG2GS_RADIX_BLOCK", "64k", 1);
+  EXPECT_THROW(Renderer{test::runtime()}, std::invalid_argument);
+  unsetenv("AG2GS_RADIX_BLOCK");
+}
+
 }  // namespace
 }  // namespace ag2gs

@@ -127,6 +127,8 @@ class Renderer {
  private:
   void sort_pairs(DeviceBuffer*& keys, DeviceBuffer*& vals, DeviceBuffer*& keys_tmp, DeviceBuffer*& vals_tmp, size_t n,
                   int bits);
+  // SCAN_BLOCK and RADIX_BLOCK for kernels/bin.cl.
+  std::map<std::string, std::string> bin_defines() const;
   void upload_plane(DeviceBuffer& buf, const std::vector<float>& host_hwc, int channels, const char* what);
   // Which upstream gradients were given (the others are zero buffers): the
   // CPU blend kernel leaves the terms of absent ones out.
@@ -138,6 +140,7 @@ class Renderer {
                      const DeviceBuffer& g_alpha, const DeviceBuffer& g_dist, const GradsPresent& present);
 
   Runtime& rt_;
+  int radix_block_;  // keys per radix-sort work-item (radix_block_for in renderer.cpp)
   std::unique_ptr<DeviceGaussians> owned_;  // for render()
   const DeviceGaussians* gaussians_ = nullptr;
   Camera cam_;
