@@ -14,6 +14,9 @@
 // Units: the box [0, 1]^3, GRID cells per side, dx = 1 / GRID, +z up.
 
 #define MPM_BOUND 3      // cells of wall at each side of the box
+#ifndef GROUND_BAND
+#define GROUND_BAND 2.0f
+#endif
 #define MAT_SIZE 12      // per material: kind, mu, lambda, yield, alpha, softening, force (3), unused (3)
 #define PD_SIZE 16       // per sorted particle: x (3), mass, momentum (3), affine Q (9)
 
@@ -277,10 +280,10 @@ __kernel void mpm_grid(int n_active, int grid, float dt, float dx, float inv_dx,
     if (node.x > grid - MPM_BOUND && vel.x > 0.f) vel.x = 0.f;
     if (node.y > grid - MPM_BOUND && vel.y > 0.f) vel.y = 0.f;
     if (node.z > grid - MPM_BOUND && vel.z > 0.f) vel.z = 0.f;
-    // The ground: nodes at or below it stop moving down (they may leave it),
-    // and Coulomb friction takes up to friction x the normal speed lost off
-    // their sliding speed.
-    if (ground >= 0.f && (float)node.z * dx <= ground && vel.z < 0.f) {
+    // The ground: nodes up to GROUND_BAND cells above it stop moving down
+    // (they may leave it), and Coulomb friction takes up to friction x the
+    // normal speed lost off their sliding speed.
+    if (ground >= 0.f && (float)node.z * dx <= ground + GROUND_BAND * dx && vel.z < 0.f) {
       const float vt = sqrt(vel.x * vel.x + vel.y * vel.y);
       const float keep = vt > 0.f ? fmax(1.f + friction * vel.z / vt, 0.f) : 0.f;
       vel.x *= keep;

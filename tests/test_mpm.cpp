@@ -134,7 +134,7 @@ void ref_step(MpmParticles& p, const MpmConfig& cfg, const std::vector<MpmMateri
           if (nd[a] < 3 && v(a) < 0) v(a) = 0;
           if (nd[a] > g - 3 && v(a) > 0) v(a) = 0;
         }
-        if (cfg.ground >= 0 && k * dx <= cfg.ground && v(2) < 0) {
+        if (cfg.ground >= 0 && k * dx <= cfg.ground + 1.5 * dx && v(2) < 0) {
           const double vt = std::hypot(v(0), v(1));
           const double keep = vt > 0 ? std::max(1 + cfg.friction * v(2) / vt, 0.0) : 0.0;
           v(0) *= keep;
@@ -471,19 +471,23 @@ std::pair<double, double> sand_pile(double friction_deg) {
 }
 
 TEST(Mpm, ASandColumnCollapsesToAPileThatFollowsItsFrictionAngle) {
-  // Measured at grid 48: flanks of 16.8 and 20.3 degrees for friction angles
-  // of 30 and 40 (19.5 for 30 at grid 64): the pile rests, steeper for more
-  // friction, but below the friction angle (the deposit of a collapsing
-  // column is flatter than a pile poured slowly, and the grid smooths the
-  // flank). Bounds: between a third of the friction angle and the angle
-  // itself, and at least 2 degrees steeper for 40 than for 30.
+  // Measured at grid 48 (the ground holding the nodes within 1.5 cells):
+  // flanks of 22.5 and 30.2 degrees for friction angles of 30 and 40, the
+  // summit at 0.104 and 0.111 of the column's 0.12. The pile rests, steeper
+  // for more friction, still below the friction angle (a collapsing column's
+  // deposit is flatter than a pile poured slowly, and the grid smooths the
+  // flank). With the ground holding only the nodes at or below it the sand
+  // slid on it: 16.8 and 20.3 degrees, the summit at half the column. Bounds:
+  // between 70% of the friction angle and the angle itself, and at least 5
+  // degrees steeper for 40 than for 30.
   const auto [a30, k30] = sand_pile(30);
   const auto [a40, k40] = sand_pile(40);
   EXPECT_LT(k30, 1e-3) << "still moving";
   EXPECT_LT(k40, 1e-3) << "still moving";
-  EXPECT_GT(a30, 10.0);
+  EXPECT_GT(a30, 0.7 * 30);
   EXPECT_LT(a30, 30.0);
-  EXPECT_GT(a40, a30 + 2.0);
+  EXPECT_GT(a40, a30 + 5.0);
+  EXPECT_GT(a40, 0.7 * 40);
   EXPECT_LT(a40, 40.0);
 }
 
