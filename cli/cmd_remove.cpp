@@ -52,6 +52,7 @@ struct RemoveArgs {
   bool clear_stray = true;
   std::string tune_targets = "inpainted";
   float stray_colour = 0.2f;
+  int stray_reach = 3;
   FillSettings fill;
   int resolution = 0;  // 0 = the model's training -r
   uint64_t seed = 1;
@@ -203,10 +204,11 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
     // Children of kept anchors that show the object go with it (opacity 0).
     AnchorModel cleaned = model;
     std::vector<size_t> strays;
-    if (a.clear_stray) strays = stray_children(model, in_sel, a.stray_colour);
+    if (a.clear_stray) strays = stray_children(model, in_sel, a.stray_colour, a.stray_reach);
     for (size_t g : strays) cleaned.opacity_logit()[g] = kClearedLogit;
     if (!strays.empty())
-      spdlog::info("{} children of kept anchors sit in the object's voxels with its colour: cleared", strays.size());
+      spdlog::info("{} children of kept anchors sit among the object's Gaussians with its colour: cleared",
+                   strays.size());
     const GaussianSet removed = gaussians_of_anchors(model, sh_degree, in_sel, true);
     const GaussianSet kept = gaussians_of_anchors(cleaned, sh_degree, in_sel, false);
     HoleFinder holes(kept, removed);
@@ -407,6 +409,7 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
                       {"start_opacity", a.fill.opacity},
                       {"max_alpha", a.fill.max_alpha},
                       {"stray_colour", a.clear_stray ? nlohmann::json(a.stray_colour) : nlohmann::json(nullptr)},
+                      {"stray_reach", a.clear_stray ? nlohmann::json(a.stray_reach) : nlohmann::json(nullptr)},
                       {"tune_targets", a.tune_targets},
                       {"final_target_psnr", final_psnr}};
     report["holes"] = {{"object_weight", a.holes.object_weight},
@@ -470,12 +473,16 @@ void register_remove(CLI::App& app, GlobalOptions& global) {
                 "Kept anchors within this many of their voxel edges of the holes' 3D footprint are fine-tuned "
                 "with the fill (default 1.5; 0: the fill alone)");
   r->add_flag("!--keep-stray", a->clear_stray,
-              "Keep the children of kept anchors that sit in the object's voxels with its colour (by default they "
-              "are cleared with it)");
+              "Keep the children of kept anchors that sit among the object's Gaussians with its colour (by default "
+              "they are cleared with it)");
   r->add_option("--stray-colour", a->stray_colour,
-                "A kept child in the object's voxels is the object's when its colour is within this of the "
-                "object's there (mean absolute difference, 0..1; default 0.2)")
+                "A kept child near the object's Gaussians is the object's when its colour is within this of theirs "
+                "(mean absolute difference, 0..1) and nearer to it than to the kept Gaussians' there (default 0.2)")
       ->check(finite_range(0.0, 1.0));
+  r->add_option("--stray-reach", a->stray_reach,
+                "How near: finest-layer voxels within this many of a kept child's own along each axis (default 3; 0: "
+                "its own voxel)")
+      ->check(CLI::Range(0, 16));
   r->add_option("--tune-targets", a->tune_targets,
                 "What the fine-tune fits inside the holes: inpainted (the targets/ images) or fill (the filled "
                 "model's own render, so only the seams around the holes move)")

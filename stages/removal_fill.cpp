@@ -229,38 +229,61 @@ FillResult add_fill_anchors(AnchorModel& model, const HoleFootprint& footprint, 
 }
 
 // ------------------------------------------------------------------ stray children
-std::vector<size_t> stray_children(const AnchorModel& model, const std::vector<uint8_t>& selected, float max_colour) {
+std::vector<size_t> stray_children(const AnchorModel& model, const std::vector<uint8_t>& selected, float max_colour,
+                                   int reach) {
   if (selected.size() != model.size())
     throw std::invalid_argument("stray_children: " + std::to_string(selected.size()) + " flags for " +
                                 std::to_string(model.size()) + " anchors");
+  if (reach < 0 || reach > 16) throw std::invalid_argument("stray_children: reach must be in 0..16 voxels");
   const GaussianSet g = expand_reference(model, 0);
   const int K = model.children();
   const int finest = model.grid().layers - 1;
   const size_t coeffs = static_cast<size_t>(g.sh_coeffs()) * 3;
-  auto key_of = [&](size_t i) {
-    const Eigen::Vector3d m(g.means[3 * i], g.means[3 * i + 1], g.means[3 * i + 2]);
-    return anchor_voxel_key(finest, model.grid().cell_of(finest, m));
+  auto cell_of = [&](size_t i) {
+    return model.grid().cell_of(finest, Eigen::Vector3d(g.means[3 * i], g.means[3 * i + 1], g.means[3 * i + 2]));
   };
   auto colour = [&](size_t i, int c) { return 0.5 + kShC0 * g.sh[i * coeffs + c]; };
+  auto visible = [&](size_t i) { return g.opacities[i] >= kStrayMinOpacity; };
   struct Sum {
     double c[3] = {0, 0, 0};
     size_t n = 0;
+    void add(const Sum& o) {
+      for (int k = 0; k < 3; ++k) c[k] += o.c[k];
+      n += o.n;
+    }
   };
-  std::map<uint64_t, Sum> removed;
+  // Colour sums of the visible Gaussians per finest voxel, removed and kept apart.
+  std::map<uint64_t, Sum> removed, kept;
   for (size_t i = 0; i < g.size(); ++i) {
-    if (!selected[i / K]) continue;
-    Sum& s = removed[key_of(i)];
+    if (!visible(i)) continue;
+    Sum& s = (selected[i / K] ? removed : kept)[anchor_voxel_key(finest, cell_of(i))];
     for (int c = 0; c < 3; ++c) s.c[c] += colour(i, c);
     ++s.n;
   }
+  auto mean_abs = [&](size_t i, const Sum& s) {
+    double d = 0;
+    for (int c = 0; c < 3; ++c) d += std::abs(colour(i, c) - s.c[c] / static_cast<double>(s.n));
+    return d / 3;
+  };
   std::vector<size_t> out;
   for (size_t i = 0; i < g.size(); ++i) {
-    if (selected[i / K]) continue;
-    auto it = removed.find(key_of(i));
-    if (it == removed.end()) continue;
-    double d = 0;
-    for (int c = 0; c < 3; ++c) d += std::abs(colour(i, c) - it->second.c[c] / it->second.n);
-    if (d / 3 <= max_colour) out.push_back(i);
+    if (selected[i / K] || !visible(i)) continue;
+    const Eigen::Vector3i c0 = cell_of(i);
+    Sum near_removed, near_kept;
+    for (int dx = -reach; dx <= reach; ++dx)
+      for (int dy = -reach; dy <= reach; ++dy)
+        for (int dz = -reach; dz <= reach; ++dz) {
+          const uint64_t key = anchor_voxel_key(finest, c0 + Eigen::Vector3i(dx, dy, dz));
+          if (auto it = removed.find(key); it != removed.end()) near_removed.add(it->second);
+          if (auto it = kept.find(key); it != kept.end()) near_kept.add(it->second);
+        }
+    if (near_removed.n == 0) continue;
+    for (int c = 0; c < 3; ++c) near_kept.c[c] -= colour(i, c);  // the others, not itself
+    --near_kept.n;
+    const double to_removed = mean_abs(i, near_removed);
+    if (to_removed > max_colour) continue;
+    if (near_kept.n > 0 && !(to_removed < mean_abs(i, near_kept))) continue;
+    out.push_back(i);
   }
   return out;
 }

@@ -105,13 +105,19 @@ FillResult add_fill_anchors(AnchorModel& model, const HoleFootprint& footprint, 
 
 // Children of kept anchors that belong to the removed object: an anchor
 // the selection kept can hold a child that sits in the object's surface
-// and shows its colour (the anchor's voxel straddles the two). A kept child
-// is stray when a removed Gaussian's mean lies in its voxel of the finest
-// layer and its colour (SH DC) is within `max_colour` (mean absolute, 0..1)
-// of the removed Gaussians' mean colour there. Returns the child rows of
-// `model` ([A*K] ids, ascending); `selected`: [A] 1 = removed anchor.
+// and shows its colour (its voxel straddles the two, and its one feature is
+// the other surface's). A visible kept child (opacity >= kStrayMinOpacity)
+// is stray when, over the finest-layer voxels within `reach` voxels of its
+// own along each axis, visible removed Gaussians lie there, its colour (SH
+// DC) is within `max_colour` (mean absolute, 0..1) of their mean colour, and
+// nearer to it than to the mean colour of the other visible kept Gaussians
+// there (so a child among kept Gaussians of its own colour stays, however
+// near the object: two touching mugs of close colours). Returns the child
+// rows of `model` ([A*K] ids, ascending); `selected`: [A] 1 = removed
+// anchor; reach in 0..16.
+inline constexpr float kStrayMinOpacity = 0.05f;
 std::vector<size_t> stray_children(const AnchorModel& model, const std::vector<uint8_t>& selected,
-                                   float max_colour = 0.2f);
+                                   float max_colour = 0.2f, int reach = 3);
 
 struct FineTuneConfig {
   int iterations = 300;

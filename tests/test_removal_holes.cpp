@@ -305,8 +305,10 @@ TEST(RemovalFill, FootprintIsTheBaseOnTheFloorAndTheFillGoesThere) {
 }
 
 // A kept child in a removed Gaussian's voxel with its colour is stray; one
-// there with another colour, or elsewhere with the same colour, is not.
-TEST(RemovalFill, StrayChildrenAreThoseInTheObjectsVoxelsWithItsColour) {
+// there with another colour, or elsewhere with the same colour, is not; nor
+// is one whose colour is nearer to the kept Gaussians around it. With a
+// reach of one voxel, children next to the object's voxel count too.
+TEST(RemovalFill, StrayChildrenAreThoseAmongTheObjectsGaussiansWithItsColour) {
   AnchorConfig config;
   config.children = 2;
   config.layers = 1;
@@ -318,7 +320,8 @@ TEST(RemovalFill, StrayChildrenAreThoseInTheObjectsVoxelsWithItsColour) {
   const int a = m.add_anchor(0, Eigen::Vector3i(0, 0, 0), -1, 1);  // removed
   const int b = m.add_anchor(0, Eigen::Vector3i(1, 0, 0), -1, 1);  // kept, child 0 reaches into a's voxel
   const int c = m.add_anchor(0, Eigen::Vector3i(0, 1, 0), -1, 1);  // kept, child 0 too, another colour
-  ASSERT_TRUE(a == 0 && b == 1 && c == 2);
+  const int d = m.add_anchor(0, Eigen::Vector3i(3, 0, 0), -1, 1);  // kept, far: 3 voxels from a
+  ASSERT_TRUE(a == 0 && b == 1 && c == 2 && d == 3);
   auto set_child = [&](int anchor, int child, Eigen::Vector3f offset, float grey) {
     const size_t g = static_cast<size_t>(anchor) * 2 + child;
     for (int k = 0; k < 3; ++k) {
@@ -329,15 +332,29 @@ TEST(RemovalFill, StrayChildrenAreThoseInTheObjectsVoxelsWithItsColour) {
   set_child(a, 0, {0.f, 0.f, 0.f}, 0.8f);
   set_child(a, 1, {0.2f, 0.f, 0.f}, 0.8f);
   set_child(b, 0, {-1.f, 0.f, 0.f}, 0.7f);  // in a's voxel, 0.1 off its colour: stray
-  set_child(b, 1, {0.f, 0.f, 0.f}, 0.8f);   // a's colour, its own voxel: kept
+  set_child(b, 1, {0.f, 0.f, 0.f}, 0.8f);   // a's colour in the next voxel: stray from reach 1
   set_child(c, 0, {0.f, -1.f, 0.f}, 0.2f);  // in a's voxel, another colour: kept
-  set_child(c, 1, {0.f, 0.f, 0.f}, 0.8f);
-  const std::vector<uint8_t> selected = {1, 0, 0};
-  EXPECT_EQ(stray_children(m, selected), std::vector<size_t>({2}));
-  EXPECT_TRUE(stray_children(m, selected, 0.05f).empty());
-  EXPECT_EQ(stray_children(m, selected, 0.7f), std::vector<size_t>({2, 4}));
-  EXPECT_TRUE(stray_children(m, {0, 0, 0}).empty());
+  set_child(c, 1, {0.f, 0.f, 0.f}, 0.2f);   // next to a's voxel, c's colour: kept
+  set_child(d, 0, {0.f, 0.f, 0.f}, 0.8f);   // a's colour, 3 voxels away: kept up to reach 2
+  set_child(d, 1, {0.f, 0.f, 0.f}, 0.8f);
+  const std::vector<uint8_t> selected = {1, 0, 0, 0};
+  EXPECT_EQ(stray_children(m, selected, 0.2f, 0), std::vector<size_t>({2}));
+  EXPECT_TRUE(stray_children(m, selected, 0.05f, 0).empty());
+  // Within 0.7, c's child 0 (0.2) is 0.6 from the object's 0.8 but 0.5 from
+  // the kept 0.7 beside it: it stays.
+  EXPECT_EQ(stray_children(m, selected, 0.7f, 0), std::vector<size_t>({2}));
+  // Reach 1: b's child 1 (0.8) is 0 from the object and 0.3 from the others
+  // near it (0.7, 0.2, 0.2: mean 0.37); c's children stay (0.2 is nearer to
+  // the others' mean). d's children, 3 voxels off, come in at reach 3.
+  EXPECT_EQ(stray_children(m, selected, 0.2f, 1), std::vector<size_t>({2, 3}));
+  EXPECT_EQ(stray_children(m, selected, 0.2f, 3), std::vector<size_t>({2, 3, 6, 7}));
+  // Transparent children neither count nor are cleared.
+  AnchorModel faded = m;
+  for (int k = 0; k < 2; ++k) faded.opacity_logit()[2 + k] = -10.f;  // b's children
+  EXPECT_TRUE(stray_children(faded, selected, 0.2f, 0).empty());
+  EXPECT_TRUE(stray_children(m, {0, 0, 0, 0}).empty());
   EXPECT_THROW(stray_children(m, {1, 0}), std::invalid_argument);
+  EXPECT_THROW(stray_children(m, selected, 0.2f, -1), std::invalid_argument);
 }
 
 }  // namespace
