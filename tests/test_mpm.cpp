@@ -422,28 +422,38 @@ TEST(Mpm, AStiffCubeKeepsItsShapeOnTheGround) {
 // (the upper envelope of the particles against the distance from the axis,
 // fitted where the pile stands between 20% and 80% of its height) and the
 // kinetic energy left after 0.75 s.
-std::pair<double, double> sand_pile(double friction_deg) {
-  MpmConfig cfg;
-  cfg.grid = 48;
-  cfg.ground = 0.1;
-  cfg.friction = 1.0;
+// Sand (E 1e5, nu 0.3, density 1600) filling the box [lo, hi) on the ground
+// at lo.z, 8 particles a cell, simulated for `seconds` in equal substeps no
+// longer than the solver's stable dt. Returns the particles before and after.
+std::pair<MpmParticles, MpmParticles> run_sand(const MpmConfig& cfg, double friction_deg, const Vector3d& lo,
+                                               const Vector3d& hi, double seconds) {
   std::vector<MpmMaterial> mats = one_material(MaterialKind::kSand, 1e5, 0.3);
   mats[0].friction_deg = friction_deg;
   mats[0].density = 1600;
   MpmParticles p;
   const double dx = 1.0 / cfg.grid;
-  for (double x = 0.4; x < 0.6; x += dx / 2)
-    for (double y = 0.4; y < 0.6; y += dx / 2)
-      for (double z = 0.1 + dx / 4; z < 0.22; z += dx / 2)
+  for (double x = lo.x(); x < hi.x(); x += dx / 2)
+    for (double y = lo.y(); y < hi.y(); y += dx / 2)
+      for (double z = lo.z() + dx / 4; z < hi.z(); z += dx / 2)
         p.add({static_cast<float>(x + dx / 4), static_cast<float>(y + dx / 4), static_cast<float>(z)},
               static_cast<float>(dx * dx * dx / 8), 0, 1600);
   MpmSolver solver(runtime(), cfg, mats);
   solver.upload(p);
-  const int steps = static_cast<int>(std::ceil(0.75 / solver.max_stable_dt(3)));
-  for (int s = 0; s < steps; ++s) solver.step(0.75 / steps, true);
+  const int steps = static_cast<int>(std::ceil(seconds / solver.max_stable_dt(3)));
+  for (int s = 0; s < steps; ++s) solver.step(seconds / steps, true);
   MpmParticles q;
   solver.download(q);
   EXPECT_TRUE(diagnose(q, dx).finite);
+  return {std::move(p), std::move(q)};
+}
+
+std::pair<double, double> sand_pile(double friction_deg) {
+  MpmConfig cfg;
+  cfg.grid = 48;
+  cfg.ground = 0.1;
+  cfg.friction = 1.0;
+  const double dx = 1.0 / cfg.grid;
+  const MpmParticles q = run_sand(cfg, friction_deg, Vector3d(0.4, 0.4, 0.1), Vector3d(0.6, 0.6, 0.22), 0.75).second;
   std::vector<double> top(60, -1);
   for (size_t i = 0; i < q.size(); ++i) {
     const double r = std::hypot(q.x[3 * i] - 0.5, q.x[3 * i + 1] - 0.5), z = q.x[3 * i + 2] - cfg.ground;
@@ -504,23 +514,7 @@ std::pair<double, double> tilted_layer(double friction_deg, double tilt_deg) {
   cfg.friction = 2.0;
   const double t = tilt_deg * M_PI / 180;
   cfg.gravity = {9.8 * std::sin(t), 0.0, -9.8 * std::cos(t)};
-  std::vector<MpmMaterial> mats = one_material(MaterialKind::kSand, 1e5, 0.3);
-  mats[0].friction_deg = friction_deg;
-  mats[0].density = 1600;
-  MpmParticles p;
-  const double dx = 1.0 / cfg.grid;
-  for (double x = 0.15; x < 0.85; x += dx / 2)
-    for (double y = 0.3; y < 0.7; y += dx / 2)
-      for (double z = 0.1 + dx / 4; z < 0.2; z += dx / 2)
-        p.add({static_cast<float>(x + dx / 4), static_cast<float>(y + dx / 4), static_cast<float>(z)},
-              static_cast<float>(dx * dx * dx / 8), 0, 1600);
-  MpmSolver solver(runtime(), cfg, mats);
-  solver.upload(p);
-  const int steps = static_cast<int>(std::ceil(0.4 / solver.max_stable_dt(3)));
-  for (int s = 0; s < steps; ++s) solver.step(0.4 / steps, true);
-  MpmParticles q;
-  solver.download(q);
-  EXPECT_TRUE(diagnose(q, dx).finite);
+  const auto [p, q] = run_sand(cfg, friction_deg, Vector3d(0.15, 0.3, 0.1), Vector3d(0.85, 0.7, 0.2), 0.4);
   double moved = 0, speed = 0;
   int n = 0;
   for (size_t i = 0; i < q.size(); ++i)
