@@ -326,6 +326,7 @@ TEST(Remove, BadInputIsRefusedBeforeAnythingIsWritten) {
       {"--selection " + sel.string() + " --fill-opacity 1", "opacity must be in (0, 1)"},
       {"--selection " + sel.string() + " --tune-targets lama", "--tune-targets"},
       {"--selection " + sel.string() + " --inpaint lama", "expected telea, ns or none"},
+      {"--selection " + sel.string() + " --stray-reach 17", "--stray-reach"},
       {"--text thing --vocab " + vocab, "no clusters/language features"},
       {"", "give exactly one query"},
       {"--selection " + sel.string() + " --view view_001 --click 3,4", "not both"},
