@@ -454,7 +454,8 @@ void register_remove(CLI::App& app, GlobalOptions& global) {
   r->add_option("--inpainted", a->inpainted,
                 "Folder of targets from an external inpainter: <view stem>.png per training view, at the size the "
                 "view is rendered at (used as they are)");
-  r->add_option("--dilate", a->holes.dilate, "Grow each hole by this many pixels (default 2)")
+  r->add_option("--dilate", a->holes.dilate,
+                "Grow each hole by this many pixels (default 5: the object's blurred rim and contact shadow)")
       ->check(CLI::Range(0, 64));
   r->add_option("--iters", a->iters,
                 "Fine-tune the fill and the anchors near it for N iterations against the photos outside the object "

@@ -26,8 +26,9 @@ struct HoleSettings {
   // through unseen ground).
   float behind = 2.0f;
   // Dilation of the hole mask in pixels (a 3x3 cross per step), so the fill
-  // covers the object's blurred rim.
-  int dilate = 2;
+  // covers the object's blurred rim and its contact shadow (5: measured on
+  // the removal benchmark, docs/benchmarks.md).
+  int dilate = 5;
 
   // Throws std::invalid_argument naming the field.
   void validate() const;
