@@ -417,11 +417,6 @@ TEST(Mpm, AStiffCubeKeepsItsShapeOnTheGround) {
   EXPECT_LT(std::hypot(c1[0] - c0[0], c1[1] - c0[1], c1[2] - c0[2]), 0.25 * dx);
 }
 
-// A square column of sand (Drucker-Prager) 0.12 high and 0.2 wide on a rough
-// ground collapses into a pile; returns the slope in degrees of its flank
-// (the upper envelope of the particles against the distance from the axis,
-// fitted where the pile stands between 20% and 80% of its height) and the
-// kinetic energy left after 0.75 s.
 // Sand (E 1e5, nu 0.3, density 1600) filling the box [lo, hi) on the ground
 // at lo.z, 8 particles a cell, simulated for `seconds` in equal substeps no
 // longer than the solver's stable dt. Returns the particles before and after.
@@ -447,6 +442,11 @@ std::pair<MpmParticles, MpmParticles> run_sand(const MpmConfig& cfg, double fric
   return {std::move(p), std::move(q)};
 }
 
+// A square column of sand (Drucker-Prager) 0.12 high and 0.2 wide on a rough
+// ground collapses into a pile; returns the slope in degrees of its flank
+// (the upper envelope of the particles against the distance from the axis,
+// fitted where the pile stands between 20% and 80% of its height) and the
+// kinetic energy left after 0.75 s.
 std::pair<double, double> sand_pile(double friction_deg) {
   MpmConfig cfg;
   cfg.grid = 48;
