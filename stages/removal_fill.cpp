@@ -265,19 +265,26 @@ std::vector<size_t> stray_children(const AnchorModel& model, const std::vector<u
     for (int c = 0; c < 3; ++c) d += std::abs(colour(i, c) - s.c[c] / static_cast<double>(s.n));
     return d / 3;
   };
-  std::vector<size_t> out;
-  for (size_t i = 0; i < g.size(); ++i) {
-    if (selected[i / K] || !visible(i)) continue;
-    const Eigen::Vector3i c0 = cell_of(i);
-    Sum near_removed, near_kept;
+  // The sums over a voxel's neighbourhood, once per voxel: its children share them.
+  std::map<uint64_t, std::pair<Sum, Sum>> hoods;
+  auto hood_of = [&](const Eigen::Vector3i& c0) -> const std::pair<Sum, Sum>& {
+    auto [it, fresh] = hoods.try_emplace(anchor_voxel_key(finest, c0));
+    if (!fresh) return it->second;
     for (int dx = -reach; dx <= reach; ++dx)
       for (int dy = -reach; dy <= reach; ++dy)
         for (int dz = -reach; dz <= reach; ++dz) {
           const uint64_t key = anchor_voxel_key(finest, c0 + Eigen::Vector3i(dx, dy, dz));
-          if (auto it = removed.find(key); it != removed.end()) near_removed.add(it->second);
-          if (auto it = kept.find(key); it != kept.end()) near_kept.add(it->second);
+          if (auto r = removed.find(key); r != removed.end()) it->second.first.add(r->second);
+          if (auto k = kept.find(key); k != kept.end()) it->second.second.add(k->second);
         }
+    return it->second;
+  };
+  std::vector<size_t> out;
+  for (size_t i = 0; i < g.size(); ++i) {
+    if (selected[i / K] || !visible(i)) continue;
+    const auto& [near_removed, hood_kept] = hood_of(cell_of(i));
     if (near_removed.n == 0) continue;
+    Sum near_kept = hood_kept;
     for (int c = 0; c < 3; ++c) near_kept.c[c] -= colour(i, c);  // the others, not itself
     --near_kept.n;
     const double to_removed = mean_abs(i, near_removed);
