@@ -251,8 +251,9 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
                                                        : "");
   if (c.downscales > 0)
     spdlog::info(
-        "coarse to fine: images / {} at first, resolution doubled every {} iterations (full from iteration {}{})",
-        1 << c.downscales, c.res_schedule, c.downscales * c.res_schedule,
+        "coarse to fine: images / {} at first, resolution doubled every {} iterations (full from iteration {}; "
+        "low-pass {:.3g} px^2 at the coarsest level{})",
+        1 << c.downscales, c.res_schedule, c.downscales * c.res_schedule, c.lowpass_at_level(c.downscales),
         scene->semantics() != SemanticsKind::none ? "; mask-loss iterations always full" : "");
   if (c.grow_every > 0 && c.grow_from <= c.effective_grow_until()) {
     const GrowthConfig g = c.growth_config(scene->train_views().size());
@@ -461,9 +462,13 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                   "as --preset paper; mask-loss iterations and stage 2 always at full resolution)")
       ->check(CLI::Range(-1, 6));
   sub->add_option("--res-schedule", c.res_schedule,
-                  "Iterations per resolution doubling with --downscales (default 0: iters / (2 x levels), at most "
-                  "3000, so full resolution by the middle of the run)")
+                  "Iterations per resolution doubling with --downscales (default 0: 0.85 x iters / levels, at most "
+                  "3000, so full resolution for the last 15% of the run)")
       ->check(CLI::Range(0, 100000000));
+  sub->add_option("--coarse-lowpass", c.coarse_lowpass,
+                  "At the coarse levels of --downscales, the screen-space low-pass is 0.3 px^2 x F^level of the "
+                  "downscaled image (default 0.5; 1 = 0.3 coarse px at every level, 0.25 = 0.3 full-resolution px)")
+      ->check(finite_range(1e-6, 1.0));
   sub->add_option("--w-is", c.w_is,
                   "Weight of the mask-internal loss L_is on the rendered features (default 0.1; scenes with masks)")
       ->check(non_negative_number());

@@ -223,9 +223,9 @@ inline int ewa_project(__constant const float* cam, float3 mean, float3 scale, f
     JS0[k] = o->J[0] * S[k] + o->J[1] * S[3 + k] + o->J[2] * S[6 + k];
     JS1[k] = o->J[3] * S[k] + o->J[4] * S[3 + k] + o->J[5] * S[6 + k];
   }
-  o->a = JS0[0] * o->J[0] + JS0[1] * o->J[1] + JS0[2] * o->J[2] + 0.3f;
+  o->a = JS0[0] * o->J[0] + JS0[1] * o->J[1] + JS0[2] * o->J[2] + cam[CAM_LOWPASS];
   o->b = JS0[0] * o->J[3] + JS0[1] * o->J[4] + JS0[2] * o->J[5];
-  o->c = JS1[0] * o->J[3] + JS1[1] * o->J[4] + JS1[2] * o->J[5] + 0.3f;
+  o->c = JS1[0] * o->J[3] + JS1[1] * o->J[4] + JS1[2] * o->J[5] + cam[CAM_LOWPASS];
   return 1;
 }
 

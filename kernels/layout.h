@@ -58,6 +58,7 @@
 #define CAM_DNEAR 22   // distortion depth mapping: near and far
 #define CAM_DFAR 23
 #define CAM_BG 24      // [3] background colour
+#define CAM_LOWPASS 27 // screen-space low-pass added to the 2D covariance (px^2)
 #define CAM_SIZE 32
 
 #endif  // AG2GS_KERNELS_LAYOUT_H

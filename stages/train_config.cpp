@@ -41,6 +41,7 @@ void TrainConfig::validate() const {
   if (downscales < -1 || downscales > 6)
     bad("downscales is " + std::to_string(downscales) + "; use -1 (from the images), 0 (off) or 1 to 6");
   if (res_schedule < 0) bad("res_schedule must be 0 (from the iterations) or at least 1 iteration");
+  if (!(coarse_lowpass > 0 && coarse_lowpass <= 1)) bad("coarse_lowpass must be in (0, 1]");
   if (grow_every < 0 || grow_from < 0 || grow_until < 0 || !(grow_min_seen >= 0 && grow_min_seen <= 1))
     bad("grow_every, grow_from and grow_until must be >= 0 and grow_min_seen in [0, 1]");
   if (!(grow_threshold > 0) || !std::isfinite(grow_threshold)) bad("grow_threshold must be finite and > 0");
@@ -97,7 +98,8 @@ int TrainConfig::auto_downscales(int min_side) {
 
 int TrainConfig::auto_res_schedule(int iterations, int downscales) {
   if (downscales <= 0) return 1;
-  return std::max(1, std::min(iterations / (2 * downscales), 3000));
+  const int per_level = static_cast<int>(kFullResolutionFrom * iterations / downscales);
+  return std::max(1, std::min(per_level, 3000));
 }
 
 size_t TrainConfig::effective_max_gaussians(size_t view_pixels, size_t initial) const {
@@ -162,7 +164,8 @@ nlohmann::json TrainConfig::to_json() const {
           {"opacity_reset_every", opacity_reset_every},
           {"opacity_reset_pause", opacity_reset_pause},
           {"downscales", downscales},
-          {"res_schedule", res_schedule}};
+          {"res_schedule", res_schedule},
+          {"coarse_lowpass", coarse_lowpass}};
 }
 
 TrainConfig TrainConfig::from_json(const nlohmann::json& j) {
@@ -234,6 +237,7 @@ TrainConfig TrainConfig::from_json(const nlohmann::json& j) {
     c.opacity_reset_pause = j.at("opacity_reset_pause").get<int>();
     c.downscales = j.value("downscales", 0);  // written before the option: full resolution throughout
     c.res_schedule = j.value("res_schedule", 250);
+    c.coarse_lowpass = j.value("coarse_lowpass", 1.0);  // written before the option: 0.3 px at every level
   } catch (const nlohmann::json::exception& e) {
     throw std::runtime_error(std::string("training config: ") + e.what());
   }

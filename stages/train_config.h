@@ -5,6 +5,7 @@
 #pragma once
 
 #include <algorithm>
+#include <cmath>
 #include <cstddef>
 #include <cstdint>
 #include <nlohmann/json.hpp>
@@ -142,6 +143,14 @@ struct TrainConfig {
   // both before the first step, so its config() and checkpoints hold values.
   int downscales = -1;
   int res_schedule = 0;
+  // The screen-space low-pass (the 0.3 px^2 every splat gets) at level L is
+  // 0.3 x coarse_lowpass^L pixels^2 of the downscaled image: 1 keeps it at
+  // 0.3 of the coarse pixels (a splat then looks 4^L x wider in full-resolution
+  // terms, and Gaussians fitted under that blur come out too thin when the
+  // resolution doubles), 0.25 keeps 0.3 of the full-resolution pixels at
+  // every level. Measured in docs/benchmarks.md ("The low-pass at coarse levels").
+  double coarse_lowpass = kDefaultCoarseLowpass;
+  static constexpr double kDefaultCoarseLowpass = 0.5;
 
   // Throws std::invalid_argument naming the first field out of range.
   void validate() const;
@@ -164,14 +173,24 @@ struct TrainConfig {
   // 199 s to 126 s at equal test PSNR.
   static constexpr int kCoarseMinSide = 64;
   static int auto_downscales(int min_side);
-  // Iterations per level: the run reaches full resolution by its middle,
-  // and by iteration 3 x 2000 (splatfacto's 3000 per level) in long runs.
+  // Iterations per level: the run reaches full resolution at
+  // kFullResolutionFrom of its iterations, and at 3000 per level
+  // (splatfacto's) in long runs. Measured on the cup and the fox
+  // (docs/benchmarks.md, "The low-pass at coarse levels"): with the coarse
+  // low-pass at 0.5, full resolution from 85% of 2000 iterations is 0.04 dB
+  // below full from the middle on the cup, at the tuned command's time.
+  static constexpr double kFullResolutionFrom = 0.85;
   static int auto_res_schedule(int iterations, int downscales);
   // The downscale level (a power of two) of stage-1 iteration `it` (0-based),
   // before the mask-loss rule.
   int resolution_level(int it) const {
     return downscales > 0 && res_schedule > 0 ? std::max(0, downscales - it / res_schedule) : 0;  // resolved
   }
+  // The low-pass (pixels^2 of the rendered image) at a resolution level.
+  float lowpass_at_level(int level) const {
+    return static_cast<float>(kScreenLowpass * std::pow(coarse_lowpass, level));
+  }
+  static constexpr double kScreenLowpass = 0.3;
   // AnchorGrowth's schedule and rules for a scene with `train_views`
   // training views (grow_from/until/every -> start/stop/every as given, not
   // rescaled; grow_threshold -> grad_threshold, layer factor 2; grow_min_seen

@@ -220,6 +220,7 @@ std::pair<int, int> Trainer::render_and_losses(StepStats& st, bool compute_offse
   const float bg = config_.white_background && !sky_.enabled() ? 1.f : 0.f;
   settings.background = {bg, bg, bg};
   settings.features = mask_step;  // only the mask losses read the rendered features
+  settings.lowpass = config_.lowpass_at_level(level);
 
   expander_.forward(anchors_, gaussians_, st.sh_degree);
   renderer_.forward(gaussians_, camera, settings);

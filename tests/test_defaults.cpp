@@ -229,6 +229,12 @@ TEST(Defaults, BadVoxelSizeAndBudgetAreRefusedNamingTheFlag) {
     EXPECT_NE(p.code, 0) << v;
     EXPECT_NE(p.output.find("--final-prune-opacity"), std::string::npos) << p.output;
   }
+  for (const char* v : {"0", "-0.5", "1.5", "nan", "abc"}) {
+    const test::CliResult p =
+        test::run_cli("train " + sample_scene() + " -o " + dir.file("m") + " --iters 5 --coarse-lowpass " + v);
+    EXPECT_NE(p.code, 0) << v;
+    EXPECT_NE(p.output.find("--coarse-lowpass"), std::string::npos) << p.output;
+  }
   EXPECT_FALSE(std::filesystem::exists(dir.file("m/model.ag2gs")));
 }
 

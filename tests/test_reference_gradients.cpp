@@ -301,6 +301,15 @@ TEST(ReferenceGradients, NonZeroBackground) {
   expect_gradients_match(s, og, {"features"});
 }
 
+TEST(ReferenceGradients, OtherLowpass) {
+  for (float lp : {0.075f, 1.2f}) {
+    Scene s = random_scene(8, 8, 2);
+    s.settings.lowpass = lp;
+    const OutputGrads og = random_output_grads(108, s.cam, kRgb);
+    expect_gradients_match(s, og, {"features"});
+  }
+}
+
 TEST(ReferenceGradients, AlphaClampAtCentres) {
   // Opacities near 1: pixels near the centres hit alpha = 0.99 (no gradient to
   // opacity or sigma there), the rest do not.

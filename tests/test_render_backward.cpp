@@ -98,6 +98,11 @@ TEST(RenderBackward, BackgroundAndActiveDegree) {
   s.sh_degree = 2;
   check_backward(40, 40, 40, 3, 16, random_output_grads(40, 40, 6), s);
 }
+TEST(RenderBackward, OtherLowpass) {
+  RenderSettings s;
+  s.lowpass = 1.2f;
+  check_backward(40, 40, 40, 2, 17, random_output_grads(40, 40, 6), s);
+}
 // One crowded tile and five empty ones: 400 faint, small Gaussians around the
 // centre of tile (1, 0) of a 48x32 image (within 7 pixels of it), so the GPU layout's forward pass
 // stages more records than one batch (256) holds and its backward pass runs

@@ -73,6 +73,43 @@ TEST(RenderForward, Background) {
   s.background = {0.2f, 0.5f, 1.0f};
   check_forward({40, 30, 30, 1, 6}, s);
 }
+// The coarse levels of coarse-to-fine training render with other low-passes
+// (TrainConfig::coarse_lowpass): wider and narrower than the default 0.3.
+TEST(RenderForward, OtherLowpass) {
+  for (float lp : {0.075f, 1.2f}) {
+    RenderSettings s;
+    s.lowpass = lp;
+    check_forward({40, 30, 30, 1, 8}, s);
+  }
+}
+TEST(RenderForward, LowpassWidensEverySplat) {
+  // A Gaussian far below a pixel at the origin: its image is the low-pass
+  // itself, so each pixel's alpha is opacity x exp(-d^2 / (2 lowpass)), d
+  // the distance from the projected mean to the pixel centre (i + 0.5).
+  test::SceneSpec spec;
+  spec.n = 1;
+  GaussianSet g = test::random_scene(spec, 9);
+  for (int k = 0; k < 3; ++k) g.means[k] = 0.f, g.scales[k] = 1e-6f;
+  g.opacities[0] = 0.5f;
+  const Camera cam = test::look_at_origin(33, 33);
+  const double u = cam.fx * cam.t.x() / cam.t.z() + cam.cx, v = cam.fy * cam.t.y() / cam.t.z() + cam.cy;
+  Renderer r(test::runtime());
+  for (float lp : {0.3f, 1.2f}) {
+    RenderSettings s;
+    s.lowpass = lp;
+    RenderOutput out = r.render(g, cam, s);
+    int checked = 0;
+    for (int y = 12; y < 21; ++y)
+      for (int x = 12; x < 21; ++x) {
+        const double d2 = (x + 0.5 - u) * (x + 0.5 - u) + (y + 0.5 - v) * (y + 0.5 - v);
+        const double want = 0.5 * std::exp(-0.5 * d2 / lp);
+        if (want < 2.0 / 255) continue;  // near the 1/255 cut
+        EXPECT_NEAR(out.alpha[y * 33 + x], want, 2e-4) << "lowpass " << lp << " at " << x << "," << y;
+        ++checked;
+      }
+    EXPECT_GE(checked, lp > 1 ? 20 : 5) << lp;
+  }
+}
 TEST(RenderForward, LowerActiveShDegree) {
   RenderSettings s;
   s.sh_degree = 1;

@@ -147,10 +147,22 @@ TEST(TrainCoarse, ConfigRoundTripsAndOldFilesMeanFullResolution) {
   const TrainConfig back = TrainConfig::from_json(cfg.to_json());
   EXPECT_EQ(back.downscales, 2);
   EXPECT_EQ(back.res_schedule, 15);
+  EXPECT_EQ(back.coarse_lowpass, cfg.coarse_lowpass);
   nlohmann::json old = cfg.to_json();
   old.erase("downscales");
   old.erase("res_schedule");
+  old.erase("coarse_lowpass");
   EXPECT_EQ(TrainConfig::from_json(old).downscales, 0);
+  // Files from before the option rendered 0.3 px at every level.
+  EXPECT_EQ(TrainConfig::from_json(old).coarse_lowpass, 1.0);
+  EXPECT_FLOAT_EQ(cfg.lowpass_at_level(0), 0.3f);
+  cfg.coarse_lowpass = 0.5;
+  EXPECT_FLOAT_EQ(cfg.lowpass_at_level(2), 0.075f);
+  for (double bad : {0.0, -0.5, 1.5, std::nan("")}) {
+    cfg.coarse_lowpass = bad;
+    EXPECT_THROW(cfg.validate(), std::invalid_argument) << bad;
+  }
+  cfg.coarse_lowpass = 1;
   cfg.downscales = 7;
   EXPECT_THROW(cfg.validate(), std::invalid_argument);
   cfg.downscales = -2;
@@ -165,7 +177,7 @@ TEST(TrainCoarse, ConfigRoundTripsAndOldFilesMeanFullResolution) {
 }
 
 // The default coarse-to-fine: as many halvings (at most 3) as keep the
-// shorter image side at 64 pixels or more, full resolution by the middle of
+// shorter image side at 64 pixels or more, full resolution from 85% of
 // the run and by iteration 3000 per level in long runs; the trainer holds
 // the chosen values (so checkpoints do).
 TEST(TrainCoarse, DefaultLevelsComeFromTheImagesAndTheScheduleFromTheIterations) {
@@ -175,7 +187,8 @@ TEST(TrainCoarse, DefaultLevelsComeFromTheImagesAndTheScheduleFromTheIterations)
   EXPECT_EQ(TrainConfig::auto_downscales(300), 2);  // the cup at -r 2, 400x300
   EXPECT_EQ(TrainConfig::auto_downscales(512), 3);
   EXPECT_EQ(TrainConfig::auto_downscales(4000), 3);
-  EXPECT_EQ(TrainConfig::auto_res_schedule(2000, 2), 500);
+  EXPECT_EQ(TrainConfig::auto_res_schedule(2000, 2), 850);  // full from iteration 1700
+  EXPECT_EQ(TrainConfig::auto_res_schedule(2000, 3), 566);
   EXPECT_EQ(TrainConfig::auto_res_schedule(30000, 2), 3000);
   EXPECT_EQ(TrainConfig::auto_res_schedule(30000, 3), 3000);
   EXPECT_EQ(TrainConfig::auto_res_schedule(3, 3), 1);
@@ -193,10 +206,11 @@ TEST(TrainCoarse, DefaultLevelsComeFromTheImagesAndTheScheduleFromTheIterations)
   c.downscales = 2;
   Trainer t2(test::runtime(), *scene, c);
   EXPECT_EQ(t2.config().downscales, 2);
-  EXPECT_EQ(t2.config().res_schedule, 100);
-  EXPECT_EQ(t2.config().resolution_level(99), 2);
-  EXPECT_EQ(t2.config().resolution_level(100), 1);
-  EXPECT_EQ(t2.config().resolution_level(200), 0);
+  EXPECT_EQ(t2.config().res_schedule, 170);  // 0.85 x 400 / 2
+  EXPECT_EQ(t2.config().resolution_level(169), 2);
+  EXPECT_EQ(t2.config().resolution_level(170), 1);
+  EXPECT_EQ(t2.config().resolution_level(339), 1);
+  EXPECT_EQ(t2.config().resolution_level(340), 0);
 }
 
 }  // namespace

@@ -69,6 +69,9 @@ struct RenderSettings {
   int sh_degree = -1;      // active SH degree; -1 = the set's degree
   float dist_near = 0.2f;  // depth mapping of the distortion term (2DGS)
   float dist_far = 100.0f;
+  // Screen-space low-pass added to each splat's 2D covariance, in pixels^2
+  // of the rendered image (3DGS: 0.3).
+  float lowpass = 0.3f;
   // false: the semantic feature planes are not blended (written as zeros),
   // ~15% less blend_fwd work on CPUs; for frames whose features nobody reads
   // (training steps without mask losses). The renderer's backward pass

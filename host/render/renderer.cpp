@@ -132,6 +132,7 @@ std::vector<float> pack_camera(const Camera& cam, const RenderSettings& settings
   cb[CAM_DNEAR] = settings.dist_near;
   cb[CAM_DFAR] = settings.dist_far;
   for (int i = 0; i < 3; ++i) cb[CAM_BG + i] = settings.background[i];
+  cb[CAM_LOWPASS] = settings.lowpass;
   return cb;
 }
 

@@ -18,7 +18,6 @@ using Mat23 = Eigen::Matrix<double, 2, 3>;
 
 namespace {
 
-constexpr double kLowPass = 0.3;            // px^2 added to the diagonal of cov2d
 constexpr double kMinAlpha = 1.0 / 255.0;   // skip / cull threshold
 constexpr double kMaxAlpha = 0.99;          // alpha clamp
 constexpr double kMinTransmittance = 1e-4;  // early stop
@@ -202,12 +201,12 @@ Vector3d persp_jacobian_vjp(const Vector3d& p, const Camera& cam, const ClampLim
 }
 
 // ---------------------------------------------------------------------------
-// 2D covariance: cov2d = J Sigma_c J^T + 0.3 I.
+// 2D covariance: cov2d = J Sigma_c J^T + lowpass I (RenderSettings::lowpass, 0.3 px^2 by default).
 // With V = [[v_a, v_b/2], [v_b/2, v_c]] (b appears twice in the matrix):
 //   v_Sigma_c = J^T V J,  v_J = V J Sigma_c^T + V^T J Sigma_c = 2 V J Sigma_c.
 
-Matrix2d project_cov(const Mat23& J, const Matrix3d& Sigma_c) {
-  return J * Sigma_c * J.transpose() + kLowPass * Matrix2d::Identity();
+Matrix2d project_cov(const Mat23& J, const Matrix3d& Sigma_c, double lowpass) {
+  return J * Sigma_c * J.transpose() + lowpass * Matrix2d::Identity();
 }
 
 void project_cov_vjp(const Mat23& J, const Matrix3d& Sigma_c, const Matrix2d& V, Matrix3d& v_Sigma_c, Mat23& v_J) {
@@ -335,8 +334,8 @@ struct Geometry {
   Matrix2d cov, conic;
 };
 
-Geometry geometry(const RefGaussians& g, size_t n, const Camera& cam, const ClampLimits& lim, int& clamp_x,
-                  int& clamp_y) {
+Geometry geometry(const RefGaussians& g, size_t n, const Camera& cam, const ClampLimits& lim, double lowpass,
+                  int& clamp_x, int& clamp_y) {
   Geometry G;
   G.mean = Vector3d(g.means[3 * n], g.means[3 * n + 1], g.means[3 * n + 2]);
   G.scale = Vector3d(g.scales[3 * n], g.scales[3 * n + 1], g.scales[3 * n + 2]);
@@ -346,7 +345,7 @@ Geometry geometry(const RefGaussians& g, size_t n, const Camera& cam, const Clam
   G.Rq = quat_to_rotmat(G.q);
   G.Sigma_c = cam.R * scale_rot_to_cov3d(G.scale, G.Rq) * cam.R.transpose();
   G.J = persp_jacobian(G.p, cam, lim, clamp_x, clamp_y);
-  G.cov = project_cov(G.J, G.Sigma_c);
+  G.cov = project_cov(G.J, G.Sigma_c, lowpass);
   return G;
 }
 
@@ -484,7 +483,7 @@ std::vector<RefProjected> project(const RefGaussians& g, const Camera& cam, cons
     if (!(quat.squaredNorm() >= kMinQuatNorm2)) continue;
     // 4-6. covariances, clamped Jacobian, conic
     int clamp_x = 0, clamp_y = 0;
-    const Geometry G = geometry(g, n, cam, lim, clamp_x, clamp_y);
+    const Geometry G = geometry(g, n, cam, lim, double(settings.lowpass), clamp_x, clamp_y);
     const double a = G.cov(0, 0), b = G.cov(0, 1), c = G.cov(1, 1);
     const double det = a * c - b * b;
     if (!(det > 0) || !std::isfinite(det)) continue;
@@ -733,7 +732,7 @@ RefGrads render_backward(const RefGaussians& g, const Camera& cam, const RenderS
     const RefProjected& pr = P[n];
     const RefProjectedGrads& vp = vP[n];
     int clamp_x, clamp_y;
-    const Geometry G = geometry(g, n, cam, lim, clamp_x, clamp_y);
+    const Geometry G = geometry(g, n, cam, lim, double(settings.lowpass), clamp_x, clamp_y);
     const double z = G.p.z();
 
     out.opacities[n] = vp.opacity;

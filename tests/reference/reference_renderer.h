@@ -40,7 +40,7 @@ struct RefProjected {
   bool visible = false;
   double u = 0, v = 0;          // mean2d in pixels
   double conic[3] = {0, 0, 0};  // (A, B, C) = inverse of cov2d
-  double cov2d[3] = {0, 0, 0};  // (a, b, c), includes the 0.3 px low-pass
+  double cov2d[3] = {0, 0, 0};  // (a, b, c), includes the low-pass (RenderSettings::lowpass)
   double z = 0;                 // camera-space depth
   double opacity = 0;
   double rgb[3] = {0, 0, 0};  // SH colour + 0.5, clamped at 0
