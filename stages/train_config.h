@@ -12,6 +12,7 @@
 #include <string>
 #include <vector>
 
+#include "host/core/gaussians.h"
 #include "host/render/adam.h"
 #include "host/render/image_loss.h"
 #include "stages/anchor_growth.h"
@@ -188,9 +189,8 @@ struct TrainConfig {
   }
   // The low-pass (pixels^2 of the rendered image) at a resolution level.
   float lowpass_at_level(int level) const {
-    return static_cast<float>(kScreenLowpass * std::pow(coarse_lowpass, level));
+    return static_cast<float>(RenderSettings::kDefaultLowpass * std::pow(coarse_lowpass, level));
   }
-  static constexpr double kScreenLowpass = 0.3;
   // AnchorGrowth's schedule and rules for a scene with `train_views`
   // training views (grow_from/until/every -> start/stop/every as given, not
   // rescaled; grow_threshold -> grad_threshold, layer factor 2; grow_min_seen

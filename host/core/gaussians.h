@@ -71,7 +71,8 @@ struct RenderSettings {
   float dist_far = 100.0f;
   // Screen-space low-pass added to each splat's 2D covariance, in pixels^2
   // of the rendered image (3DGS: 0.3).
-  float lowpass = 0.3f;
+  static constexpr float kDefaultLowpass = 0.3f;
+  float lowpass = kDefaultLowpass;
   // false: the semantic feature planes are not blended (written as zeros),
   // ~15% less blend_fwd work on CPUs; for frames whose features nobody reads
   // (training steps without mask losses). The renderer's backward pass
