@@ -67,10 +67,10 @@ for lib in $stubbed; do
 done
 
 bins=(build/ag2gs build/ag2gs_bench build/test_*)
-for b in "${bins[@]}"; do [ -x "$b" ] && [ -f "$b" ] && LD_LIBRARY_PATH=$stage/lib ldd "$b"; done | awk '$3 ~ /^\// {print $3}' |
+for b in "${bins[@]}"; do if [ -x "$b" ] && [ -f "$b" ]; then LD_LIBRARY_PATH=$stage/lib ldd "$b"; fi; done | awk '$3 ~ /^\// {print $3}' |
   sort -u | grep -v -E "/(libc|libm|libdl|libpthread|librt|libstdc\+\+|libgcc_s)\.so" | grep -v "^$stage/" |
   xargs -r cp -L -t "$stage/lib/"
-for b in "${bins[@]}"; do [ -x "$b" ] && [ -f "$b" ] && cp "$b" "$stage/build/"; done
+for b in "${bins[@]}"; do if [ -x "$b" ] && [ -f "$b" ]; then cp "$b" "$stage/build/"; fi; done
 strip "$stage"/build/* 2>/dev/null || true
 [ -f build/CTestTestfile.cmake ] && cp build/CTestTestfile.cmake "$stage/build/"
 
