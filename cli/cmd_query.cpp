@@ -22,6 +22,7 @@
 #include "host/io/ply_io.h"
 #include "host/io/semantic_io.h"
 #include "host/scene/scene.h"
+#include "host/scene/scene_up.h"
 #include "queries/query.h"
 #include "stages/anchor_model.h"
 #include "stages/clustering.h"
@@ -277,6 +278,8 @@ void cmd_query(const GlobalOptions& global, QueryArgs a) {
   Runtime rt(global.device);
   QueryEngine engine(rt, model, a.config);
   if (by_text) engine.set_language(tm.clustering, language);
+  nlohmann::json j;
+  if (by_click) prepare_click(engine, a.request.click_by, tm.archive.meta, *scene, &j);
   const double load_ms = ms_since(t_load);
   spdlog::info(
       "model {}: {} anchors, {} Gaussians; query graph (cell scale {}) {} edges; loaded and prepared in "
@@ -284,7 +287,6 @@ void cmd_query(const GlobalOptions& global, QueryArgs a) {
       model_file, model.size(), model.gaussians(), a.config.graph_cell_scale, engine.graph().edges(), load_ms,
       engine.prepare_ms());
 
-  nlohmann::json j;
   j["model"] = model_file;
   j["scene"] = a.scene;
   j["resolution"] = a.resolution;
@@ -381,6 +383,53 @@ void add_query_request_options(CLI::App* sub, QueryRequest& r) {
           "PHRASE"));
   sub->add_option("--vocab", r.vocab, "Text vocabulary JSON {\"phrase\": [D floats], ...}");
   sub->add_option("--text-embedding", r.text_embedding, "Text query by a float vector .npy of shape [D] or [1,D]");
+  sub->add_option("--click-by", r.click_by,
+                  "How a click selects: features (grow over trained features), support (what stands on the "
+                  "scene's main plane, for models trained without SAM masks), auto (support when the model has "
+                  "no trained features)")
+      ->check(CLI::IsMember({"auto", "features", "support"}));
+}
+
+void prepare_click(QueryEngine& engine, const std::string& click_by, const nlohmann::json& model_meta,
+                   const Scene& scene, nlohmann::json* j) {
+  int stage = 2;  // a model without a training record: assume trained features
+  if (model_meta.contains("train") && model_meta["train"].contains("stage") &&
+      model_meta["train"]["stage"].is_number_integer())
+    stage = model_meta["train"]["stage"].get<int>();
+  const bool untrained = stage < 2;
+  if (click_by == "features" || (click_by == "auto" && !untrained)) {
+    if (untrained)
+      spdlog::warn(
+          "the model's features were never trained (stage {}): a click grows over most of the scene; "
+          "--click-by support selects what stands on the floor or table instead",
+          stage);
+    (*j)["click_by"] = "features";
+    return;
+  }
+  std::vector<Camera> cameras;
+  for (int v : scene.train_views()) cameras.push_back(scene.views()[v].camera);
+  const SceneUp up = scene_up(cameras, scene.points());
+  if (!up.from_plane) {
+    if (click_by == "support")
+      throw std::runtime_error(
+          "--click-by support: the SfM points of the scene show no floor or table plane under "
+          "the cameras; select by --selection FILE, or train with SAM masks and click by "
+          "features");
+    spdlog::warn(
+        "the model's features were never trained and the scene shows no floor plane: the click grows over "
+        "the features, which select most of the scene");
+    (*j)["click_by"] = "features";
+    return;
+  }
+  engine.set_support(*up.plane);
+  (*j)["click_by"] = "support";
+  (*j)["support_plane"] = {{"normal", {up.up(0), up.up(1), up.up(2)}},
+                           {"offset", up.plane->offset},
+                           {"points", up.plane->inliers},
+                           {"tolerance", up.plane->tolerance},
+                           {"image_axis", up.image_axis}};
+  spdlog::info("click by the support plane{}: {}; the selection is what stands on it, joined to the clicked point",
+               untrained ? " (the model's features were never trained: no SAM masks)" : "", up.describe());
 }
 
 void register_query(CLI::App& app, GlobalOptions& global) {

@@ -28,6 +28,7 @@
 #include "host/render/renderer.h"
 #include "host/render/sky.h"
 #include "host/scene/scene.h"
+#include "host/scene/scene_up.h"
 #include "queries/query.h"
 #include "stages/anchor_model.h"
 #include "stages/simulation.h"
@@ -169,11 +170,16 @@ void cmd_simulate(const GlobalOptions& global, SimulateArgs a) {
   for (size_t g = 0; g < selected.size(); ++g) selected[g] = sel.anchors[g / K];
   std::vector<Camera> cameras;
   for (int v : scene->train_views()) cameras.push_back(scene->views()[v].camera);
-  // The default push: along the first rendered view's right, across up.
+  // The default push: along the first rendered view's right, across up; for
+  // a photo stored sideways (its x axis nearer up than its y axis), the right
+  // of the photo turned upright: forward x up.
   if (a.force.empty()) {
-    const Eigen::Vector3d up = ss.up ? ss.up->normalized() : up_from_cameras(cameras);
-    const Eigen::Vector3d right = scene->views()[views[0]].camera.R.row(0).transpose();
-    const Eigen::Vector3d across = right - right.dot(up) * up;
+    const Eigen::Vector3d up = ss.up ? ss.up->normalized() : scene_up(cameras, scene->points()).up;
+    const Camera& cam = scene->views()[views[0]].camera;
+    const Eigen::Vector3d right = cam.R.row(0).transpose(), down = cam.R.row(1).transpose();
+    const Eigen::Vector3d across = std::abs(right.dot(up)) <= std::abs(down.dot(up))
+                                       ? Eigen::Vector3d(right - right.dot(up) * up)
+                                       : Eigen::Vector3d(cam.R.row(2).transpose().cross(up));
     if (across.norm() > 1e-6) ss.force = a.push * across.normalized();
   }
   spdlog::info("selected {} of {} anchors ({} Gaussians) to simulate as {}", sel.count, tm.model.size(),

@@ -55,6 +55,7 @@ void add_query_config_options(CLI::App* sub, QueryConfig& config);
 // A click or text query as `query` and `remove` take it (cmd_query.cpp).
 struct QueryRequest {
   std::string view, click, text, vocab, text_embedding;
+  std::string click_by = "auto";  // auto | features | support (prepare_click)
   bool by_click() const { return !click.empty(); }
   bool by_text() const { return !text.empty() || !text_embedding.empty(); }
 };
@@ -65,6 +66,16 @@ void check_query_request(const QueryRequest& request);
 // The text query's embedding: --text-embedding's .npy or --text's phrase of
 // --vocab; throws naming the file and the fix when it does not fit `dim`.
 std::vector<float> load_query_embedding(const QueryRequest& request, const std::string& model_file, int dim);
+// How a click selects (--click-by): "features" grows over the trained
+// features (queries/query.h); "support" takes what stands on the scene's
+// main plane (a model trained without SAM masks has no features to grow
+// over); "auto" is support when the model never trained features (its
+// training stopped at stage 1) and the scene shows a floor, else features.
+// Sets the engine's support plane when chosen, records the choice in
+// (*j)["click_by"] and logs it. Throws naming the fix when "support" is asked
+// for and the scene has no floor.
+void prepare_click(QueryEngine& engine, const std::string& click_by, const nlohmann::json& model_meta,
+                   const Scene& scene, nlohmann::json* j);
 // Runs the query (a click maps its full-size pixel to the view's camera at
 // -r `resolution`) and records it in j ("query", "seeds", text scores);
 // *ms gets the query's latency. Returns the selected anchors.

@@ -104,6 +104,7 @@ SelectedObject select_object(Runtime& rt, const TrainedModel& tm, const Scene& s
   } else {
     QueryEngine engine(rt, model, config);
     if (request.by_text()) engine.set_language(tm.clustering, tm.language);
+    if (request.by_click()) prepare_click(engine, request.click_by, tm.archive.meta, scene, &report);
     selected = run_query(engine, scene, request, embedding, resolution, config.text_margin, report, &out.query_ms);
   }
   out.anchors.assign(model.size(), 0);

@@ -1,6 +1,7 @@
 #include "queries/query.h"
 
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
 #include <deque>
@@ -405,9 +406,33 @@ ClickResult QueryEngine::click(const Camera& camera, double x, double y) {
       for (int c = 0; c < 3; ++c) r.pixel_feature[c] = model_.feature()[3 * static_cast<size_t>(top.anchor) + c];
     }
   }
+  if (support_) {  // the ray's median depth (contributions come front to back)
+    double acc = 0;
+    for (const auto& c : renderer_.pixel_contributions(r.pixel_x, r.pixel_y)) {
+      acc += c.weight;
+      r.depth = c.depth;
+      if (acc >= 0.5 * r.alpha) break;
+    }
+  }
   const double u = r.pixel_x + 0.5, v = r.pixel_y + 0.5;
   const Eigen::Vector3d xc((u - camera.cx) / camera.fx * r.depth, (v - camera.cy) / camera.fy * r.depth, r.depth);
   r.point = camera.R.transpose() * (xc - camera.t);
+  if (support_) {
+    r.seed = tree_.nearest(r.point);
+    if (r.seed < 0) throw std::runtime_error("the model has no anchors to select");
+    const float* c = &model_.pos()[3 * static_cast<size_t>(r.seed)];
+    r.seed_distance = (r.point - Eigen::Vector3d(c[0], c[1], c[2])).norm();
+    r.selected = support_grow(model_, *support_, r.seed);
+    if (r.selected.empty()) {
+      std::ostringstream msg;
+      msg << "the click at pixel (" << r.pixel_x << ", " << r.pixel_y << ") of view "
+          << (camera.name.empty() ? std::string("?") : camera.name) << " hits the support plane itself (height "
+          << support_->height(r.point) << " over it); click on an object standing on it";
+      throw std::runtime_error(msg.str());
+    }
+    r.ms = ms_since(t0);
+    return r;
+  }
   const std::vector<int> candidates = tree_.nearest_k(r.point, config_.click_candidates);
   if (candidates.empty()) throw std::runtime_error("the model has no anchors to select");
   double best = std::numeric_limits<double>::infinity();
@@ -432,6 +457,122 @@ ClickResult QueryEngine::click(const Camera& camera, double x, double y) {
   }
   r.ms = ms_since(t0);
   return r;
+}
+
+// Anchors whose children lie higher than this many plane tolerances over
+// the plane stand on it; those within it of the plane are the band (the
+// plane itself, and an object's base).
+constexpr double kSupportMargin = 2.0;
+
+// The base's reach across up: this quantile of the distances of the
+// object's lowest anchors from its axis (the largest distance followed a few
+// table anchors that the object's component took in, onto the table).
+constexpr double kBaseReachQuantile = 0.9;
+
+std::vector<int32_t> support_grow(const AnchorModel& model, const Plane& plane, int32_t seed, double link_factor) {
+  const size_t A = model.size();
+  if (seed < 0 || static_cast<size_t>(seed) >= A)
+    throw std::invalid_argument("support_grow: seed " + std::to_string(seed) + " is not one of the model's anchors");
+  if (!(link_factor > 0)) throw std::invalid_argument("support_grow: link_factor must be > 0");
+  auto pos = [&](size_t a) {
+    return Eigen::Vector3d(model.pos()[3 * a], model.pos()[3 * a + 1], model.pos()[3 * a + 2]);
+  };
+  // An anchor's height: the mean height of its children (centre + offset x
+  // voxel edge), where training put its Gaussians; a coarse anchor's own
+  // centre can lie far from the surface it models.
+  const int K = model.children();
+  std::vector<double> height(A);
+  std::vector<uint8_t> above(A), band(A);
+  double max_voxel = 0;
+  const double margin = kSupportMargin * plane.tolerance;
+  for (size_t a = 0; a < A; ++a) {
+    const double l = model.voxel()[a];
+    double h = 0;
+    for (int k = 0; k < K; ++k) {
+      const float* o = &model.offset()[3 * (a * K + k)];
+      h += plane.height(pos(a) + l * Eigen::Vector3d(o[0], o[1], o[2]));
+    }
+    height[a] = h / K;
+    above[a] = height[a] > margin;
+    band[a] = !above[a] && height[a] > -margin;
+    max_voxel = std::max(max_voxel, l);
+  }
+  if (!above[seed]) return {};
+  // A hash grid of cell = the longest link, so that linked anchors lie in
+  // neighbouring cells; cells visited in a fixed order, so the result does
+  // not depend on hash order (the BFS below is order-free anyway: components).
+  const double cell = link_factor * max_voxel;
+  auto key_of = [&](const Eigen::Vector3d& p) {
+    const Eigen::Vector3d q = (p / cell).array().floor();
+    return std::array<int64_t, 3>{static_cast<int64_t>(q(0)), static_cast<int64_t>(q(1)), static_cast<int64_t>(q(2))};
+  };
+  auto hash = [](const std::array<int64_t, 3>& k) {
+    return static_cast<uint64_t>(k[0]) * 73856093ull ^ static_cast<uint64_t>(k[1]) * 19349663ull ^
+           static_cast<uint64_t>(k[2]) * 83492791ull;
+  };
+  std::unordered_map<uint64_t, std::vector<int32_t>> grid;
+  for (size_t a = 0; a < A; ++a) grid[hash(key_of(pos(a)))].push_back(static_cast<int32_t>(a));
+  auto for_links = [&](size_t a, auto&& visit) {
+    const Eigen::Vector3d p = pos(a);
+    const std::array<int64_t, 3> k = key_of(p);
+    for (int dz = -1; dz <= 1; ++dz)
+      for (int dy = -1; dy <= 1; ++dy)
+        for (int dx = -1; dx <= 1; ++dx) {
+          auto it = grid.find(hash({k[0] + dx, k[1] + dy, k[2] + dz}));
+          if (it == grid.end()) continue;
+          for (int32_t b : it->second) {
+            if (static_cast<size_t>(b) == a) continue;
+            const double reach = link_factor * std::max(model.voxel()[a], model.voxel()[b]);
+            if ((pos(b) - p).squaredNorm() < reach * reach) visit(static_cast<size_t>(b));
+          }
+        }
+  };
+  std::vector<uint8_t> in(A, 0);
+  std::deque<size_t> queue{static_cast<size_t>(seed)};
+  in[seed] = 1;
+  while (!queue.empty()) {
+    const size_t a = queue.front();
+    queue.pop_front();
+    for_links(a, [&](size_t b) {
+      if (above[b] && !in[b]) {
+        in[b] = 1;
+        queue.push_back(b);
+      }
+    });
+  }
+  // The base: the component's axis (its mean across up) and its widest
+  // reach across up among its anchors near the plane (the lowest tenth of
+  // its height); band anchors linked to the component within that reach.
+  const Eigen::Vector3d up = plane.normal;
+  auto across = [&](const Eigen::Vector3d& d) { return d - d.dot(up) * up; };
+  Eigen::Vector3d axis = Eigen::Vector3d::Zero();
+  size_t n = 0;
+  double top = -INFINITY, bottom = INFINITY;
+  for (size_t a = 0; a < A; ++a)
+    if (in[a]) {
+      axis += pos(a);
+      ++n;
+      top = std::max(top, height[a]);
+      bottom = std::min(bottom, height[a]);
+    }
+  axis /= static_cast<double>(n);
+  std::vector<double> low;
+  for (size_t a = 0; a < A; ++a)
+    if (in[a] && height[a] < bottom + 0.1 * (top - bottom) + margin) low.push_back(across(pos(a) - axis).norm());
+  const size_t k = std::min(low.size() - 1, static_cast<size_t>(kBaseReachQuantile * static_cast<double>(low.size())));
+  std::nth_element(low.begin(), low.begin() + static_cast<std::ptrdiff_t>(k), low.end());
+  const double reach = low[k];  // never empty: the lowest anchor is in it
+  std::vector<uint8_t> base(A, 0);
+  for (size_t a = 0; a < A; ++a) {
+    if (!in[a]) continue;
+    for_links(a, [&](size_t b) {
+      if (band[b] && !in[b] && across(pos(b) - axis).norm() <= reach) base[b] = 1;
+    });
+  }
+  std::vector<int32_t> out;
+  for (size_t a = 0; a < A; ++a)
+    if (in[a] || base[a]) out.push_back(static_cast<int32_t>(a));
+  return out;
 }
 
 TextResult QueryEngine::text(const std::vector<float>& embedding) {

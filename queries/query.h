@@ -38,6 +38,14 @@
 // Without growing (QueryConfig::grow false, an ablation): the selection is
 // similar_anchors() of the seeds' features instead, for both queries.
 //
+// Support-plane click (QueryEngine::set_support, for a model whose features
+// were never trained: a capture without SAM masks gives every anchor nearly
+// the same feature, and feature growing spreads over the whole scene): the
+// depth is the ray's median (where the accumulated blending weight passes
+// half the pixel's alpha), the seed the anchor nearest the unprojected point,
+// and the selection support_grow()'s: the anchors standing on the plane and
+// joined to the seed (host/scene/scene_up.h finds the plane and up).
+//
 // Masks: the model rendered with feature (1, 0, 0) on the selected anchors'
 // Gaussians and 0 elsewhere, normal occlusion: the first feature channel is
 // the selection's blending weight W(p) = sum of w_i over selected Gaussians,
@@ -48,12 +56,14 @@
 #include <Eigen/Core>
 #include <cstdint>
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
 #include "host/core/gaussians.h"
 #include "host/device/cl_runtime.h"
 #include "host/render/renderer.h"
+#include "host/scene/scene_up.h"
 #include "stages/anchor_graph.h"
 #include "stages/anchor_model.h"
 #include "stages/clustering.h"
@@ -133,6 +143,19 @@ std::vector<int32_t> region_grow(const AnchorGraph& graph, const std::vector<flo
 std::vector<int32_t> similar_anchors(const std::vector<float>& features, const std::vector<float>& seed_features,
                                      double max_distance);
 
+// The object a support-plane click selects (see the file comment). An
+// anchor's height is the mean height of its children over the plane; it is
+// above the plane beyond 2 plane tolerances, in the band within them. Two
+// anchors are linked when their centres lie closer than link_factor x the
+// larger of their voxel edges (1.75: the 26 neighbours of one layer). The
+// selection is the seed's component among the anchors above the plane, plus
+// its base: band anchors linked to the component and no further across `up`
+// from the component's axis (its mean) than its lowest part (the lowest tenth
+// of its height): the 90th percentile of that part's distances. Ascending
+// ids; empty when the seed itself is not above the plane.
+std::vector<int32_t> support_grow(const AnchorModel& model, const Plane& plane, int32_t seed,
+                                  double link_factor = 1.75);
+
 // Cosine similarity of `embedding` [D] to each cluster's language feature;
 // NaN for clusters without one (matches 0 or a zero row). Throws
 // std::invalid_argument when the dimension differs, saying both.
@@ -176,6 +199,9 @@ class QueryEngine {
   // language features do not fit the model.
   void set_language(const Clustering& clustering, const LanguageFeatures& language);
   bool has_language() const { return have_language_; }
+  // Clicks select by the support plane (see the file comment) from now on.
+  void set_support(const Plane& plane) { support_ = plane; }
+  const std::optional<Plane>& support() const { return support_; }
 
   // x, y: pixel coordinates at the camera's size (column, row; the pixel
   // centre is at +0.5). Throws std::invalid_argument for a pixel outside the
@@ -207,6 +233,7 @@ class QueryEngine {
   std::vector<float> selection_features_;  // [N,3] of the last mask upload
   bool features_are_model_ = true;         // the device holds the model's features (not a selection)
   bool have_language_ = false;
+  std::optional<Plane> support_;
   Clustering clustering_;
   LanguageFeatures language_;
   double prepare_ms_ = 0;

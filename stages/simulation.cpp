@@ -9,11 +9,17 @@
 #include <map>
 #include <stdexcept>
 
+#include "host/scene/scene_up.h"
+
 namespace ag2gs {
 
 namespace {
 
 const std::map<std::string, std::string> kNoDefines;
+
+// An object stands on the scene's main plane when its lowest Gaussians lie
+// within this fraction of its height from it.
+constexpr double kOnFloor = 0.1;
 
 double quantile(std::vector<double> v, double q) {
   if (v.empty()) return NAN;
@@ -46,14 +52,6 @@ void SimulationSettings::validate() const {
   if (!force.allFinite()) throw std::invalid_argument("--force must be finite");
 }
 
-Eigen::Vector3d up_from_cameras(const std::vector<Camera>& cameras) {
-  Eigen::Vector3d up = Eigen::Vector3d::Zero();
-  for (const Camera& c : cameras) up -= c.R.row(1).transpose();
-  if (!(up.norm() > 1e-6 * std::max<size_t>(cameras.size(), 1)))
-    throw std::runtime_error("the cameras do not agree on an up direction; give --up X,Y,Z");
-  return up.normalized();
-}
-
 double ground_below(const std::vector<Eigen::Vector3d>& points, const std::vector<Eigen::Vector3d>& object,
                     const Eigen::Vector3d& up) {
   if (object.empty()) throw std::invalid_argument("ground_below: no object points");
@@ -80,6 +78,18 @@ double ground_below(const std::vector<Eigen::Vector3d>& points, const std::vecto
     if (below.size() >= 10) return quantile(below, 0.9);
   }
   return *std::min_element(heights.begin(), heights.end());
+}
+
+double support_height(const std::vector<Eigen::Vector3d>& points, const std::vector<Eigen::Vector3d>& object,
+                      const Eigen::Vector3d& up, const std::optional<Plane>& floor) {
+  if (floor && !object.empty()) {
+    std::vector<double> heights;
+    for (const Eigen::Vector3d& p : object) heights.push_back(p.dot(up));
+    const double lo = quantile(heights, 0.02), hi = quantile(heights, 0.98);
+    const double plane = floor->offset * floor->normal.dot(up);  // the plane's height along up
+    if (std::abs(lo - plane) <= kOnFloor * (hi - lo)) return plane;
+  }
+  return ground_below(points, object, up);
 }
 
 std::vector<Eigen::Vector3d> fill_solid(const std::vector<Eigen::Vector3d>& surface, double cell) {
@@ -202,7 +212,14 @@ Simulation::Simulation(Runtime& rt, const GaussianSet& scene, const std::vector<
 
   // ---- the box: up to +z, the object centred across, the ground (or the
   // object's base, when lower) at z = 0.15
-  frame_.up = settings_.up ? settings_.up->normalized() : up_from_cameras(cameras);
+  std::optional<Plane> floor;
+  if (settings_.up) {
+    frame_.up = settings_.up->normalized();
+  } else {
+    const SceneUp su = scene_up(cameras, points);
+    frame_.up = su.up;
+    if (su.from_plane) floor = su.plane;
+  }
   Eigen::Vector3d e1 = frame_.up.unitOrthogonal();
   if (!cameras.empty()) {  // across-axis x along the first camera's right, when it is not vertical
     const Eigen::Vector3d right = cameras[0].R.row(0).transpose();
@@ -217,7 +234,7 @@ Simulation::Simulation(Runtime& rt, const GaussianSet& scene, const std::vector<
     lo = lo.cwiseMin(frame_.A * p);
     hi = hi.cwiseMax(frame_.A * p);
   }
-  frame_.ground_world = settings_.ground ? *settings_.ground : ground_below(points, object, frame_.up);
+  frame_.ground_world = settings_.ground ? *settings_.ground : support_height(points, object, frame_.up, floor);
   // Inside the walls (3 cells) with 2 cells to spare: the object's largest
   // side is --object-size unless its height above the ground or its width
   // would not fit.

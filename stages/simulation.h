@@ -17,6 +17,7 @@
 #include "host/core/gaussians.h"
 #include "host/device/cl_runtime.h"
 #include "host/physics/mpm.h"
+#include "host/scene/scene_up.h"
 
 namespace ag2gs {
 
@@ -56,16 +57,22 @@ struct SimulationFrame {
   Eigen::Vector3d vector_to_box(const Eigen::Vector3d& v) const { return scale * (A * v); }
 };
 
-// The up direction the cameras agree on: the mean of their "up" axes (-y in
-// COLMAP's camera frame), normalised. Throws when they cancel out.
-Eigen::Vector3d up_from_cameras(const std::vector<Camera>& cameras);
-
 // The surface an object rests on: the SfM points within 1.5 radii of the
 // object's centre (across up; 3 or 6 when fewer than 10 lie there) and below
 // its lowest tenth, their highest tenth (a table top, a floor). Without 10
 // such points, the object's own lowest Gaussian. Heights are along `up`.
 double ground_below(const std::vector<Eigen::Vector3d>& points, const std::vector<Eigen::Vector3d>& object,
                     const Eigen::Vector3d& up);
+
+// The ground under an object: the scene's main plane `floor` (scene_up's,
+// with its normal along `up`) when the object's lowest Gaussians (the 2nd
+// percentile of their heights) lie within a tenth of the object's height
+// (2nd to 98th percentile) of it: the object stands on it. Else
+// ground_below(). Without the plane, the SfM points near a cup standing on
+// a table put the ground at their highest tenth under the cup's lowest tenth,
+// which includes the cup's own lower part (0.54 units above the table).
+double support_height(const std::vector<Eigen::Vector3d>& points, const std::vector<Eigen::Vector3d>& object,
+                      const Eigen::Vector3d& up, const std::optional<Plane>& floor);
 
 // The cells of the solid an object's Gaussians (`surface`, positions in
 // [0, 1]^3) bound, on a grid of cell `cell`: the occupied cells, closed by

@@ -524,6 +524,92 @@ TEST(Query, ClickOnAThinHalfTransparentObjectSelectsIt) {
   EXPECT_EQ(right_front, front_only);
 }
 
+// A model whose features were never trained (all equal): two boxes standing
+// on a floor, one empty cell apart, the floor leaving out the cells under
+// them (a capture sees no table under an object). The camera at the origin
+// looks down +z with image y down, so up is -y.
+struct FloorWorld {
+  Eigen::Vector3d origin{0, 0, 0};
+  double voxel = 0.1;
+  std::vector<Box> boxes = {
+      {{-8, 0, 40}, {-4, 3, 43}, {0.2f, 0.2f, 0.2f}},   // A
+      {{-2, 1, 40}, {1, 3, 43}, {0.2f, 0.2f, 0.2f}},    // B, one cell from A
+      {{-12, 4, 36}, {-9, 4, 47}, {0.2f, 0.2f, 0.2f}},  // the floor (y = 4) around them
+      {{-3, 4, 36}, {-3, 4, 47}, {0.2f, 0.2f, 0.2f}},  {{2, 4, 36}, {12, 4, 47}, {0.2f, 0.2f, 0.2f}},
+      {{-8, 4, 36}, {-4, 4, 39}, {0.2f, 0.2f, 0.2f}},  {{-8, 4, 44}, {-4, 4, 47}, {0.2f, 0.2f, 0.2f}},
+      {{-2, 4, 36}, {1, 4, 39}, {0.2f, 0.2f, 0.2f}},   {{-2, 4, 44}, {1, 4, 47}, {0.2f, 0.2f, 0.2f}},
+  };
+  Built built = build_boxes(boxes, origin, voxel);
+  // The floor's anchor centres: y = 0.45, height = 0.45 - y. The boxes'
+  // bottom rows (height 0.1) lie in the band (2 tolerances), the rows over
+  // them above it.
+  Plane plane() const {
+    Plane p;
+    p.normal = Eigen::Vector3d(0, -1, 0);
+    p.offset = -0.45;
+    p.tolerance = 0.06;
+    return p;
+  }
+};
+
+const FloorWorld& floor_world() {
+  static FloorWorld w;
+  return w;
+}
+
+TEST(Query, SupportGrowSelectsWhatStandsOnThePlane) {
+  const FloorWorld& w = floor_world();
+  const AnchorModel& m = w.built.model;
+  for (int k = 0; k < 2; ++k) {
+    // Every anchor of the box seeds the same selection: the box, its bottom
+    // row (one voxel over the plane, the band) included, nothing of the floor.
+    for (int32_t seed : w.built.anchors[k]) {
+      const double h =
+          w.plane().height(Eigen::Vector3d(m.pos()[3 * seed], m.pos()[3 * seed + 1], m.pos()[3 * seed + 2]));
+      const std::vector<int32_t> sel = support_grow(m, w.plane(), seed);
+      if (h < 0.15) {
+        EXPECT_TRUE(sel.empty()) << "seed " << seed << " in the bottom row";
+      } else {
+        EXPECT_EQ(sel, w.built.anchors[k]) << "box " << k << " seed " << seed;
+      }
+    }
+  }
+  // A floor anchor: nothing stands there.
+  EXPECT_TRUE(support_grow(m, w.plane(), w.built.anchors[2][0]).empty());
+  EXPECT_THROW(support_grow(m, w.plane(), static_cast<int32_t>(m.size())), std::invalid_argument);
+  // Links shorter than the anchor spacing join nothing: the seed alone.
+  const int32_t top = w.built.anchors[0].front();
+  EXPECT_EQ(support_grow(m, w.plane(), top, 0.9), std::vector<int32_t>{top});
+  // Links of 2.1 voxels jump the one-cell gap to B, and reach the floor.
+  const std::vector<int32_t> wide = support_grow(m, w.plane(), top, 2.1);
+  EXPECT_TRUE(std::includes(wide.begin(), wide.end(), w.built.anchors[1].begin(), w.built.anchors[1].end()));
+}
+
+TEST(Query, SupportClickSelectsTheClickedBoxWhereFeaturesSelectEverything) {
+  const FloorWorld& w = floor_world();
+  const Camera cam = World::front();
+  QueryEngine engine(test::runtime(), w.built.model);
+  const Eigen::Vector2i pa = interior_pixel(w.boxes, w.origin, w.voxel, cam, 0);
+  // Untrained features: growing by them takes the boxes and the floor.
+  const ClickResult by_features = engine.click(cam, pa.x() + 0.5, pa.y() + 0.5);
+  EXPECT_EQ(by_features.selected.size(), w.built.model.size());
+  engine.set_support(w.plane());
+  for (int k = 0; k < 2; ++k) {
+    const Eigen::Vector2i px = interior_pixel(w.boxes, w.origin, w.voxel, cam, k);
+    const ClickResult r = engine.click(cam, px.x() + 0.5, px.y() + 0.5);
+    EXPECT_EQ(r.selected, w.built.anchors[k]) << "box " << k << " pixel " << px.transpose();
+    EXPECT_LT(r.seed_distance, w.voxel);
+  }
+  // A click on the floor names the plane.
+  const Eigen::Vector2i pf = interior_pixel(w.boxes, w.origin, w.voxel, cam, 4);
+  try {
+    engine.click(cam, pf.x() + 0.5, pf.y() + 0.5);
+    ADD_FAILURE() << "a click on the floor selected something";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("support plane"), std::string::npos) << e.what();
+  }
+}
+
 TEST(Query, ClickErrors) {
   const World& w = world();
   QueryEngine engine(test::runtime(), w.built.model);

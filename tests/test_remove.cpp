@@ -73,7 +73,8 @@ std::vector<std::string> train_stems() {
 
 TEST(Remove, ClickWritesACompleteModelFolderWithoutTheObject) {
   const fs::path out = fresh("by_click");
-  const auto r = test::run_cli(remove_cmd(out.string(), "--view view_001 --click 32,30"));
+  // By features, as test_simulate's fixture says why.
+  const auto r = test::run_cli(remove_cmd(out.string(), "--view view_001 --click 32,30 --click-by features"));
   ASSERT_EQ(r.code, 0) << r.output;
   for (const char* f : {"model.ag2gs", "point_cloud.ply", "removal.json"}) EXPECT_TRUE(fs::exists(out / f)) << f;
   for (const std::string& s : train_stems()) {

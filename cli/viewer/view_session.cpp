@@ -101,6 +101,11 @@ ViewSession::ViewSession(Runtime& rt, const ViewOptions& options)
     text_ready_ = true;
   }
 
+  if (scene_) {  // clicks as `ag2gs query --click-by auto` makes them
+    nlohmann::json how;
+    prepare_click(*engine_, "auto", meta, *scene_, &how);
+  }
+
   colours_ = expand_reference(model, trained_.sh_degree);
   if (const auto sky = sky_from_archive(trained_.archive)) sky_.set(sky_degree_for(sky->size()), *sky);
   in_selection_.assign(model.size(), 0);
