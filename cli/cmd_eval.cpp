@@ -33,6 +33,7 @@ struct EvalArgs {
   std::string model, scene, labels, vocab, clicks, out;
   double boundary_ratio = 0.02;
   bool no_grow = false;
+  std::string click_by = "features";
   QueryConfig config;
 };
 
@@ -81,6 +82,8 @@ void cmd_eval(const GlobalOptions& global, EvalArgs a) {
   Runtime rt(global.device);
   QueryEngine engine(rt, model, a.config);
   engine.set_language(clustering, language);
+  nlohmann::json how;
+  if (a.click_by == "support") prepare_click(engine, a.click_by, archive.meta, *scene, &how);
   const double load_ms =
       std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t_load).count();
   spdlog::info("model {}: {} anchors, {} clusters ({} with language); {} label frames, {} clicks; region growing {}",
@@ -124,6 +127,8 @@ void cmd_eval(const GlobalOptions& global, EvalArgs a) {
                  {"click_dominant", a.config.click_dominant},
                  {"click_front_weight", a.config.click_front_weight},
                  {"boundary_ratio", a.boundary_ratio}};
+  j["click_by"] = a.click_by;
+  if (how.contains("support_plane")) j["support_plane"] = how["support_plane"];
   j["timing_ms"] = {{"load_and_prepare", load_ms}, {"prepare", engine.prepare_ms()}, {"evaluation", eval_ms}};
   write_json_atomic(a.out, j);
   spdlog::info("wrote {} ({} text and {} click queries in {:.1f} s)", a.out, text.count, click.count, eval_ms / 1000);
@@ -145,6 +150,10 @@ void register_eval(CLI::App& app, GlobalOptions& global) {
   e->add_flag("--no-grow", a->no_grow,
               "Ablation: select by plain feature similarity to the seeds instead of region growing over the graph");
   add_query_config_options(e, a->config);
+  e->add_option("--click-by", a->click_by,
+                "Clicks select by the trained features (default) or by what stands on the scene's main plane "
+                "(support: the rule of models trained without SAM masks)")
+      ->check(CLI::IsMember({"features", "support"}));
   e->add_option("--boundary-ratio", a->boundary_ratio, "Boundary IoU width as a fraction of the diagonal (0.02)");
   set_action(e, [&global, a] { cmd_eval(global, *a); });
 }
