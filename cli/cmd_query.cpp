@@ -408,7 +408,12 @@ void prepare_click(QueryEngine& engine, const std::string& click_by, const nlohm
   }
   std::vector<Camera> cameras;
   for (int v : scene.train_views()) cameras.push_back(scene.views()[v].camera);
-  const SceneUp up = scene_up(cameras, scene.points());
+  SceneUp up;
+  try {
+    up = scene_up(cameras, scene.points());
+  } catch (const std::runtime_error&) {  // no plane, and cameras that disagree on up: no plane either way
+    up.from_plane = false;
+  }
   if (!up.from_plane) {
     if (click_by == "support")
       throw std::runtime_error(

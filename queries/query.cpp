@@ -540,9 +540,10 @@ std::vector<int32_t> support_grow(const AnchorModel& model, const Plane& plane, 
       }
     });
   }
-  // The base: the component's axis (its mean across up) and its widest
-  // reach across up among its anchors near the plane (the lowest tenth of
-  // its height); band anchors linked to the component within that reach.
+  // The base: the component's axis (its mean across up) and the reach
+  // across up of its lowest part (the lowest tenth of its height, the
+  // kBaseReachQuantile of their distances from the axis); band anchors
+  // linked to the component within that reach.
   const Eigen::Vector3d up = plane.normal;
   auto across = [&](const Eigen::Vector3d& d) { return d - d.dot(up) * up; };
   Eigen::Vector3d axis = Eigen::Vector3d::Zero();
