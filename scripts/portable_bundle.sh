@@ -66,7 +66,7 @@ for lib in $stubbed; do
   if [ -e "$libdir/$lib" ]; then stub "$lib"; fi
 done
 
-bins=(build/ag2gs build/ag2gs_bench build/test_*)
+bins=(build/ag2gs build/ag2gs_bench* build/test_*)
 for b in "${bins[@]}"; do if [ -x "$b" ] && [ -f "$b" ]; then LD_LIBRARY_PATH=$stage/lib ldd "$b"; fi; done | awk '$3 ~ /^\// {print $3}' |
   sort -u | grep -v -E "/(libc|libm|libdl|libpthread|librt|libstdc\+\+|libgcc_s)\.so" | grep -v "^$stage/" |
   xargs -r cp -L -t "$stage/lib/"
