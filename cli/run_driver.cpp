@@ -9,6 +9,7 @@
 #include <filesystem>
 
 #include "cli/commands.h"
+#include "host/core/quantile.h"
 #include "stages/checkpoint.h"
 
 namespace fs = std::filesystem;
@@ -71,13 +72,6 @@ std::string fmt_duration(double s) {
   else
     std::snprintf(buf, sizeof buf, "%.1fs", s);
   return buf;
-}
-
-double percentile(std::vector<double> v, double q) {
-  if (v.empty()) return NAN;
-  const size_t k = std::min(v.size() - 1, static_cast<size_t>(q * static_cast<double>(v.size())));
-  std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(k), v.end());
-  return v[k];
 }
 
 RunDriver::RunDriver(const RunArgs& args, const Scene& scene, const std::string& model, uint64_t seed, int iterations)
@@ -144,9 +138,9 @@ void RunDriver::record_step_ms(double ms, bool fixed) {
 
 double RunDriver::recent_step_ms() const {
   const size_t recent = std::min<size_t>(step_ms_.size(), 100);
-  return recent ? percentile(std::vector<double>(step_ms_.end() - static_cast<std::ptrdiff_t>(recent), step_ms_.end()),
-                             0.5)
-                : 0.0;
+  return recent
+             ? quantile(std::vector<double>(step_ms_.end() - static_cast<std::ptrdiff_t>(recent), step_ms_.end()), 0.5)
+             : 0.0;
 }
 
 double RunDriver::eta_seconds(int remaining, size_t now, int growing, double end_count) const {
@@ -189,8 +183,8 @@ double RunDriver::finish_training(Runtime& rt, int trained, int skipped, size_t 
   const int steps = std::max(1, trained);
   spdlog::info("trained {} iterations in {:.1f} s ({:.2f} ms/iteration){}", std::max(0, trained), seconds,
                1000 * seconds / steps, skipped ? fmt::format(", {} steps skipped", skipped) : "");
-  const double median_ms = percentile(step_ms_, 0.5), p90_ms = percentile(step_ms_, 0.9);
-  const double fixed_median_ms = percentile(step_ms_fixed_, 0.5);
+  const double median_ms = quantile(step_ms_, 0.5), p90_ms = quantile(step_ms_, 0.9);
+  const double fixed_median_ms = quantile(step_ms_fixed_, 0.5);
   if (!step_ms_.empty())
     spdlog::info("step time: median {:.2f} ms, 90th percentile {:.2f} ms{}", median_ms, p90_ms,
                  step_ms_fixed_.empty() ? std::string()

@@ -48,8 +48,6 @@ void log_run_scene(const Scene& scene, const Runtime& rt, int resolution);
 
 // "1h02m", "3m05s", "12.5s"; "?" when unknown.
 std::string fmt_duration(double seconds);
-// The q-quantile (nearest rank) of `v`; NaN when empty.
-double percentile(std::vector<double> v, double q);
 
 class RunDriver {
  public:

@@ -11,6 +11,8 @@
 #include <stdexcept>
 #include <unordered_map>
 
+#include "host/core/quantile.h"
+
 namespace ag2gs {
 
 namespace {
@@ -560,9 +562,7 @@ std::vector<int32_t> support_grow(const AnchorModel& model, const Plane& plane, 
   std::vector<double> low;
   for (size_t a = 0; a < A; ++a)
     if (in[a] && height[a] < bottom + 0.1 * (top - bottom) + margin) low.push_back(across(pos(a) - axis).norm());
-  const size_t k = std::min(low.size() - 1, static_cast<size_t>(kBaseReachQuantile * static_cast<double>(low.size())));
-  std::nth_element(low.begin(), low.begin() + static_cast<std::ptrdiff_t>(k), low.end());
-  const double reach = low[k];  // never empty: the lowest anchor is in it
+  const double reach = quantile(std::move(low), kBaseReachQuantile);  // never empty: the lowest anchor is in it
   std::vector<uint8_t> base(A, 0);
   for (size_t a = 0; a < A; ++a) {
     if (!in[a]) continue;

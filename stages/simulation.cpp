@@ -9,6 +9,7 @@
 #include <map>
 #include <stdexcept>
 
+#include "host/core/quantile.h"
 #include "host/scene/scene_up.h"
 
 namespace ag2gs {
@@ -20,13 +21,6 @@ const std::map<std::string, std::string> kNoDefines;
 // An object stands on the scene's main plane when its lowest Gaussians lie
 // within this fraction of its height from it.
 constexpr double kOnFloor = 0.1;
-
-double quantile(std::vector<double> v, double q) {
-  if (v.empty()) return NAN;
-  const size_t k = std::min(v.size() - 1, static_cast<size_t>(q * static_cast<double>(v.size())));
-  std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(k), v.end());
-  return v[k];
-}
 
 void check_material(const MpmMaterial& m, const std::string& flags) {
   if (!(m.E > 0) || !std::isfinite(m.E)) throw std::invalid_argument(flags + ": E must be a finite number > 0");

@@ -7,6 +7,7 @@
 #include <stdexcept>
 
 #include "host/core/counter_rng.h"
+#include "host/core/quantile.h"
 
 namespace ag2gs {
 
@@ -47,14 +48,11 @@ std::optional<Plane> main_plane(const std::vector<Eigen::Vector3d>& points, uint
   for (int a = 0; a < 3; ++a) {
     std::vector<double> v(n);
     for (size_t i = 0; i < n; ++i) v[i] = points[i](a);
-    std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(n / 2), v.end());
-    median(a) = v[n / 2];
+    median(a) = quantile(std::move(v), 0.5);
   }
   std::vector<double> dist(n);
   for (size_t i = 0; i < n; ++i) dist[i] = (points[i] - median).norm();
-  const size_t k90 = std::min(n - 1, static_cast<size_t>(0.9 * static_cast<double>(n)));
-  std::nth_element(dist.begin(), dist.begin() + static_cast<std::ptrdiff_t>(k90), dist.end());
-  const double tolerance = kPlaneTolerance * dist[k90];
+  const double tolerance = kPlaneTolerance * quantile(std::move(dist), 0.9);
   if (!(tolerance > 0)) return std::nullopt;
 
   Plane best;
@@ -147,8 +145,7 @@ SceneUp scene_up(const std::vector<Camera>& cameras, const std::vector<Eigen::Ve
       // The side of the plane the cameras are on is up.
       std::vector<double> side;
       for (const Camera& c : cameras) side.push_back(out.plane->height(c.center()));
-      std::nth_element(side.begin(), side.begin() + static_cast<std::ptrdiff_t>(side.size() / 2), side.end());
-      if (side[side.size() / 2] < 0) {
+      if (quantile(std::move(side), 0.5) < 0) {
         out.plane->normal = -out.plane->normal;
         out.plane->offset = -out.plane->offset;
       }
