@@ -6,7 +6,9 @@
 # with ag2gs_bench_removal against the scene traced without that category:
 # hole PSNR (inside the object's exact mask), kept PSNR (outside it) and
 # residue, for the original model, deleting only, the removal, and a
-# per-view 2D inpainting of the original render.
+# per-view 2D inpainting of the original render; and the fill's ceiling: the
+# best any fill behind what the deleted model shows could score, each pixel
+# given the colour nearest the truth through the part the model leaves open.
 #
 #   bench/removal_benchmark.sh OUT_DIR [--seed S] [--iters N] [--no-backdrop] [--width W --height H]
 #                              [-- remove flags, e.g. --iters 300]
@@ -17,7 +19,7 @@ set -euo pipefail
 here="$(cd "$(dirname "$0")/.." && pwd)"
 bin="${AG2GS_BIN:-$here/build/ag2gs}"
 score="$(dirname "$bin")/ag2gs_bench_removal"
-[ $# -ge 1 ] || { sed -n 2,12p "$0" | sed 's/^# \{0,1\}//'; exit 2; }
+[ $# -ge 1 ] || { sed -n 2,17p "$0" | sed 's/^# \{0,1\}//'; exit 2; }
 out="$1"; shift
 seed=1; iters=2000; synth=(); size=(--width 160 --height 120); remove_flags=()
 while [ $# -gt 0 ]; do
@@ -45,13 +47,16 @@ categories=$(python3 -c "import json,sys; print('\n'.join(sorted({o['category'] 
 while IFS= read -r cat; do
   [ -n "$cat" ] || continue
   dir="$out/removed/${cat// /_}"
-  rm -rf "$dir" "$dir.renders" "$dir.deleted" "$dir.deleted.renders"
+  rm -rf "$dir" "$dir.renders" "$dir.deleted" "$dir.deleted.renders" "$dir.deleted.black"
+  ceiling=()
   # Deleting only, for reference: its "removed" row is reported as "deleted".
   if "$bin" remove "$model" --scene "$scene" --text "$cat" --vocab "$scene/vocab.json" -o "$dir.deleted" --no-fill -q &&
     "$bin" render "$dir.deleted" --scene "$scene" --views test --outputs rgb -r 1 -o "$dir.deleted.renders" -q &&
     "$score" "$scene" --category "$cat" --original "$out/renders_original" --removed "$dir.deleted.renders" \
       --json "$dir.deleted.score.json" >"$dir.deleted.score.txt"; then
     grep '^removed ' "$dir.deleted.score.txt" | sed 's/^removed /deleted /' | tee -a "$table"
+    "$bin" render "$dir.deleted" --scene "$scene" --views test --outputs rgb,alpha --bg 0,0,0 -r 1 \
+      -o "$dir.deleted.black" -q && ceiling=(--deleted "$dir.deleted.black")
   else
     echo "FAILED delete-only: $cat" | tee -a "$table"
   fi
@@ -65,7 +70,7 @@ while IFS= read -r cat; do
   t2=$(date +%s.%N)
   if ! "$bin" render "$dir" --scene "$scene" --views test --outputs rgb -r 1 -o "$dir.renders" -q ||
     ! "$score" "$scene" --category "$cat" --original "$out/renders_original" --removed "$dir.renders" \
-      --json "$dir.score.json" >"$dir.score.txt"; then
+      ${ceiling[@]+"${ceiling[@]}"} --json "$dir.score.json" >"$dir.score.txt"; then
     echo "FAILED render or score: $cat" | tee -a "$table"
     continue
   fi
@@ -75,6 +80,6 @@ while IFS= read -r cat; do
 done <<<"$categories"
 echo "train (stages 1-3, $iters iterations): ${t_train} s" | tee -a "$table"
 # Means over the categories, per method.
-for method in original deleted removed inpaint_2d; do
+for method in original deleted removed inpaint_2d ceiling; do
   grep "^$method " "$table" | awk -v m="$method" '{h+=$4; k+=$7; r+=$9; n++} END {if (n) printf "mean %-18s hole PSNR %6.2f  kept PSNR %6.2f  residue %.4f  (%d categories)\n", m, h/n, k/n, r/n, n}'
 done | tee -a "$table"

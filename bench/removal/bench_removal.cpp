@@ -3,7 +3,8 @@
 // original model, of the model after `ag2gs remove`, and a per-view 2D
 // inpainting of the original render inside the object's mask.
 //
-//   ag2gs_bench_removal SCENE_DIR --category C --original RENDERS --removed RENDERS [--json OUT.json]
+//   ag2gs_bench_removal SCENE_DIR --category C --original RENDERS --removed RENDERS
+//                       [--deleted RENDERS] [--json OUT.json]
 //
 // RENDERS: folders written by `ag2gs render --views test` (rgb/ is read)
 // at full size (-r 1). Per method and view, with M the category's exact mask
@@ -16,7 +17,20 @@
 //              it than a quarter of that difference. A fill that continues
 //              the ground under the object is not residue (the truth shows
 //              that ground); what is left of the object is.
+// With --deleted (renders of the model after deleting only, written with
+// `--outputs rgb,alpha --bg 0,0,0`, so that rgb is the kept Gaussians' own
+// colour K with nothing behind them), a fourth row, "ceiling": the best any
+// fill behind the kept surfaces can do. Such a fill shows through what the
+// kept model leaves open, 1 - alpha, so a pixel renders K + (1 - alpha) f
+// for a fill colour f in [0, 1]; the ceiling takes, per pixel of M, the f
+// nearest to the truth: clamp((truth - K) / (1 - alpha), 0, 1). What it
+// cannot reach is what other views photographed in front of the fill (the
+// removed object's shadow, for one, which the truth lacks). A fill in front
+// of a far surface seen through unseen ground (the backdrop behind a floor
+// no view saw, which `remove` also fills) can do better than this. The row
+// has no kept PSNR (nan; null in the JSON).
 #include <CLI/CLI.hpp>
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
@@ -25,8 +39,10 @@
 #include <opencv2/imgproc.hpp>
 #include <opencv2/photo.hpp>
 #include <set>
+#include <vector>
 
 #include "host/io/atomic_file.h"
+#include "host/io/npy_io.h"
 #include "queries/semantic_eval.h"
 
 using namespace ag2gs;
@@ -92,6 +108,10 @@ int main(int argc, char** argv) {
   app.add_option("--category", category, "The removed category (a folder of removal_gt/)")->required();
   app.add_option("--original", original, "Renders of the original model (rgb/ of the test views)")->required();
   app.add_option("--removed", removed, "Renders of the model after removal")->required();
+  std::string deleted;
+  app.add_option("--deleted", deleted,
+                 "Renders of the model after deleting only (`--outputs rgb,alpha --bg 0,0,0`): adds the fill's "
+                 "ceiling row");
   app.add_option("--json", json_out, "Also write the numbers here");
   CLI11_PARSE(app, argc, argv);
   try {
@@ -101,7 +121,7 @@ int main(int argc, char** argv) {
     std::set<int> ids;
     for (const auto& [id, cat] : read_synth_objects(scene_dir))
       if (cat == category) ids.insert(id);
-    Sums s_orig, s_removed, s_2d;
+    Sums s_orig, s_removed, s_2d, s_ceiling;
     size_t mask_pixels = 0;
     nlohmann::json views = nlohmann::json::array();
     std::vector<fs::path> files;
@@ -128,6 +148,30 @@ int main(int argc, char** argv) {
       s_orig.add(a, truth, mask);
       s_removed.add(b, truth, mask);
       s_2d.add(inpainted, truth, mask);
+      if (!deleted.empty()) {
+        cv::Mat c = read_or_throw(fs::path(deleted) / "rgb" / (stem + ".png"), cv::IMREAD_COLOR);
+        const fs::path alpha_file = fs::path(deleted) / "alpha" / (stem + ".npy");
+        const NpyArray alpha = read_npy(alpha_file.string());
+        if (c.size() != truth.size() || alpha.size() != mask.total())
+          throw std::runtime_error(stem +
+                                   ": --deleted renders are not the size of the scene's images (render with -r 1 "
+                                   "--outputs rgb,alpha --bg 0,0,0)");
+        for (int y = 0; y < mask.rows; ++y)
+          for (int x = 0; x < mask.cols; ++x) {
+            const double al = alpha.data[static_cast<size_t>(y) * mask.cols + x];
+            cv::Vec3b& k = c.at<cv::Vec3b>(y, x);
+            if (al <= 0 && (k[0] | k[1] | k[2]))
+              throw std::runtime_error(stem + ": --deleted rgb is not black where alpha is 0 (render with --bg 0,0,0)");
+            if (!mask.at<uint8_t>(y, x) || al >= 1) continue;
+            const cv::Vec3b t = truth.at<cv::Vec3b>(y, x);
+            for (int ch = 0; ch < 3; ++ch) {
+              const double f = std::clamp((t[ch] - k[ch]) / (255.0 * (1 - al)), 0.0, 1.0);
+              k[ch] = cv::saturate_cast<uint8_t>(k[ch] + 255.0 * (1 - al) * f);
+            }
+          }
+        s_ceiling.add(c, truth, mask);
+        add_residue(s_ceiling, c, a, truth, mask);
+      }
       add_residue(s_orig, a, a, truth, mask);
       add_residue(s_removed, b, a, truth, mask);
       add_residue(s_2d, inpainted, a, truth, mask);
@@ -141,7 +185,13 @@ int main(int argc, char** argv) {
                      {"original", s_orig.to_json(mask_pixels)},
                      {"removed", s_removed.to_json(mask_pixels)},
                      {"inpaint_2d", s_2d.to_json(mask_pixels)}};
-    for (const char* k : {"original", "removed", "inpaint_2d"})
+    std::vector<const char*> rows{"original", "removed", "inpaint_2d"};
+    if (!deleted.empty()) {
+      j["ceiling"] = s_ceiling.to_json(mask_pixels);
+      j["ceiling"]["kept_psnr"] = NAN;  // its pixels outside M have no sky: not a score
+      rows.push_back("ceiling");
+    }
+    for (const char* k : rows)
       std::printf("%-12s hole PSNR %6.2f  kept PSNR %6.2f  residue %.4f  (%zu px)  %s\n", k,
                   j[k]["hole_psnr"].get<double>(), j[k]["kept_psnr"].get<double>(), j[k]["residue"].get<double>(),
                   mask_pixels, category.c_str());
