@@ -64,6 +64,7 @@ struct SimulateArgs {
   std::optional<double> ground;
   double object_size = 0.4;
   double friction = 0.5;
+  double damping = 0;
   double push = 10;
   std::string views;
   int ply_every = 10;
@@ -121,6 +122,7 @@ void cmd_simulate(const GlobalOptions& global, SimulateArgs a) {
   ss.ground = a.ground;
   ss.object_size = a.object_size;
   ss.friction = a.friction;
+  ss.damping = a.damping;
   ss.min_opacity = a.min_opacity;
   if (!a.force.empty()) ss.force = parse_vector(a.force, "--force");
   const auto [force_from, force_to] = parse_frames(a.force_frames);
@@ -363,6 +365,10 @@ void register_simulate(CLI::App& app, GlobalOptions& global) {
                 "the object)");
   r->add_option("--friction", a->friction,
                 "Coulomb friction of the ground plane (default 0.5; 0: things slide on it freely)")
+      ->check(non_negative_number());
+  r->add_option("--damping", a->damping,
+                "Drag on the motion, per second (default 0: none; e.g. 30 lets a pile creep to rest without "
+                "inertia)")
       ->check(non_negative_number());
   r->add_option("--object-size", a->object_size,
                 "The object's largest side in the simulation's metres (default 0.4; the box is 1 m across)");

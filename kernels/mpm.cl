@@ -243,6 +243,7 @@ __kernel void mpm_particle_stress(int n, float dt, float inv_dx, int forces_on,
 // that box.
 __kernel void mpm_grid(int n_active, int grid, float dt, float dx, float inv_dx, int4 nlo, int4 ndim, int4 clo,
                        int4 cdim, float4 gravity, float ground, float friction,
+                       float keep_speed,                // 1 / (1 + damping dt): 1 undamped
                        __global const int* active,      // [n_active] node ids in the node box
                        __global const int* cell_start,  // [cells of the cell box + 1] into the sorted particles
                        __global const float* pdata,     // [N,PD_SIZE] sorted
@@ -275,7 +276,7 @@ __kernel void mpm_grid(int n_active, int grid, float dt, float dx, float inv_dx,
       }
   float3 vel = (float3)(0.f);
   if (m > 0.f) {
-    vel = mom / m + dt * gravity.xyz;
+    vel = (mom / m + dt * gravity.xyz) * keep_speed;
     // Walls: no velocity out of the box within MPM_BOUND cells of a side.
     if (node.x < MPM_BOUND && vel.x < 0.f) vel.x = 0.f;
     if (node.y < MPM_BOUND && vel.y < 0.f) vel.y = 0.f;

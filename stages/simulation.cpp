@@ -41,6 +41,8 @@ void SimulationSettings::validate() const {
     throw std::invalid_argument("--object-size must lie in (0, 0.8] (box units; the box is 1 across)");
   if (!(min_opacity >= 0 && min_opacity < 1)) throw std::invalid_argument("--min-opacity must lie in [0, 1)");
   if (!(friction >= 0) || !std::isfinite(friction)) throw std::invalid_argument("--friction must be a number >= 0");
+  if (!(damping >= 0) || !std::isfinite(damping))
+    throw std::invalid_argument("--damping must be a rate >= 0 per second (0 = none)");
   if (up && !(up->norm() > 0 && up->allFinite())) throw std::invalid_argument("--up must be a nonzero vector");
   if (gravity && !gravity->allFinite()) throw std::invalid_argument("--gravity must be finite");
   if (!force.allFinite()) throw std::invalid_argument("--force must be finite");
@@ -308,6 +310,7 @@ Simulation::Simulation(Runtime& rt, const GaussianSet& scene, const std::vector<
   config.grid = g;
   config.ground = frame_.ground_box;
   config.friction = settings_.friction;
+  config.damping = settings_.damping;
   const Eigen::Vector3d gravity =
       settings_.gravity ? Eigen::Vector3d(frame_.A * *settings_.gravity) : Eigen::Vector3d(0, 0, -9.8);
   config.gravity = {gravity(0), gravity(1), gravity(2)};
@@ -454,6 +457,7 @@ nlohmann::json Simulation::describe() const {
           {"ground_world", frame_.ground_world},
           {"ground_box", frame_.ground_box},
           {"ground_friction", settings_.friction},
+          {"damping", settings_.damping},
           {"box_scale", frame_.scale},
           {"object_size", settings_.object_size},
           {"min_opacity", settings_.min_opacity},

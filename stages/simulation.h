@@ -33,6 +33,7 @@ struct SimulationSettings {
   std::optional<Eigen::Vector3d> up;                // world frame; default from the cameras
   std::optional<double> ground;                     // height along up (world units); default from the SfM points
   double friction = 0.5;                            // Coulomb friction of the ground
+  double damping = 0;                               // drag on the grid's velocities, 1/s (0 = none)
   float min_opacity = 0.02f;                        // Gaussians below this opacity stay out of the simulation
   double object_size = 0.4;                         // the object's largest side, in box units (metres)
 

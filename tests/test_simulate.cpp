@@ -107,7 +107,8 @@ TEST(Simulate, AClickOnAModelWithoutFeaturesSelectsByTheSupportPlane) {
 
 TEST(Simulate, WritesFramesPlysAndARecordOfEveryFrame) {
   const fs::path out = fresh("basic");
-  const auto r = test::run_cli(simulate_cmd(out, "--frames 3 --ply-every 2 --views view_001,view_002 --background"));
+  const auto r =
+      test::run_cli(simulate_cmd(out, "--frames 3 --ply-every 2 --views view_001,view_002 --background --damping 5"));
   ASSERT_EQ(r.code, 0) << r.output;
   for (const char* v : {"view_001", "view_002"})
     for (const char* f : {"0000.png", "0001.png", "0002.png", "0003.png"})
@@ -119,6 +120,7 @@ TEST(Simulate, WritesFramesPlysAndARecordOfEveryFrame) {
   ASSERT_EQ(j["per_frame"].size(), 4u);
   EXPECT_EQ(j["query"]["type"], "selection");
   EXPECT_EQ(j["material"], "jelly");
+  EXPECT_EQ(j["simulation"]["damping"].get<double>(), 5.0);
   const json& p = j["simulation"]["particles"];
   EXPECT_GT(p["object_gaussians"].get<size_t>(), 0u);
   EXPECT_EQ(p["total"].get<size_t>(), p["object_gaussians"].get<size_t>() + p["interior_fill"].get<size_t>() +
@@ -162,6 +164,7 @@ TEST(Simulate, AFreeObjectFallsAsGravitySaysInWorldUnits) {
   ASSERT_EQ(r.code, 0) << r.output;
   const json j = json::parse(std::ifstream(out / "simulation.json"));
   const double scale = j["simulation"]["box_scale"].get<double>();
+  EXPECT_EQ(j["simulation"]["damping"].get<double>(), 0.0) << "undamped unless asked";
   const json& f0 = j["per_frame"][0]["object_centre_of_mass"];
   const json& f2 = j["per_frame"][2]["object_centre_of_mass"];
   const double t = 2 / 25.0;
@@ -232,6 +235,7 @@ TEST(Simulate, BadInputIsRefusedBeforeAnythingIsWritten) {
       {"--object-size 2", "--object-size"},
       {"--E 0", "--E"},
       {"--grid 8", "--grid"},
+      {"--damping -1", "--damping"},
       {"--frames 0", "--frames"},
       {"--gravity 0,0", "--gravity 0,0: give three numbers"},
   };

@@ -135,6 +135,8 @@ MpmSolver::MpmSolver(Runtime& rt, const MpmConfig& config, std::vector<MpmMateri
   if (!(config_.cfl > 0 && config_.cfl <= 1)) throw std::invalid_argument("the CFL number must be in (0, 1]");
   if (!(config_.friction >= 0) || !std::isfinite(config_.friction))
     throw std::invalid_argument("the ground's friction coefficient must be a finite number >= 0");
+  if (!(config_.damping >= 0) || !std::isfinite(config_.damping))
+    throw std::invalid_argument("the damping rate must be a finite number >= 0 (1/s)");
   if (materials_.empty()) throw std::invalid_argument("the simulation needs at least one material");
   std::vector<float> params;
   for (const MpmMaterial& m : materials_) {
@@ -286,7 +288,7 @@ void MpmSolver::step(double dt, bool forces_on) {
   const size_t n_active = active_host_.size();
   set_kernel_args(kg, static_cast<cl_int>(n_active), static_cast<cl_int>(g), static_cast<float>(dt), dx, inv_dx, clo,
                   ndim, clo, cdim, gravity, static_cast<float>(config_.ground), static_cast<float>(config_.friction),
-                  active_, cell_start_, pdata_, grid_v_);
+                  static_cast<float>(1.0 / (1.0 + config_.damping * dt)), active_, cell_start_, pdata_, grid_v_);
   rt_.launch("mpm_grid", kg, cl::NDRange(round_up(n_active, wg)), cl::NDRange(wg));
 
   cl::Kernel kp = rt_.kernel("mpm.cl", "mpm_g2p", kNoDefines);

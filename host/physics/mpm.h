@@ -58,6 +58,11 @@ struct MpmConfig {
   double ground = -1;                            // height of the ground plane (z); < 0 = none
   double friction = 0;                           // Coulomb friction of the ground (0 = it slips)
   double cfl = 0.3;                              // dt <= cfl * dx / (wave speed + |v|max)
+  // Viscous drag on the grid's velocities (1/s): each substep divides them by
+  // 1 + damping dt. 0 (default) leaves the dynamics undamped; a large value
+  // removes inertia, so a collapse creeps to the state a slow release would
+  // reach (tests/test_mpm.cpp).
+  double damping = 0;
 };
 
 // The particles, on the host. N = x.size() / 3.
