@@ -31,6 +31,8 @@ void FillSettings::validate() const {
     throw std::invalid_argument("fill: prune_opacity must be in [0, 1), got " + std::to_string(prune_opacity));
   if (!(std::isfinite(max_alpha) && max_alpha > 0.f && max_alpha <= 1.f))
     throw std::invalid_argument("--fill-alpha must be in (0, 1], got " + std::to_string(max_alpha));
+  if (!(std::isfinite(colour_quantile) && colour_quantile >= 0.f && colour_quantile <= 1.f))
+    throw std::invalid_argument("--fill-quantile must be in [0, 1], got " + std::to_string(colour_quantile));
 }
 
 // ------------------------------------------------------------------ footprint
@@ -91,15 +93,15 @@ void HoleFootprint::add_view(const Camera& cam, const ViewHole& h, const std::ve
       const Eigen::Vector3i c = grid_.cell_of(finest, pw);
       if ((c.array().abs() >= kMaxAnchorCell).any()) continue;
       Cell& cell = cells_[anchor_voxel_key(finest, c)];
-      for (int k = 0; k < 3; ++k) {
-        cell.sum[k] += pw[k];
-        cell.colour[k] += target[3 * p + k];
-      }
+      for (int k = 0; k < 3; ++k) cell.sum[k] += pw[k];
       ++cell.points;
       if (cell.last_view != views_) {
         cell.last_view = views_;
         ++cell.views;
+        cell.per_view.push_back({0, 0, 0, 0});
       }
+      for (int k = 0; k < 3; ++k) cell.per_view.back()[k] += target[3 * p + k];
+      cell.per_view.back()[3] += 1;
       ++points_;
     }
 }
@@ -131,7 +133,7 @@ FillResult add_fill_anchors(AnchorModel& model, const HoleFootprint& footprint, 
     int layer = 0;
     Eigen::Vector3i cell;
     int parent = -1;
-    double colour[3] = {0, 0, 0};
+    std::vector<std::array<double, 3>> estimates;  // one colour per footprint voxel and view that reaches it
     size_t points = 0;
     int views = 0;  // the most views of one of its footprint voxels
   };
@@ -152,7 +154,7 @@ FillResult add_fill_anchors(AnchorModel& model, const HoleFootprint& footprint, 
       d.cell = cell;
       d.parent = a;
     }
-    for (int k = 0; k < 3; ++k) d.colour[k] += c.colour[k];
+    for (const auto& v : c.per_view) d.estimates.push_back({v[0] / v[3], v[1] / v[3], v[2] / v[3]});
     d.points += c.points;
     d.views = std::max(d.views, c.views);
   }
@@ -172,14 +174,25 @@ FillResult add_fill_anchors(AnchorModel& model, const HoleFootprint& footprint, 
   }
   const int K = model.children();
   const float op = static_cast<float>(logit(settings.opacity));
+  // The estimate at the colour quantile by brightness (ties in the order the
+  // views came: stable).
+  auto fill_colour = [&](const Candidate& d) {
+    std::vector<std::pair<double, size_t>> bright;
+    for (size_t i = 0; i < d.estimates.size(); ++i)
+      bright.push_back({d.estimates[i][0] + d.estimates[i][1] + d.estimates[i][2], i});
+    std::sort(bright.begin(), bright.end());
+    const size_t at = std::min(bright.size() - 1, static_cast<size_t>(settings.colour_quantile * bright.size()));
+    return d.estimates[bright[at].second];
+  };
   for (const Candidate* d : order) {
     const int id = model.add_anchor(d->layer, d->cell, static_cast<int64_t>(d->parent) * K, seed);
     if (id < 0) continue;
+    const std::array<double, 3> colour = fill_colour(*d);
     for (int i = 0; i < K; ++i) {
       const size_t g = static_cast<size_t>(id) * K + i;
       float* sh = model.sh().data() + g * kAnchorShCoeffs * 3;
       std::fill(sh, sh + kAnchorShCoeffs * 3, 0.f);
-      for (int k = 0; k < 3; ++k) sh[k] = static_cast<float>((d->colour[k] / d->points - 0.5) / kShC0);
+      for (int k = 0; k < 3; ++k) sh[k] = static_cast<float>((colour[k] - 0.5) / kShC0);
       model.opacity_logit()[g] = op;
     }
     r.added.push_back(id);

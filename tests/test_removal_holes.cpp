@@ -10,6 +10,7 @@
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <functional>
 #include <set>
 #include <string>
 
@@ -200,35 +201,74 @@ TEST(RemovalHoles, InpaintingFillsOnlyTheHole) {
 // the box's base and covers it; the fill puts anchors exactly into the empty
 // voxels of the base (on the floor's layer), with the targets' colour, and
 // marks the floor anchors around it trainable, the far ones not.
-TEST(RemovalFill, FootprintIsTheBaseOnTheFloorAndTheFillGoesThere) {
-  const GaussianSet kept = floor_without_footprint(), removed = box();
-  HoleFinder finder(kept, removed);
-  Renderer renderer(test::runtime());
-  HoleSettings s;
-  s.dilate = 0;
-  // Layer 1 of this grid: 0.08 cells, z = 0 the middle of cell 12.
-  AnchorConfig config;
-  config.children = 2;
-  config.layers = 2;
+// Layer 1 of this grid: 0.08 cells, z = 0 the middle of cell 12.
+VoxelGrid fill_grid() {
   VoxelGrid grid;
   grid.origin = Eigen::Vector3d(-1.0, -1.0, -1.0);
   grid.top_voxel = 0.32;
   grid.layer_ratio = 4;
   grid.layers = 2;
-  HoleFootprint footprint(grid, finder.diameter(), s.behind);
+  return grid;
+}
+
+AnchorConfig fill_config() {
+  AnchorConfig config;
+  config.children = 2;
+  config.layers = 2;
+  return config;
+}
+
+// The footprint of the box's holes seen from four views around it, each
+// view's target a flat colour in its hole: colour(v) for view v.
+HoleFootprint box_footprint(const std::function<Eigen::Vector3f(int)>& colour) {
+  const GaussianSet kept = floor_without_footprint(), removed = box();
+  HoleFinder finder(kept, removed);
+  Renderer renderer(test::runtime());
+  HoleSettings s;
+  s.dilate = 0;
+  HoleFootprint footprint(fill_grid(), finder.diameter(), s.behind);
+  int v = 0;
   for (double az : {0.3, 1.9, 3.4, 5.0}) {
     const Camera cam = view_from(az);
     const ViewHole h = finder.find(renderer, cam, s);
-    // A flat target colour in the hole: the fill's colour must be it.
     std::vector<float> target(h.rgb_after);
+    const Eigen::Vector3f c = colour(v++);
     for (size_t p = 0; p < h.hole.size(); ++p)
-      if (h.hole[p]) {
-        target[3 * p] = 0.25f;
-        target[3 * p + 1] = 0.5f;
-        target[3 * p + 2] = 0.75f;
-      }
+      if (h.hole[p])
+        for (int k = 0; k < 3; ++k) target[3 * p + k] = c[k];
     footprint.add_view(cam, h, target);
   }
+  return footprint;
+}
+
+// Floor anchors on layer 1 everywhere but under the box; `base` gets the
+// 25 cells left empty.
+AnchorModel floor_model(std::set<std::pair<int, int>>* base) {
+  const VoxelGrid grid = fill_grid();
+  AnchorModel model;
+  model.reset(grid, fill_config());
+  for (int i = 0; i < 26; ++i)
+    for (int j = 0; j < 26; ++j) {
+      const Eigen::Vector3i cell(i, j, 12);
+      const Eigen::Vector3d c = grid.centre(1, cell);
+      if (std::abs(c.x()) < kHalf && std::abs(c.y()) < kHalf) {
+        if (base) base->insert({i, j});
+        continue;
+      }
+      EXPECT_GE(model.add_anchor(1, cell, -1, 1), 0);
+    }
+  return model;
+}
+
+float sh_colour(const AnchorModel& model, size_t gaussian, int channel) {
+  return 0.5f + 0.28209479f * model.sh()[gaussian * kAnchorShCoeffs * 3 + channel];
+}
+
+TEST(RemovalFill, FootprintIsTheBaseOnTheFloorAndTheFillGoesThere) {
+  const VoxelGrid grid = fill_grid();
+  const AnchorConfig config = fill_config();
+  // A flat target colour in the hole: the fill's colour must be it.
+  const HoleFootprint footprint = box_footprint([](int) { return Eigen::Vector3f(0.25f, 0.5f, 0.75f); });
   EXPECT_EQ(footprint.views_with_holes(), 4);
   ASSERT_GT(footprint.points(), 100u);
   // Voxels seen by two views or more (those the fill takes) lie on the
@@ -245,21 +285,9 @@ TEST(RemovalFill, FootprintIsTheBaseOnTheFloorAndTheFillGoesThere) {
   EXPECT_EQ(off_plane, 0u) << "of " << footprint.cells().size() << " footprint voxels";
   EXPECT_EQ(outside, 0u) << "of " << footprint.cells().size() << " footprint voxels";
 
-  // Floor anchors on layer 1 everywhere but under the box.
-  AnchorModel model;
-  model.reset(grid, config);
-  const double edge = grid.voxel(1);
   std::set<std::pair<int, int>> base;
-  for (int i = 0; i < 26; ++i)
-    for (int j = 0; j < 26; ++j) {
-      const Eigen::Vector3i cell(i, j, 12);
-      const Eigen::Vector3d c = grid.centre(1, cell);
-      if (std::abs(c.x()) < kHalf && std::abs(c.y()) < kHalf) {
-        base.insert({i, j});
-        continue;
-      }
-      ASSERT_GE(model.add_anchor(1, cell, -1, 1), 0);
-    }
+  AnchorModel model = floor_model(&base);
+  const double edge = grid.voxel(1);
   ASSERT_EQ(base.size(), 25u);  // 5 x 5 cells of 0.08 tile the 0.4 base
   const size_t floor_anchors = model.size();
   FillSettings fs;
@@ -274,9 +302,9 @@ TEST(RemovalFill, FootprintIsTheBaseOnTheFloorAndTheFillGoesThere) {
     EXPECT_EQ(cz, 12);
     EXPECT_TRUE(base.count({cx, cy})) << cx << "," << cy;
     for (int i = 0; i < config.children; ++i) {
-      const float* sh = model.sh().data() + (static_cast<size_t>(id) * config.children + i) * kAnchorShCoeffs * 3;
-      EXPECT_NEAR(0.5 + 0.28209479 * sh[0], 0.25, 1e-3);
-      EXPECT_NEAR(0.5 + 0.28209479 * sh[2], 0.75, 1e-3);
+      const size_t g = static_cast<size_t>(id) * config.children + i;
+      EXPECT_NEAR(sh_colour(model, g, 0), 0.25, 1e-3);
+      EXPECT_NEAR(sh_colour(model, g, 2), 0.75, 1e-3);
       EXPECT_NEAR(1.0 / (1.0 + std::exp(-model.opacity_logit()[static_cast<size_t>(id) * config.children + i])),
                   fs.opacity, 1e-5);
     }
@@ -302,6 +330,40 @@ TEST(RemovalFill, FootprintIsTheBaseOnTheFloorAndTheFillGoesThere) {
   FillSettings bad = fs;
   bad.opacity = 1.f;
   EXPECT_THROW(add_fill_anchors(capped, footprint, bad, 100, 1), std::invalid_argument);
+  bad = fs;
+  bad.colour_quantile = 1.5f;
+  EXPECT_THROW(add_fill_anchors(capped, footprint, bad, 100, 1), std::invalid_argument);
+}
+
+// One of the four views sees the floor in shadow (its target dark); every
+// fill voxel takes two views or more. The default upper quantile takes a lit
+// view's colour everywhere; the lowest (0) takes the shadow's wherever that
+// view reaches, and the lit colour elsewhere.
+TEST(RemovalFill, TheFillTakesTheColourOfTheViewsThatSawItLit) {
+  const Eigen::Vector3f lit(0.6f, 0.5f, 0.4f), shadow(0.15f, 0.12f, 0.1f);
+  const HoleFootprint footprint = box_footprint([&](int v) { return v == 1 ? shadow : lit; });
+  for (const float q : {0.75f, 0.5f, 0.f}) {
+    AnchorModel model = floor_model(nullptr);
+    const size_t floor_anchors = model.size();
+    FillSettings fs;
+    fs.colour_quantile = q;
+    const FillResult r = add_fill_anchors(model, footprint, fs, 100, 1);
+    ASSERT_GE(r.added.size(), 20u);
+    size_t dark = 0;
+    for (int id : r.added) {
+      const size_t g = static_cast<size_t>(id) * model.children();
+      const bool is_dark = std::abs(sh_colour(model, g, 0) - shadow[0]) < 1e-3f;
+      dark += is_dark;
+      for (int k = 0; k < 3; ++k)
+        EXPECT_NEAR(sh_colour(model, g, k), is_dark ? shadow[k] : lit[k], 1e-3)
+            << "quantile " << q << ", anchor " << id;
+    }
+    EXPECT_EQ(model.size(), floor_anchors + r.added.size());
+    if (q > 0)
+      EXPECT_EQ(dark, 0u) << "quantile " << q;  // 2-4 estimates, at most one dark: index floor(q n) is lit
+    else
+      EXPECT_GT(dark, 0u) << "the shadowed view reaches part of the base";
+  }
 }
 
 // A kept child in a removed Gaussian's voxel with its colour is stray; one
