@@ -63,9 +63,10 @@ struct RemoveArgs {
 // Fine-tuning iterations by default, measured on the removal benchmark
 // (docs/benchmarks.md, "Object removal: fill and fine-tune"): the fill's
 // colours, each taken from the inpainted targets of the views that see its
-// voxel (then their mean; now an upper quantile by brightness), score higher at the test views than the same fill tuned
-// to the per-view targets (100 or 300 iterations), which differ from view to view. An inpainter that agrees across
-// views is what a fine-tune needs.
+// voxel (then their mean; now an upper quantile by brightness), score
+// higher at the test views than the same fill tuned to the per-view targets
+// (100 or 300 iterations), which differ from view to view. An inpainter that
+// agrees across views is what a fine-tune needs.
 constexpr int kDefaultFillIters = 0;
 
 // The opacity logit of a cleared child: sigmoid(-30) ~ 1e-13, below

@@ -51,10 +51,10 @@ struct FillSettings {
   // The fill's colour. Each view that sees a fill voxel gives one estimate,
   // the mean of its target colours there; the estimates are ranked by
   // brightness (sum of the channels) and the one at this quantile is taken.
-  // A shadow or an occluder on the ring a view's inpainting draws from can
-  // only darken its estimate, so an upper quantile (0.75, measured on the
-  // removal benchmark) keeps the views that saw the surface lit; 0.5 is the
-  // median, 1 the brightest.
+  // The removed object's shadow on the ring a view's inpainting draws from
+  // can only darken its estimate, so an upper quantile (0.75, measured on
+  // the removal benchmark) keeps the views that saw the surface lit; 0.5 is
+  // the median, 1 the brightest.
   float colour_quantile = 0.75f;
 
   // Throws std::invalid_argument naming the field.
