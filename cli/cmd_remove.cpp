@@ -474,7 +474,7 @@ void register_remove(CLI::App& app, GlobalOptions& global) {
   r->add_option("--fill-quantile", a->fill.colour_quantile,
                 "The fill's colour: of the views' colour estimates at a fill voxel, ranked by brightness, the one at "
                 "this quantile (default 0.75: shadows only darken; 0.5 the median)");
-  r->add_option("--fill-opacity", a->fill.opacity, "Start opacity of the fill's children (default 0.5)");
+  r->add_option("--fill-opacity", a->fill.opacity, "Opacity of the fill's children (default 0.3)");
   r->add_option("--fill-near", a->fill.near,
                 "Kept anchors within this many of their voxel edges of the holes' 3D footprint are fine-tuned "
                 "with the fill (default 1.5; 0: the fill alone)");

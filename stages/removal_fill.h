@@ -37,8 +37,11 @@ struct FillSettings {
   // At most this many fill anchors (0: as many as were removed); the
   // best-supported voxels first.
   size_t max_anchors = 0;
-  // Opacity of the fill's children at the start of the fine-tune.
-  float opacity = 0.5f;
+  // Opacity of the fill's children (at the start of the fine-tune, if any).
+  // 0.3, measured on the removal benchmark: a fill this transparent blends
+  // its guessed colour with what lies behind it, and scored higher than 0.5
+  // (and 0.8, 0.95) on seven of eight scenes, two of them held out.
+  float opacity = 0.3f;
   // Kept anchors within this many of their own voxel edges of a footprint
   // point are fine-tuned with the fill; the rest are frozen.
   float near = 1.5f;
