@@ -39,8 +39,9 @@ struct FillSettings {
   size_t max_anchors = 0;
   // Opacity of the fill's children (at the start of the fine-tune, if any).
   // 0.3, measured on the removal benchmark: a fill this transparent blends
-  // its guessed colour with what lies behind it, and scored higher than 0.5
-  // (and 0.8, 0.95) on seven of eight scenes, two of them held out.
+  // its guessed colour with what lies behind it. It scored higher than 0.5
+  // on seven of eight scenes (two of them held out), and 0.8 and 0.95
+  // lower still.
   float opacity = 0.3f;
   // Kept anchors within this many of their own voxel edges of a footprint
   // point are fine-tuned with the fill; the rest are frozen.
