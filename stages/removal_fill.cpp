@@ -9,6 +9,7 @@
 
 #include "host/core/counter_rng.h"
 #include "host/core/gaussians.h"
+#include "host/core/quantile.h"
 #include "stages/train_common.h"
 
 namespace ag2gs {
@@ -97,7 +98,6 @@ void HoleFootprint::add_view(const Camera& cam, const ViewHole& h, const std::ve
       ++cell.points;
       if (cell.last_view != views_) {
         cell.last_view = views_;
-        ++cell.views;
         cell.per_view.push_back({0, 0, 0, 0});
       }
       for (int k = 0; k < 3; ++k) cell.per_view.back()[k] += target[3 * p + k];
@@ -156,7 +156,7 @@ FillResult add_fill_anchors(AnchorModel& model, const HoleFootprint& footprint, 
     }
     for (const auto& v : c.per_view) d.estimates.push_back({v[0] / v[3], v[1] / v[3], v[2] / v[3]});
     d.points += c.points;
-    d.views = std::max(d.views, c.views);
+    d.views = std::max(d.views, c.views());
   }
   std::vector<const Candidate*> order;
   for (const auto& [key, d] : cand)
@@ -181,8 +181,7 @@ FillResult add_fill_anchors(AnchorModel& model, const HoleFootprint& footprint, 
     for (size_t i = 0; i < d.estimates.size(); ++i)
       bright.push_back({d.estimates[i][0] + d.estimates[i][1] + d.estimates[i][2], i});
     std::sort(bright.begin(), bright.end());
-    const size_t at = std::min(bright.size() - 1, static_cast<size_t>(settings.colour_quantile * bright.size()));
-    return d.estimates[bright[at].second];
+    return d.estimates[bright[quantile_rank(bright.size(), settings.colour_quantile)].second];
   };
   for (const Candidate* d : order) {
     const int id = model.add_anchor(d->layer, d->cell, static_cast<int64_t>(d->parent) * K, seed);

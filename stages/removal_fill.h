@@ -80,9 +80,9 @@ class HoleFootprint {
   struct Cell {
     double sum[3] = {0, 0, 0};  // points
     size_t points = 0;
-    int views = 0;
     int last_view = -1;
     std::vector<std::array<double, 4>> per_view;  // per view that reaches it: target colour sums, point count
+    int views() const { return static_cast<int>(per_view.size()); }
   };
   const std::map<uint64_t, Cell>& cells() const { return cells_; }  // by finest-layer voxel key
   size_t points() const { return points_; }

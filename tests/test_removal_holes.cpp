@@ -277,9 +277,9 @@ TEST(RemovalFill, FootprintIsTheBaseOnTheFloorAndTheFillGoesThere) {
   size_t off_plane = 0, outside = 0;
   for (const auto& [key, c] : footprint.cells()) {
     const double x = c.sum[0] / c.points, y = c.sum[1] / c.points, z = c.sum[2] / c.points;
-    off_plane += std::abs(z) > (c.views >= 2 ? 0.03 : 0.06);
+    off_plane += std::abs(z) > (c.views() >= 2 ? 0.03 : 0.06);
     if (std::getenv("AG2GS_DEBUG_HOLES"))
-      std::printf("cell %.3f %.3f %.3f (%zu points, %d views)\n", x, y, z, c.points, c.views);
+      std::printf("cell %.3f %.3f %.3f (%zu points, %d views)\n", x, y, z, c.points, c.views());
     outside += std::abs(x) > kHalf + 0.04 || std::abs(y) > kHalf + 0.04;
   }
   EXPECT_EQ(off_plane, 0u) << "of " << footprint.cells().size() << " footprint voxels";
