@@ -57,48 +57,33 @@ std::pair<MpmParticles, MpmParticles> run_sand(const MpmConfig& cfg, double fric
   return {std::move(p), std::move(q)};
 }
 
+TEST(Sand, ThePileFitReadsTheSlopeOfACone) {
+  // A cone of slope 35 degrees (apex 0.2 above the ground), cut flat at
+  // 0.15: each column of cells holds particles up to the cone's height at
+  // the column's centre, so the fit must give the cone's slope, and the
+  // flat top (above 80% of the summit) must not enter it.
+  const double dx = 1.0 / 48, ground = 0.1, slope = std::tan(35 * M_PI / 180);
+  MpmParticles p;
+  for (int a = 0; a < 48; ++a)
+    for (int b = 0; b < 48; ++b) {
+      const double x = (a + 0.5) * dx, y = (b + 0.5) * dx;
+      const double h = std::min(0.15, 0.2 - slope * std::hypot(x - 0.5, y - 0.5));
+      for (double z = ground + dx / 4; z < ground + h; z += dx / 2)
+        p.add({static_cast<float>(x), static_cast<float>(y), static_cast<float>(z)}, 1e-6f, 0, kDensity);
+      if (h > 0)
+        p.add({static_cast<float>(x), static_cast<float>(y), static_cast<float>(ground + h)}, 1e-6f, 0, kDensity);
+    }
+  const PileShape s = measure_pile(p, dx, ground, 0.5, 0.5);
+  EXPECT_NEAR(s.summit, 0.15, 1e-6);
+  EXPECT_NEAR(s.flank_deg, 35.0, 1e-3);
+  EXPECT_GT(s.flank_columns, 100);
+  EXPECT_TRUE(std::isnan(measure_pile(MpmParticles(), dx, ground, 0.5, 0.5).flank_deg));
+}
+
 struct Pile {
-  double summit = 0;     // height of the highest particle above the ground
-  double flank_deg = 0;  // slope of the flank
+  PileShape shape;       // summit and flank (host/physics/mpm.h)
   double rms_speed = 0;  // sqrt(2 kinetic / mass): m/s
 };
-
-// A pile centred on the vertical axis through (0.5, 0.5): its surface is the
-// highest particle in each dx-by-dx column of cells, and its flank's slope the
-// least-squares line of that height against the column's distance from the
-// axis, over the columns standing between 20% and 80% of the summit (a few
-// hundred of them: unlike an envelope over radial bins, no single column
-// sets it).
-Pile measure_pile(const MpmParticles& q, const MpmConfig& cfg) {
-  const int g = cfg.grid;
-  const double dx = 1.0 / g;
-  std::vector<double> top(static_cast<size_t>(g) * g, -1);
-  for (size_t i = 0; i < q.size(); ++i) {
-    const int a = static_cast<int>(q.x[3 * i] * g), b = static_cast<int>(q.x[3 * i + 1] * g);
-    double& t = top[static_cast<size_t>(a) * g + b];
-    t = std::max(t, q.x[3 * i + 2] - cfg.ground);
-  }
-  Pile pile;
-  pile.summit = *std::max_element(top.begin(), top.end());
-  double sr = 0, sz = 0, srr = 0, srz = 0;
-  int n = 0;
-  for (int a = 0; a < g; ++a)
-    for (int b = 0; b < g; ++b) {
-      const double z = top[static_cast<size_t>(a) * g + b];
-      if (!(z > 0.2 * pile.summit && z < 0.8 * pile.summit)) continue;
-      const double r = std::hypot((a + 0.5) * dx - 0.5, (b + 0.5) * dx - 0.5);
-      sr += r;
-      sz += z;
-      srr += r * r;
-      srz += r * z;
-      ++n;
-    }
-  EXPECT_GE(n, 100) << "no flank to fit";
-  pile.flank_deg = std::atan(-(n * srz - sr * sz) / (n * srr - sr * sr)) * 180 / M_PI;
-  const double mass = std::accumulate(q.mass.begin(), q.mass.end(), 0.0);
-  pile.rms_speed = std::sqrt(2 * diagnose(q, dx).kinetic / mass);
-  return pile;
-}
 
 // A round column of sand 0.24 high and 0.4 across (11.5 cells by 19 at grid
 // 48) on a ground of friction 1, left for `seconds` with the grid's
@@ -113,11 +98,15 @@ Pile sand_column(double friction_deg, double damping, double seconds) {
   const auto round = [radius](double x, double y) { return std::hypot(x - 0.5, y - 0.5) < radius; };
   const MpmParticles q =
       run_sand(cfg, friction_deg, Vector3d(0.3, 0.3, 0.1), Vector3d(0.7, 0.7, 0.34), seconds, round).second;
-  const Pile pile = measure_pile(q, cfg);
+  Pile pile;
+  pile.shape = measure_pile(q, 1.0 / cfg.grid, cfg.ground, 0.5, 0.5);
+  EXPECT_GE(pile.shape.flank_columns, 100) << "no flank to fit";
+  const double mass = std::accumulate(q.mass.begin(), q.mass.end(), 0.0);
+  pile.rms_speed = std::sqrt(2 * diagnose(q, 1.0 / cfg.grid).kinetic / mass);
   std::printf(
       "sand column, damping %.0f/s, friction angle %.0f, %.2f s: summit %.3f (column 0.24), flank %.1f "
       "degrees, rms speed %.4f m/s\n",
-      damping, friction_deg, seconds, pile.summit, pile.flank_deg, pile.rms_speed);
+      damping, friction_deg, seconds, pile.shape.summit, pile.shape.flank_deg, pile.rms_speed);
   return pile;
 }
 
@@ -134,9 +123,9 @@ TEST(Sand, AColumnReleasedSlowlyRestsAtItsFrictionAngle) {
   const Pile p40 = sand_column(40, 15, 1.5);
   EXPECT_LT(p30.rms_speed, 0.01) << "still moving";
   EXPECT_LT(p40.rms_speed, 0.01) << "still moving";
-  EXPECT_NEAR(p30.flank_deg, 30.0, 4.0);
-  EXPECT_NEAR(p40.flank_deg, 40.0, 4.0);
-  EXPECT_GT(p40.flank_deg, p30.flank_deg + 3.0);
+  EXPECT_NEAR(p30.shape.flank_deg, 30.0, 4.0);
+  EXPECT_NEAR(p40.shape.flank_deg, 40.0, 4.0);
+  EXPECT_GT(p40.shape.flank_deg, p30.shape.flank_deg + 3.0);
 }
 
 TEST(Sand, AColumnCollapsingFreelySpreadsFlatterThanItsFrictionAngle) {
@@ -150,11 +139,11 @@ TEST(Sand, AColumnCollapsingFreelySpreadsFlatterThanItsFrictionAngle) {
   const Pile p40 = sand_column(40, 0, 0.6);
   EXPECT_LT(p30.rms_speed, 0.01) << "still moving";
   EXPECT_LT(p40.rms_speed, 0.01) << "still moving";
-  EXPECT_GT(p30.flank_deg, 0.6 * 30);
-  EXPECT_LT(p30.flank_deg, 30.0 - 3.0);
-  EXPECT_GT(p40.flank_deg, 0.6 * 40);
-  EXPECT_LT(p40.flank_deg, 40.0 - 3.0);
-  EXPECT_GT(p40.flank_deg, p30.flank_deg + 2.0);
+  EXPECT_GT(p30.shape.flank_deg, 0.6 * 30);
+  EXPECT_LT(p30.shape.flank_deg, 30.0 - 3.0);
+  EXPECT_GT(p40.shape.flank_deg, 0.6 * 40);
+  EXPECT_LT(p40.shape.flank_deg, 40.0 - 3.0);
+  EXPECT_GT(p40.shape.flank_deg, p30.shape.flank_deg + 2.0);
 }
 
 // A sand layer 0.1 thick on a ground tilted by theta (gravity turned by

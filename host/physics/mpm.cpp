@@ -2,8 +2,10 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <map>
 #include <stdexcept>
+#include <vector>
 
 namespace ag2gs {
 
@@ -109,6 +111,36 @@ std::array<double, 3> centre_of_mass(const MpmParticles& p, int of_material) {
   if (m > 0)
     for (double& v : c) v /= m;
   return c;
+}
+
+PileShape measure_pile(const MpmParticles& p, double dx, double ground, double cx, double cy) {
+  const int g = static_cast<int>(std::lround(1 / dx));
+  std::vector<double> top(static_cast<size_t>(g) * g, -1);
+  for (size_t i = 0; i < p.size(); ++i) {
+    const int a = static_cast<int>(p.x[3 * i] / dx), b = static_cast<int>(p.x[3 * i + 1] / dx);
+    if (a < 0 || b < 0 || a >= g || b >= g) continue;
+    double& t = top[static_cast<size_t>(a) * g + b];
+    t = std::max(t, p.x[3 * i + 2] - ground);
+  }
+  PileShape pile;
+  pile.summit = std::max(0.0, *std::max_element(top.begin(), top.end()));
+  double sr = 0, sz = 0, srr = 0, srz = 0;
+  int n = 0;
+  for (int a = 0; a < g; ++a)
+    for (int b = 0; b < g; ++b) {
+      const double z = top[static_cast<size_t>(a) * g + b];
+      if (!(z > 0.2 * pile.summit && z < 0.8 * pile.summit)) continue;
+      const double r = std::hypot((a + 0.5) * dx - cx, (b + 0.5) * dx - cy);
+      sr += r;
+      sz += z;
+      srr += r * r;
+      srz += r * z;
+      ++n;
+    }
+  pile.flank_columns = n;
+  pile.flank_deg = n >= 3 ? std::atan(-(n * srz - sr * sz) / (n * srr - sr * sr)) * 180 / M_PI
+                          : std::numeric_limits<double>::quiet_NaN();
+  return pile;
 }
 
 MpmSolver::MpmSolver(Runtime& rt, const MpmConfig& config, std::vector<MpmMaterial> materials)

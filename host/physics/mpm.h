@@ -96,6 +96,19 @@ MpmDiagnostics diagnose(const MpmParticles& p, double dx, int of_material = -1);
 // Mass-weighted centre of the particles of `of_material` (-1 = all).
 std::array<double, 3> centre_of_mass(const MpmParticles& p, int of_material = -1);
 
+// The shape of a pile standing on the ground at height `ground`, centred on
+// the vertical axis through (cx, cy): its surface is the highest particle in
+// each dx-by-dx column of cells, and its flank's slope the least-squares
+// line of that height against the column's distance from the axis, over the
+// columns standing between 20% and 80% of the summit (all of them, so no
+// single column, a corner's say, sets it).
+struct PileShape {
+  double summit = 0;      // highest particle above the ground
+  double flank_deg = 0;   // slope of the flank in degrees (NaN with fewer than 3 columns)
+  int flank_columns = 0;  // columns the fit used
+};
+PileShape measure_pile(const MpmParticles& p, double dx, double ground, double cx, double cy);
+
 class MpmSolver {
  public:
   // Materials are indexed by MpmParticles::material. Throws
