@@ -11,7 +11,10 @@
 # given the colour nearest the truth through the part the model leaves open.
 #
 #   bench/removal_benchmark.sh OUT_DIR [--seed S] [--iters N] [--no-backdrop] [--width W --height H]
-#                              [-- remove flags, e.g. --iters 300]
+#                              [--reuse] [-- remove flags, e.g. --iters 300]
+#
+# --reuse keeps OUT_DIR/scene and OUT_DIR/model when both exist (an earlier
+# run's, same settings: generating and training are deterministic).
 #
 # Example (about a minute on 2 CPU cores):
 #   bench/removal_benchmark.sh out/bench_removal --seed 1 --iters 2000
@@ -19,14 +22,15 @@ set -euo pipefail
 here="$(cd "$(dirname "$0")/.." && pwd)"
 bin="${AG2GS_BIN:-$here/build/ag2gs}"
 score="$(dirname "$bin")/ag2gs_bench_removal"
-[ $# -ge 1 ] || { sed -n 2,17p "$0" | sed 's/^# \{0,1\}//'; exit 2; }
+[ $# -ge 1 ] || { sed -n 2,20p "$0" | sed 's/^# \{0,1\}//'; exit 2; }
 out="$1"; shift
-seed=1; iters=2000; synth=(); size=(--width 160 --height 120); remove_flags=()
+seed=1; iters=2000; synth=(); size=(--width 160 --height 120); remove_flags=(); reuse=0
 while [ $# -gt 0 ]; do
   case "$1" in
     --seed) seed="$2"; shift 2 ;;
     --iters) iters="$2"; shift 2 ;;
     --no-backdrop) synth+=(--no-backdrop); shift ;;
+    --reuse) reuse=1; shift ;;
     --width) size[1]="$2"; shift 2 ;;
     --height) size[3]="$2"; shift 2 ;;
     --) shift; remove_flags=("$@"); break ;;
@@ -36,8 +40,12 @@ done
 mkdir -p "$out"
 scene="$out/scene"; model="$out/model"
 t0=$(date +%s)
-"$bin" synth "$scene" --force --seed "$seed" --hard --removal-gt "${size[@]}" "${synth[@]}" -q
-"$bin" train "$scene" -o "$model" --force --eval --iters "$iters" --seed 1 -q
+if [ "$reuse" = 1 ] && [ -f "$scene/synth.json" ] && [ -f "$model/model.ag2gs" ]; then
+  echo "reusing $scene and $model"
+else
+  "$bin" synth "$scene" --force --seed "$seed" --hard --removal-gt "${size[@]}" "${synth[@]}" -q
+  "$bin" train "$scene" -o "$model" --force --eval --iters "$iters" --seed 1 -q
+fi
 t_train=$(($(date +%s) - t0))
 rm -rf "$out/renders_original"
 "$bin" render "$model" --scene "$scene" --views test --outputs rgb -r 1 -o "$out/renders_original" -q
@@ -78,7 +86,11 @@ while IFS= read -r cat; do
   python3 -c "import json,sys; d=json.load(open(sys.argv[1])); print(f\"{sys.argv[2]:<12} counts: removed {d['anchors_removed']} anchors / {d['gaussians_removed']} Gaussians, kept {d['gaussians_kept']}, added {d['anchors_added']} anchors / {d['gaussians_added']} Gaussians, hole pixels {d['holes']['pixels']}, fine-tune {d['iterations']} it, remove {float(sys.argv[4]) - float(sys.argv[3]):.1f} s\")" \
     "$dir/removal.json" "$cat" "$t1" "$t2" | tee -a "$table"
 done <<<"$categories"
-echo "train (stages 1-3, $iters iterations): ${t_train} s" | tee -a "$table"
+if [ "$reuse" = 1 ] && [ "$t_train" -lt 5 ]; then
+  echo "train: reused" | tee -a "$table"
+else
+  echo "train (stages 1-3, $iters iterations): ${t_train} s" | tee -a "$table"
+fi
 # Means over the categories, per method.
 for method in original deleted removed inpaint_2d ceiling; do
   grep "^$method " "$table" | awk -v m="$method" '{h+=$4; k+=$7; r+=$9; n++} END {if (n) printf "mean %-18s hole PSNR %6.2f  kept PSNR %6.2f  residue %.4f  (%d categories)\n", m, h/n, k/n, r/n, n}'

@@ -50,6 +50,8 @@ struct RemoveArgs {
   int iters = -1;  // -1: kDefaultFillIters
   bool no_fill = false;
   bool clear_stray = true;
+  bool clear_hidden = true;
+  double hidden_fraction = 0.1;
   std::string tune_targets = "inpainted";
   float stray_colour = 0.2f;
   int stray_reach = 3;
@@ -202,30 +204,48 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
   {
     fs::create_directories(tmp / "holes");
     fs::create_directories(tmp / "targets");
-    // Children of kept anchors that show the object go with it (opacity 0).
-    AnchorModel cleaned = model;
-    std::vector<size_t> strays;
-    if (a.clear_stray) strays = stray_children(model, in_sel, a.stray_colour, a.stray_reach);
-    for (size_t g : strays) cleaned.opacity_logit()[g] = kClearedLogit;
-    if (!strays.empty())
-      spdlog::info("{} children of kept anchors sit among the object's Gaussians with its colour: cleared",
-                   strays.size());
-    const GaussianSet removed = gaussians_of_anchors(model, sh_degree, in_sel, true);
-    const GaussianSet kept = gaussians_of_anchors(cleaned, sh_degree, in_sel, false);
-    HoleFinder holes(kept, removed);
     Renderer renderer(rt);
     // The model's sky shows in the renders after deletion, as in training.
     Sky sky(rt);
     const std::optional<std::vector<float>> sky_coefficients = sky_from_archive(tm.archive);
     if (sky_coefficients) sky.set(sky_degree_for(sky_coefficients->size()), *sky_coefficients);
-    std::vector<uint8_t> keep(model.size());
-    for (size_t k = 0; k < keep.size(); ++k) keep[k] = !in_sel[k];
-    AnchorModel result = cleaned;
-    std::vector<int> source = result.remove_anchors(keep);  // new id -> old id
-    HoleFootprint footprint(result.grid(), holes.diameter(), a.holes.behind, a.fill.max_alpha);
     RenderSettings render_settings;
     const float bg = tc.white_background && !sky.enabled() ? 1.f : 0.f;
     render_settings.background = {bg, bg, bg};
+    const std::vector<int> train_views = scene->train_views();
+    // Anchors the object hid from every photo go with it; children of kept
+    // anchors that show the object are cleared (opacity 0).
+    std::vector<int> hidden;
+    const auto t_hidden = std::chrono::steady_clock::now();
+    if (a.clear_hidden) {
+      std::vector<Camera> cameras;
+      for (int v : train_views) cameras.push_back(scene->views()[v].camera);
+      spdlog::info("which kept anchors near the object do the {} training views see? (two renders a view)",
+                   cameras.size());
+      hidden = hidden_anchors(renderer, model, sh_degree, in_sel, cameras, render_settings, a.stray_reach,
+                              a.hidden_fraction);
+      spdlog::info("{} kept anchors near the object are seen only through it: removed with it ({:.1f} s)",
+                   hidden.size(), seconds_since(t_hidden));
+    }
+    const double hidden_s = seconds_since(t_hidden);
+    std::vector<uint8_t> gone = in_sel;
+    for (int h : hidden) gone[h] = 1;
+    const size_t n_gone = n_sel + hidden.size();
+    AnchorModel cleaned = model;
+    std::vector<size_t> strays;
+    if (a.clear_stray) strays = stray_children(model, gone, a.stray_colour, a.stray_reach);
+    for (size_t g : strays) cleaned.opacity_logit()[g] = kClearedLogit;
+    if (!strays.empty())
+      spdlog::info("{} children of kept anchors sit among the object's Gaussians with its colour: cleared",
+                   strays.size());
+    const GaussianSet removed = gaussians_of_anchors(model, sh_degree, in_sel, true);
+    const GaussianSet kept = gaussians_of_anchors(cleaned, sh_degree, gone, false);
+    HoleFinder holes(kept, removed);
+    std::vector<uint8_t> keep(model.size());
+    for (size_t k = 0; k < keep.size(); ++k) keep[k] = !gone[k];
+    AnchorModel result = cleaned;
+    std::vector<int> source = result.remove_anchors(keep);  // new id -> old id
+    HoleFootprint footprint(result.grid(), holes.diameter(), a.holes.behind, a.fill.max_alpha);
     // Per training view, the fine-tune's target: the inpainted image in the
     // hole, the render after deletion on the object's other pixels (the
     // model already shows what lies behind there), the photo elsewhere.
@@ -233,7 +253,6 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
     std::vector<std::vector<uint8_t>> tune_holes;
     nlohmann::json views = nlohmann::json::array();
     size_t hole_total = 0;
-    const std::vector<int> train_views = scene->train_views();
     const auto t_holes = std::chrono::steady_clock::now();
     for (size_t i = 0; i < train_views.size(); ++i) {
       const SceneView& sv = scene->views()[train_views[i]];
@@ -275,7 +294,7 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
     FillResult fill;
     fill.trainable.assign(result.size(), 0);
     if (!a.no_fill) {
-      fill = add_fill_anchors(result, footprint, a.fill, n_sel, a.seed);
+      fill = add_fill_anchors(result, footprint, a.fill, n_gone, a.seed);
       for (int p : fill.parent) source.push_back(source[p]);
       spdlog::info(
           "fill: {} anchors ({} Gaussians) where {} hole pixels of {} views meet the surfaces around them "
@@ -385,8 +404,9 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
       for (size_t g : strays) cleared.push_back({new_id[g / model.children()], static_cast<int>(g % model.children())});
       report["stray_children_cleared"] = cleared;
     }
-    report["anchors_removed"] = n_sel;
-    report["gaussians_removed"] = removed.size();
+    report["hidden_anchors_removed"] = hidden;  // ids in the input model
+    report["anchors_removed"] = n_gone;
+    report["gaussians_removed"] = n_gone * static_cast<size_t>(model.children());
     report["anchors_kept"] = kept_anchors;
     report["gaussians_kept"] = kept_anchors * static_cast<size_t>(result.children());
     report["anchors_added"] = fill_kept;
@@ -412,6 +432,7 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
                       {"colour_quantile", a.fill.colour_quantile},
                       {"stray_colour", a.clear_stray ? nlohmann::json(a.stray_colour) : nlohmann::json(nullptr)},
                       {"stray_reach", a.clear_stray ? nlohmann::json(a.stray_reach) : nlohmann::json(nullptr)},
+                      {"hidden_fraction", a.clear_hidden ? nlohmann::json(a.hidden_fraction) : nlohmann::json(nullptr)},
                       {"tune_targets", a.tune_targets},
                       {"final_target_psnr", final_psnr}};
     report["holes"] = {{"object_weight", a.holes.object_weight},
@@ -422,6 +443,7 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
                        {"pixels", hole_total},
                        {"views", views}};
     report["seconds"] = {{"query", query_ms / 1000.0},
+                         {"hidden", hidden_s},
                          {"holes", holes_s},
                          {"fill_and_fine_tune", fill_s},
                          {"total", seconds_since(t_start)}};
@@ -489,6 +511,13 @@ void register_remove(CLI::App& app, GlobalOptions& global) {
                 "How near: finest-layer voxels within this many of a kept child's own along each axis (default 3; 0: "
                 "its own voxel)")
       ->check(CLI::Range(0, 16));
+  r->add_flag("!--keep-hidden", a->clear_hidden,
+              "Keep the kept anchors near the object (within --stray-reach) that the training views saw only through "
+              "it (by default they are removed with it, and the fill may take their voxels)");
+  r->add_option("--hidden-fraction", a->hidden_fraction,
+                "Such an anchor is hidden when, for each of its visible children, the views saw less than this "
+                "fraction of it outside the object's silhouette (default 0.1)")
+      ->check(finite_range(0.0, 1.0));
   r->add_option("--tune-targets", a->tune_targets,
                 "What the fine-tune fits inside the holes: inpainted (the targets/ images) or fill (the filled "
                 "model's own render, so only the seams around the holes move)")

@@ -647,22 +647,11 @@ GaussianSet gaussians_of_anchors(const AnchorModel& model, int sh_degree, const 
                                 " anchors for a model of " + std::to_string(model.size()));
   const GaussianSet all = expand_reference(model, sh_degree);
   const int k = model.children();
-  const int sc = all.sh_coeffs() * 3;
-  GaussianSet out;
-  out.sh_degree = all.sh_degree;
-  for (size_t a = 0; a < model.size(); ++a) {
-    if ((in_selection[a] != 0) != want) continue;
-    for (int i = 0; i < k; ++i) {
-      const size_t g = a * k + i;
-      out.means.insert(out.means.end(), &all.means[3 * g], &all.means[3 * g + 3]);
-      out.scales.insert(out.scales.end(), &all.scales[3 * g], &all.scales[3 * g + 3]);
-      out.quats.insert(out.quats.end(), &all.quats[4 * g], &all.quats[4 * g + 4]);
-      out.opacities.push_back(all.opacities[g]);
-      out.sh.insert(out.sh.end(), &all.sh[sc * g], &all.sh[sc * g + sc]);
-      out.features.insert(out.features.end(), &all.features[3 * g], &all.features[3 * g + 3]);
-    }
-  }
-  return out;
+  std::vector<size_t> ids;
+  for (size_t a = 0; a < model.size(); ++a)
+    if ((in_selection[a] != 0) == want)
+      for (int i = 0; i < k; ++i) ids.push_back(a * k + i);
+  return all.rows(ids);
 }
 
 }  // namespace ag2gs

@@ -5,6 +5,7 @@
 #include <limits>
 #include <opencv2/imgproc.hpp>
 #include <opencv2/photo.hpp>
+#include <set>
 #include <stdexcept>
 
 #include "host/core/counter_rng.h"
@@ -303,6 +304,93 @@ std::vector<size_t> stray_children(const AnchorModel& model, const std::vector<u
     if (to_removed > max_colour) continue;
     if (near_kept.n > 0 && !(to_removed < mean_abs(i, near_kept))) continue;
     out.push_back(i);
+  }
+  return out;
+}
+
+std::vector<double> seen_weight(Renderer& renderer, const GaussianSet& set, const std::vector<Camera>& cameras,
+                                const RenderSettings& settings, const std::vector<uint8_t>* object) {
+  std::vector<double> seen(set.size(), 0.0);
+  if (set.size() == 0) return seen;
+  if (object && object->size() != set.size())
+    throw std::invalid_argument("seen_weight: " + std::to_string(object->size()) + " object flags for " +
+                                std::to_string(set.size()) + " Gaussians");
+  RenderSettings rs = settings;
+  rs.features = true;
+  // The weights do not depend on the features: they carry the object's flag
+  // (its blending weight per pixel) when there is one.
+  GaussianSet flagged = set;
+  for (size_t i = 0; i < set.size(); ++i)
+    for (int k = 0; k < 3; ++k) flagged.features[3 * i + k] = k == 0 && object && (*object)[i] ? 1.f : 0.f;
+  for (const Camera& cam : cameras) {
+    const RenderOutput out = renderer.render(flagged, cam, rs);
+    OutputGrads up;
+    up.feature.assign(out.feature.size(), 0.f);
+    for (size_t p = 0; p < up.feature.size(); p += 3) up.feature[p] = object && out.feature[p] > 0.5f ? 0.f : 1.f;
+    const GaussianGrads g = renderer.render_backward(up);
+    for (size_t i = 0; i < seen.size(); ++i) seen[i] += g.features[3 * i];
+  }
+  return seen;
+}
+
+std::vector<int> hidden_anchors(Renderer& renderer, const AnchorModel& model, int sh_degree,
+                                const std::vector<uint8_t>& selected, const std::vector<Camera>& cameras,
+                                const RenderSettings& settings, int reach, double max_fraction) {
+  if (selected.size() != model.size())
+    throw std::invalid_argument("hidden_anchors: " + std::to_string(selected.size()) + " flags for " +
+                                std::to_string(model.size()) + " anchors");
+  if (reach < 0 || reach > 16) throw std::invalid_argument("hidden_anchors: reach must be in 0..16 voxels");
+  const GaussianSet g = expand_reference(model, sh_degree);
+  const int K = model.children();
+  const int finest = model.grid().layers - 1;
+  auto cell_of = [&](size_t i) {
+    return model.grid().cell_of(finest, Eigen::Vector3d(g.means[3 * i], g.means[3 * i + 1], g.means[3 * i + 2]));
+  };
+  auto visible = [&](size_t i) { return g.opacities[i] >= kStrayMinOpacity; };
+  std::set<uint64_t> object;
+  for (size_t i = 0; i < g.size(); ++i)
+    if (selected[i / K] && visible(i)) object.insert(anchor_voxel_key(finest, cell_of(i)));
+  auto near_object = [&](const Eigen::Vector3i& c0) {
+    for (int dx = -reach; dx <= reach; ++dx)
+      for (int dy = -reach; dy <= reach; ++dy)
+        for (int dz = -reach; dz <= reach; ++dz)
+          if (object.count(anchor_voxel_key(finest, c0 + Eigen::Vector3i(dx, dy, dz)))) return true;
+    return false;
+  };
+  std::vector<size_t> candidates;
+  for (size_t i = 0; i < g.size(); ++i)
+    if (!selected[i / K] && visible(i) && near_object(cell_of(i))) candidates.push_back(i);
+  if (candidates.empty()) return {};
+  // Rendered with the object's Gaussians only (what else hides a candidate
+  // only makes it look more seen here, never less), then alone.
+  std::vector<size_t> rows;
+  std::vector<uint8_t> object_rows;
+  for (size_t i = 0; i < g.size(); ++i)
+    if (selected[i / K]) {
+      rows.push_back(i);
+      object_rows.push_back(1);
+    }
+  rows.insert(rows.end(), candidates.begin(), candidates.end());
+  object_rows.resize(rows.size(), 0);
+  const size_t first = rows.size() - candidates.size();
+  const std::vector<double> outside = seen_weight(renderer, g.rows(rows), cameras, settings, &object_rows);
+  const std::vector<double> alone = seen_weight(renderer, g.rows(candidates), cameras, settings);
+  std::vector<uint8_t> hidden(g.size(), 0);
+  for (size_t k = 0; k < candidates.size(); ++k) hidden[candidates[k]] = outside[first + k] < max_fraction * alone[k];
+  // Only anchors the photos do not see at all: a child hidden beside a seen
+  // sibling belongs to a surface the photos show (a neighbour's face that
+  // the object hid), and its anchor's feature and colours were trained.
+  std::vector<int> out;
+  for (size_t a = 0; a < model.size(); ++a) {
+    if (selected[a]) continue;
+    bool any = false, all = true;
+    for (int i = 0; i < K; ++i) {
+      const size_t row = a * K + i;
+      if (!visible(row)) continue;
+      any = any || hidden[row];
+      all = all && hidden[row];
+    }
+    if (any && all) out.push_back(static_cast<int>(a));
   }
   return out;
 }

@@ -132,6 +132,33 @@ inline constexpr float kStrayMinOpacity = 0.05f;
 std::vector<size_t> stray_children(const AnchorModel& model, const std::vector<uint8_t>& selected,
                                    float max_colour = 0.2f, int reach = 3);
 
+// Per Gaussian of `set`, how much the cameras see of it: the blending
+// weight (alpha T, docs/rasterizer.md) it receives, summed over the pixels
+// of every camera. That sum is the gradient of the feature image's first
+// channel, summed over its pixels, with respect to the Gaussian's first
+// feature channel: one forward and one backward pass a camera. With
+// `object` ([N] flags), only pixels outside the object's silhouette count
+// (where the flagged Gaussians' blending weight is 0.5 or less, the test
+// of query masks).
+std::vector<double> seen_weight(Renderer& renderer, const GaussianSet& set, const std::vector<Camera>& cameras,
+                                const RenderSettings& settings, const std::vector<uint8_t>* object = nullptr);
+
+// Kept anchors the object hid from every photo: each of their visible
+// children (opacity >= kStrayMinOpacity) lies within `reach` finest-layer
+// voxels of the object's visible Gaussians along each axis, and the
+// training views see less than `max_fraction` of it outside the object's
+// silhouette (its seen_weight outside it, rendered with the object's
+// Gaussians, against its seen_weight rendered with the candidates alone). What the photos show of such an anchor
+// they show through the object (junk inside it, never reached by a
+// gradient, or an untrained surface behind it); deleting the object
+// uncovers it, and no photo vouches for what it shows, so it goes with the
+// object and its voxel is free for the fill. An anchor with one seen child
+// stays: it is a surface the photos show, a neighbour's face the object
+// stood in front of. Anchor ids, ascending; reach in 0..16.
+std::vector<int> hidden_anchors(Renderer& renderer, const AnchorModel& model, int sh_degree,
+                                const std::vector<uint8_t>& selected, const std::vector<Camera>& cameras,
+                                const RenderSettings& settings, int reach = 3, double max_fraction = 0.1);
+
 struct FineTuneConfig {
   int iterations = 300;
   uint64_t seed = 1;

@@ -419,5 +419,94 @@ TEST(RemovalFill, StrayChildrenAreThoseAmongTheObjectsGaussiansWithItsColour) {
   EXPECT_THROW(stray_children(m, selected, 0.2f, -1), std::invalid_argument);
 }
 
+// seen_weight against the alpha images: a Gaussian F in front of another, B,
+// seen by one camera. Alone, F's weight per pixel is its alpha; behind it,
+// B's is what it adds to the pair's alpha, alpha_FB - alpha_F. With F as the
+// object only the pixels where F's alpha is 0.5 or less count.
+TEST(RemovalHidden, SeenWeightIsWhatTheAlphaImagesShow) {
+  GaussianSet front, back;
+  front.sh_degree = back.sh_degree = 0;
+  add(front, 0.0, 0.0, 0.3, 0.12, 0.12, 0.12, 0.5f, 0.5f, 0.5f);
+  add(back, 0.05, 0.0, 0.0, 0.15, 0.15, 0.15, 0.5f, 0.5f, 0.5f);
+  GaussianSet both = front;
+  both.resize(2);
+  for (int k = 0; k < 3; ++k) {
+    both.means[3 + k] = back.means[k];
+    both.scales[3 + k] = back.scales[k];
+    both.sh[3 + k] = back.sh[k];
+  }
+  both.quats[4] = 1.f;
+  both.opacities[1] = back.opacities[0];
+  const Camera cam = test::look_at(Eigen::Vector3d(0.2, 0.1, 3.0), Eigen::Vector3d::Zero(), 64, 48, 70);
+  Renderer renderer(test::runtime());
+  const std::vector<float> a_front = renderer.render(front, cam).alpha, a_both = renderer.render(both, cam).alpha;
+  double w_front = 0, w_back = 0, w_front_outside = 0, w_back_outside = 0;
+  for (size_t p = 0; p < a_both.size(); ++p) {
+    w_front += a_front[p];
+    w_back += a_both[p] - a_front[p];
+    if (a_front[p] <= 0.5f) {
+      w_front_outside += a_front[p];
+      w_back_outside += a_both[p] - a_front[p];
+    }
+  }
+  ASSERT_GT(w_back_outside, 1.0);
+  ASSERT_LT(w_back_outside, 0.9 * w_back) << "the front Gaussian must hide part of the back one";
+  const std::vector<double> seen = seen_weight(renderer, both, {cam, cam}, RenderSettings{});
+  EXPECT_NEAR(seen[0], 2 * w_front, 1e-4 * w_front);
+  EXPECT_NEAR(seen[1], 2 * w_back, 1e-4 * w_back);
+  const std::vector<uint8_t> object = {1, 0};
+  const std::vector<double> outside = seen_weight(renderer, both, {cam}, RenderSettings{}, &object);
+  EXPECT_NEAR(outside[1], w_back_outside, 1e-3 * w_back_outside);
+  EXPECT_NEAR(outside[0], w_front_outside, 1e-3 * w_front_outside);
+  const std::vector<uint8_t> short_flags = {1};
+  EXPECT_THROW(seen_weight(renderer, both, {cam}, RenderSettings{}, &short_flags), std::invalid_argument);
+}
+
+// A block of opaque object anchors with a cavity holding a kept anchor:
+// no view sees into it, so that anchor is hidden and goes with the object.
+// A kept anchor beside the block is seen; so is one with a child inside the
+// block and a child outside (a surface the photos show).
+TEST(RemovalHidden, AnAnchorInsideTheObjectIsHiddenAndOnesBesideItAreNot) {
+  AnchorModel m;
+  m.reset(fill_grid(), fill_config());
+  std::vector<uint8_t> selected;
+  auto anchor = [&](int i, int j, int k, bool object) {
+    const int a = m.add_anchor(1, Eigen::Vector3i(i, j, k), -1, 1);
+    EXPECT_GE(a, 0);
+    selected.push_back(object);
+    for (int c = 0; c < 2; ++c) {
+      const size_t g = static_cast<size_t>(a) * 2 + c;
+      for (int d = 0; d < 3; ++d) {
+        m.offset()[3 * g + d] = 0.f;
+        m.scale_logit()[3 * g + d] = 0.4f;  // sigmoid: 0.6 of the 0.08 voxel
+      }
+      m.opacity_logit()[g] = 5.f;  // 0.993
+    }
+    return a;
+  };
+  for (int i = 10; i <= 15; ++i)
+    for (int j = 10; j <= 15; ++j)
+      for (int k = 12; k <= 16; ++k)
+        if (!(i == 12 && j == 12 && k == 14)) anchor(i, j, k, true);
+  const int inside = anchor(12, 12, 14, false);
+  const int beside = anchor(18, 12, 13, false);
+  const int straddling = anchor(16, 13, 14, false);
+  m.offset()[3 * (static_cast<size_t>(straddling) * 2)] = -1.f;  // child 0 in the block's voxel (15, 13, 14)
+  std::vector<Camera> cams;
+  for (double az : {0.3, 1.9, 3.4, 5.0}) cams.push_back(view_from(az));
+  Renderer renderer(test::runtime());
+  EXPECT_EQ(hidden_anchors(renderer, m, 0, selected, cams, RenderSettings{}), std::vector<int>({inside}));
+  // The cavity's own voxel holds none of the object's Gaussians: reach 0
+  // does not look beyond it.
+  EXPECT_TRUE(hidden_anchors(renderer, m, 0, selected, cams, RenderSettings{}, 0).empty());
+  EXPECT_TRUE(hidden_anchors(renderer, m, 0, selected, cams, RenderSettings{}, 3, 0.0).empty());
+  // Without the object nothing hides it; nothing selected, nothing near.
+  std::vector<uint8_t> none(selected.size(), 0);
+  EXPECT_TRUE(hidden_anchors(renderer, m, 0, none, cams, RenderSettings{}).empty());
+  (void)beside;
+  EXPECT_THROW(hidden_anchors(renderer, m, 0, {1, 0}, cams, RenderSettings{}), std::invalid_argument);
+  EXPECT_THROW(hidden_anchors(renderer, m, 0, selected, cams, RenderSettings{}, 17), std::invalid_argument);
+}
+
 }  // namespace
 }  // namespace ag2gs

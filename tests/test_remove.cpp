@@ -110,8 +110,13 @@ TEST(Remove, KeptAnchorsKeepTheirBytesAndHolesStayInTheObject) {
   const auto r = test::run_cli(remove_cmd(out.string(), "--selection " + sel.string() + " --dilate 0"));
   ASSERT_EQ(r.code, 0) << r.output;
   const ModelArchive res = read_model_archive((out / "model.ag2gs").string());
-  const std::set<int> gone(chosen.begin(), chosen.end());
   const json report = json::parse(std::ifstream(out / "removal.json"));
+  // Gone: the selection and the kept anchors it hid from every photo.
+  std::set<int> gone(chosen.begin(), chosen.end());
+  for (const auto& h : report["hidden_anchors_removed"]) {
+    EXPECT_EQ(gone.count(h.get<int>()), 0u) << "a hidden anchor is one the selection kept";
+    gone.insert(h.get<int>());
+  }
   const size_t added = report["anchors_added"].get<size_t>();
   std::set<std::pair<int, int>> cleared;
   for (const auto& c : report["stray_children_cleared"]) cleared.insert({c[0].get<int>(), c[1].get<int>()});
@@ -145,7 +150,7 @@ TEST(Remove, KeptAnchorsKeepTheirBytesAndHolesStayInTheObject) {
   }
   // The report's hole counts are the masks written to holes/.
   json rep = json::parse(std::ifstream(out / "removal.json"));
-  EXPECT_EQ(rep["anchors_removed"].get<size_t>(), chosen.size());
+  EXPECT_EQ(rep["anchors_removed"].get<size_t>(), gone.size());
   size_t total = 0;
   for (const auto& v : rep["holes"]["views"]) {
     const std::string stem = fs::path(v["view"].get<std::string>()).stem().string();
@@ -279,7 +284,8 @@ TEST(Remove, FineTuneTouchesOnlyAnchorsNearTheHoleAndIsDeterministic) {
   ASSERT_GT(tuned.size(), 0u);
   ASSERT_LT(tuned.size(), before.size() - chosen.size()) << "some kept anchors must be far from the holes";
   const AnchorModel after = AnchorModel::from_archive(read_model_archive((out / "model.ag2gs").string()));
-  const std::set<int> gone(chosen.begin(), chosen.end());
+  std::set<int> gone(chosen.begin(), chosen.end());
+  for (const auto& h : rep["hidden_anchors_removed"]) gone.insert(h.get<int>());
   size_t k = 0, changed = 0, frozen_changed = 0;
   const int K = before.children();
   for (size_t a = 0; a < before.size(); ++a) {
@@ -328,6 +334,7 @@ TEST(Remove, BadInputIsRefusedBeforeAnythingIsWritten) {
       {"--selection " + sel.string() + " --tune-targets lama", "--tune-targets"},
       {"--selection " + sel.string() + " --inpaint lama", "expected telea, ns or none"},
       {"--selection " + sel.string() + " --stray-reach 17", "--stray-reach"},
+      {"--selection " + sel.string() + " --hidden-fraction 1.5", "--hidden-fraction"},
       {"--text thing --vocab " + vocab, "no clusters/language features"},
       {"", "give exactly one query"},
       {"--selection " + sel.string() + " --view view_001 --click 3,4", "not both"},

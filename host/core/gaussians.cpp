@@ -2,6 +2,7 @@
 #include "host/core/gaussians.h"
 
 #include <Eigen/LU>
+#include <algorithm>
 #include <cmath>
 #include <sstream>
 #include <stdexcept>
@@ -17,6 +18,23 @@ void GaussianSet::resize(size_t n) {
   opacities.resize(n, 0.f);
   sh.resize(n * k * 3, 0.f);
   features.resize(n * 3, 0.f);
+}
+
+GaussianSet GaussianSet::rows(const std::vector<size_t>& ids) const {
+  GaussianSet out;
+  out.sh_degree = sh_degree;
+  out.resize(ids.size());
+  const size_t sc = static_cast<size_t>(sh_coeffs()) * 3;
+  for (size_t r = 0; r < ids.size(); ++r) {
+    const size_t g = ids[r];
+    std::copy_n(&means[3 * g], 3, &out.means[3 * r]);
+    std::copy_n(&scales[3 * g], 3, &out.scales[3 * r]);
+    std::copy_n(&quats[4 * g], 4, &out.quats[4 * r]);
+    out.opacities[r] = opacities[g];
+    std::copy_n(&sh[sc * g], sc, &out.sh[sc * r]);
+    std::copy_n(&features[3 * g], 3, &out.features[3 * r]);
+  }
+  return out;
 }
 
 namespace {

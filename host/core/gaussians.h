@@ -33,6 +33,8 @@ struct GaussianSet {
   int sh_coeffs() const { return sh_coeffs_for_degree(sh_degree); }
   // Resizes every array for n Gaussians (new entries zero).
   void resize(size_t n);
+  // The Gaussians at rows `ids` (each < size()), in that order.
+  GaussianSet rows(const std::vector<size_t>& ids) const;
   // Throws std::invalid_argument naming the array whose size is wrong.
   void validate() const;
 };
