@@ -31,6 +31,7 @@
 #include "host/scene/scene_up.h"
 #include "queries/query.h"
 #include "stages/anchor_model.h"
+#include "stages/removal_fill.h"
 #include "stages/simulation.h"
 #include "stages/train_common.h"
 #include "stages/train_config.h"
@@ -56,6 +57,7 @@ struct SimulateArgs {
   // (|F - I| up to 2.8): a pole a Gaussian or two thick is too few
   // particles per cell for the solver (docs/benchmarks.md, "Physics").
   bool background = false;
+  bool move_hidden = true;  // kept anchors the object hid from every photo move with it
   int frames = 30;
   double fps = 25;
   double dt = 0;
@@ -168,10 +170,23 @@ void cmd_simulate(const GlobalOptions& global, SimulateArgs a) {
       select_object(rt, tm, *scene, a.request, a.selection, a.config, embedding, a.resolution, report, "simulate");
   const int K = tm.model.children();
   const GaussianSet gaussians = expand_reference(tm.model, tm.sh_degree);
-  std::vector<uint8_t> selected(gaussians.size(), 0);
-  for (size_t g = 0; g < selected.size(); ++g) selected[g] = sel.anchors[g / K];
   std::vector<Camera> cameras;
   for (int v : scene->train_views()) cameras.push_back(scene->views()[v].camera);
+  // Kept anchors inside the object that the photos saw only through it
+  // (stages/removal_fill.h, as `remove` takes them): left in place they
+  // would show where the object stood once it moves.
+  std::vector<int> hidden;
+  if (a.move_hidden) {
+    Renderer seen_renderer(rt);
+    hidden = hidden_anchors(seen_renderer, tm.model, tm.sh_degree, sel.anchors, cameras, RenderSettings{});
+    if (!hidden.empty())
+      spdlog::info("{} kept anchors inside the object are seen only through it: they move with it", hidden.size());
+  }
+  report["hidden_anchors_moved"] = hidden;
+  std::vector<uint8_t> in_object = sel.anchors;
+  for (int h : hidden) in_object[h] = 1;
+  std::vector<uint8_t> selected(gaussians.size(), 0);
+  for (size_t g = 0; g < selected.size(); ++g) selected[g] = in_object[g / K];
   // The default push: along the first rendered view's right, across up; for
   // a photo stored sideways (its x axis nearer up than its y axis), the right
   // of the photo turned upright: forward x up.
@@ -343,6 +358,9 @@ void register_simulate(CLI::App& app, GlobalOptions& global) {
   r->add_flag("--background,!--no-background", a->background,
               "Also simulate the other Gaussians inside the simulation box above the ground, as --background-E "
               "material (the paper's setting; default off: the rest of the scene stays still)");
+  r->add_flag("!--keep-hidden", a->move_hidden,
+              "Leave in place the kept anchors inside the object that the training views saw only through it (by "
+              "default they move with it, as `remove` takes them with it)");
   r->add_option("--frames", a->frames, "Frames to simulate (default 30; frame 0, the start, is written too)")
       ->check(CLI::Range(1, 100000));
   r->add_option("--fps", a->fps, "Frames per second of simulated time (default 25)")->check(positive_number());

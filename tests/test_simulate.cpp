@@ -121,6 +121,12 @@ TEST(Simulate, WritesFramesPlysAndARecordOfEveryFrame) {
   EXPECT_EQ(j["query"]["type"], "selection");
   EXPECT_EQ(j["material"], "jelly");
   EXPECT_EQ(j["simulation"]["damping"].get<double>(), 5.0);
+  // Kept anchors the object hid from every photo move with it; never one
+  // the selection already holds.
+  ASSERT_TRUE(j["hidden_anchors_moved"].is_array());
+  const json chosen = json::parse(std::ifstream(fixture().selection))["anchors"];
+  for (const auto& h : j["hidden_anchors_moved"])
+    for (const auto& s : chosen) EXPECT_NE(h.get<int>(), s.get<int>());
   const json& p = j["simulation"]["particles"];
   EXPECT_GT(p["object_gaussians"].get<size_t>(), 0u);
   EXPECT_EQ(p["total"].get<size_t>(), p["object_gaussians"].get<size_t>() + p["interior_fill"].get<size_t>() +
@@ -182,13 +188,14 @@ TEST(Simulate, WithoutForcesTheSceneStaysAsTrained) {
   // No gravity, no push: no particle has a stress or a velocity, so every
   // frame is frame 0, bit for bit.
   const fs::path out = fresh("rest");
-  const auto r = test::run_cli(simulate_cmd(out, "--frames 2 --push 0 --gravity 0,0,0 --ply-every 1"));
+  const auto r = test::run_cli(simulate_cmd(out, "--frames 2 --push 0 --gravity 0,0,0 --ply-every 1 --keep-hidden"));
   ASSERT_EQ(r.code, 0) << r.output;
   EXPECT_EQ(read_file(out / "frames/view_001/0002.png"), read_file(out / "frames/view_001/0000.png"));
   EXPECT_EQ(read_file(out / "ply/frame_0002.ply"), read_file(out / "ply/frame_0000.ply"));
   const json j = json::parse(std::ifstream(out / "simulation.json"));
   EXPECT_EQ(j["per_frame"][2]["kinetic_energy"].get<double>(), 0.0);
   EXPECT_EQ(j["per_frame"][2]["max_strain"].get<double>(), 0.0);
+  EXPECT_TRUE(j["hidden_anchors_moved"].empty()) << "--keep-hidden";
 }
 
 TEST(Simulate, SameBitsWithOneAndTwoThreads) {
