@@ -148,13 +148,14 @@ std::vector<double> seen_weight(Renderer& renderer, const GaussianSet& set, cons
 // voxels of the object's visible Gaussians along each axis, and the
 // training views see less than `max_fraction` of it outside the object's
 // silhouette (its seen_weight outside it, rendered with the object's
-// Gaussians, against its seen_weight rendered with the candidates alone). What the photos show of such an anchor
-// they show through the object (junk inside it, never reached by a
-// gradient, or an untrained surface behind it); deleting the object
-// uncovers it, and no photo vouches for what it shows, so it goes with the
-// object and its voxel is free for the fill. An anchor with one seen child
-// stays: it is a surface the photos show, a neighbour's face the object
-// stood in front of. Anchor ids, ascending; reach in 0..16.
+// Gaussians, against its seen_weight rendered with the candidates alone).
+// What the photos show of such an anchor they show through the object
+// (junk inside it, never reached by a gradient, or an untrained surface
+// behind it); deleting the object uncovers it, and no photo vouches for
+// what it shows, so it goes with the object and its voxel is free for the
+// fill. An anchor with one seen child stays: it is a surface the photos
+// show, a neighbour's face the object stood in front of. Anchor ids,
+// ascending; reach in 0..16.
 std::vector<int> hidden_anchors(Renderer& renderer, const AnchorModel& model, int sh_degree,
                                 const std::vector<uint8_t>& selected, const std::vector<Camera>& cameras,
                                 const RenderSettings& settings, int reach = 3, double max_fraction = 0.1);
