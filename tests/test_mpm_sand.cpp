@@ -117,8 +117,9 @@ TEST(Sand, AColumnReleasedSlowlyRestsAtItsFrictionAngle) {
   // creep. Measured (1.5 s): flanks of 32.6 and 37.8 degrees for friction
   // angles of 30 and 40, summits 0.192 and 0.202, rms speeds 0.005 and
   // 0.003 m/s. The same column damped at 30/s for 2.5 s: 33.8 and 38.3; at
-  // 10/s for 1.5 s: 31.7 and 36.5. A column half as large (5.8 cells high)
-  // gives 30.5 and 32: the flank needs about ten cells to show the angle.
+  // 10/s for 1.5 s: 31.7 and 36.5. A column half as large (radius 4.8
+  // cells) gives 29.5 and 32.7 (ag2gs_bench_mpm's sand table): the flank
+  // needs about ten cells to show a steep angle.
   const Pile p30 = sand_column(30, 15, 1.5);
   const Pile p40 = sand_column(40, 15, 1.5);
   EXPECT_LT(p30.rms_speed, 0.01) << "still moving";
