@@ -27,6 +27,7 @@
 #include "host/io/atomic_file.h"
 #include "host/io/image_io.h"
 #include "host/io/model_io.h"
+#include "host/io/model_ply.h"
 #include "host/io/ply_io.h"
 #include "host/render/renderer.h"
 #include "host/scene/scene.h"
@@ -388,7 +389,12 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
 
     // ---- the model after the removal
     write_model_archive((tmp / "model.ag2gs").string(), archive_after(archive, result, source));
-    write_ply((tmp / "point_cloud.ply").string(), expand_reference(result, sh_degree), true, PlyValues::activated);
+    {
+      // As train writes it: with the model's sky baked in when it has one.
+      std::vector<Camera> all_cameras;
+      for (const SceneView& sv : scene->views()) all_cameras.push_back(sv.camera);
+      write_model_plys(tmp.string(), expand_reference(result, sh_degree), sky_coefficients, all_cameras);
+    }
 
     // The kept anchors the fine-tune may change (their ids in the new model;
     // every other kept anchor has its bytes from the input model).

@@ -22,6 +22,7 @@
 #include "host/io/image_io.h"
 #include "host/io/model_io.h"
 #include "host/io/npy_io.h"
+#include "host/io/model_ply.h"
 #include "host/io/ply_io.h"
 #include "host/render/renderer.h"
 #include "host/render/sky.h"
@@ -149,7 +150,9 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
     if (!fs::exists(candidate) && !wants("instance")) {
       throw std::runtime_error(a.model + ": has no point_cloud.ply; is it a model folder written by `ag2gs train`?");
     }
-    ply = candidate.string();
+    // A model with a sky: its Gaussians alone, the sky composited below
+    // (point_cloud.ply also holds the sky baked into Gaussians).
+    ply = model_objects_ply(a.model);
   }
   if (ply.empty()) throw std::invalid_argument("give a model folder (MODEL_DIR) or a Gaussian file (--ply FILE)");
 

@@ -398,6 +398,7 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   spdlog::info("wrote {} and {} ({} anchors, {} Gaussians, SH degree {})", (fs::path(a.out) / "model.ag2gs").string(),
                (fs::path(a.out) / "point_cloud.ply").string(), trainer.anchors(), trainer.gaussians(),
                trainer.active_sh_degree());
+  spdlog::info("{}", trainer.last_ply().describe());
   run.metrics()["anchors"] = trainer.anchors();
   run.final_test(it_end, evaluate, counts());
   // Stage times of this run (training time without evaluations).

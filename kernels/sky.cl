@@ -130,18 +130,18 @@ __kernel void sky_grad_reduce(int rows, int values,
 // The normal equations of fitting the sky alone to an image [3,H,W]
 // (every pixel as if no Gaussian covered it), each pixel weighted by W(p)
 // (1 without weights): per partial row, the Gram matrix sum W Y_k Y_l (K*K,
-// row-major) and then sum W Y_k I_c (K*3). Summed over rows by
+// row-major), then sum W Y_k I_c (K*3), then sum W I_c^2 (3). Summed over rows by
 // sky_grad_reduce, over views in double on the host.
 __kernel void sky_fit_partial(int w, int h, int chunk, float4 r0, float4 r1, float4 r2, float4 intr,
                               __global const float* image,  // [3,H,W]
                               int use_weight,
                               __global const float* weight,  // [H,W]
                               int rows,
-                              __global float* partial) {    // [rows, K*K + K*3]
+                              __global float* partial) {    // [rows, K*K + K*3 + 3]
   const int i = get_global_id(0);
   if (i >= rows) return;
   const int npix = w * h;
-  const int values = SKY_K * SKY_K + 3 * SKY_K;
+  const int values = SKY_K * SKY_K + 3 * SKY_K + 3;
   __global float* out = partial + i * values;
   for (int j = 0; j < values; ++j) out[j] = 0.f;
   const int end = min(npix, (i + 1) * chunk);
@@ -162,5 +162,9 @@ __kernel void sky_fit_partial(int w, int h, int chunk, float4 r0, float4 r1, flo
       out[SKY_K * SKY_K + 3 * k + 1] += b[k] * c.y;
       out[SKY_K * SKY_K + 3 * k + 2] += b[k] * c.z;
     }
+    // sum of W I^2 per channel: the fit's residual without a second pass.
+    out[SKY_K * SKY_K + 3 * SKY_K] += c.x * image[p];
+    out[SKY_K * SKY_K + 3 * SKY_K + 1] += c.y * image[npix + p];
+    out[SKY_K * SKY_K + 3 * SKY_K + 2] += c.z * image[2 * npix + p];
   }
 }

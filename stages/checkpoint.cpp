@@ -12,6 +12,7 @@
 #include "host/core/counter_rng.h"
 #include "host/io/atomic_file.h"
 #include "host/io/model_io.h"
+#include "host/io/model_ply.h"
 #include "host/io/ply_io.h"
 #include "stages/trainer.h"
 
@@ -219,8 +220,12 @@ void Trainer::save(const std::string& model_dir) {
                            {"config", config_.to_json()}};
   fs::create_directories(model_dir);
   write_model_archive((fs::path(model_dir) / "model.ag2gs").string(), archive);
-  GaussianSet set = expand_reference(m, active_sh_degree());
-  write_ply((fs::path(model_dir) / "point_cloud.ply").string(), set, true, PlyValues::activated);
+  // point_cloud.ply carries the sky too, so other viewers show what we render.
+  std::optional<std::vector<float>> sky;
+  if (sky_.enabled()) sky = sky_.download();
+  std::vector<Camera> cameras;
+  for (const auto& v : scene_.views()) cameras.push_back(v.camera);
+  last_ply_ = write_model_plys(model_dir, expand_reference(m, active_sh_degree()), sky, cameras);
 }
 
 }  // namespace ag2gs

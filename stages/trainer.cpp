@@ -128,6 +128,7 @@ void Trainer::init_sky() {
   const std::vector<float> start = sky_constant(config_.sky_degree, {bg, bg, bg});
   sky_.set(config_.sky_degree, start);
   Eigen::MatrixXd gram, rhs;
+  Eigen::Vector3d squares = Eigen::Vector3d::Zero();
   std::vector<float> weights;
   size_t largest = 0;
   for (int v : train_views_) {
@@ -136,13 +137,17 @@ void Trainer::init_sky() {
     upload_target(*scene_.image(v), 1, target_planar_, target_dev_);
     open_sky_weights(sky_open_[v], cam.width, cam.height, 1, weights);
     sky_weight_dev_.upload(weights);
-    sky_.add_fit(target_dev_, cam, gram, rhs, &sky_weight_dev_);
+    sky_.add_fit(target_dev_, cam, gram, rhs, &sky_weight_dev_, &squares);
   }
   // The ridge is at least what 1% of one view's pixels give: a few open
   // pixels cannot bend the whole sky.
-  sky_.set(config_.sky_degree, Sky::solve_fit(gram, rhs, start, 0.01 * static_cast<double>(largest)));
-  spdlog::info("sky: SH degree {}, fitted to the {:.1f}% of the training pixels with no SfM point within {} px",
-               config_.sky_degree, 100.0 * sky_open_fraction_, sky_radius_);
+  const std::vector<float> fitted = Sky::solve_fit(gram, rhs, start, 0.01 * static_cast<double>(largest));
+  sky_.set(config_.sky_degree, fitted);
+  sky_fit_rms_ = Sky::fit_residual_rms(gram, rhs, squares, fitted);
+  spdlog::info(
+      "sky: SH degree {}, fitted to the {:.1f}% of the training pixels with no SfM point within {} px "
+      "(RMS error of the fit {:.3f})",
+      config_.sky_degree, 100.0 * sky_open_fraction_, sky_radius_, sky_fit_rms_);
 }
 
 int Trainer::active_sh_degree() const {

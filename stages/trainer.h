@@ -76,6 +76,7 @@
 #include <vector>
 
 #include "host/device/cl_runtime.h"
+#include "host/io/model_ply.h"
 #include "host/render/adam.h"
 #include "host/render/image_loss.h"
 #include "host/render/mask_loss.h"
@@ -152,8 +153,11 @@ class Trainer {
 
   // MODEL_DIR/checkpoint.ag2gs (save_checkpoint), MODEL_DIR/model.ag2gs
   // (anchors, config, iteration, seed) and MODEL_DIR/point_cloud.ply (the
-  // expanded Gaussians, standard 3DGS), each written atomically.
+  // expanded Gaussians, standard 3DGS, with the sky baked in when the model
+  // has one, and then point_cloud_objects.ply without it: host/io/model_ply.h),
+  // each written atomically. last_ply() says what the last save wrote.
   void save(const std::string& model_dir);
+  const ModelPlyReport& last_ply() const { return last_ply_; }
   // MODEL_DIR/checkpoint.ag2gs alone, atomically.
   void save_checkpoint(const std::string& model_dir);
   // Settings of the caller's that shape the run's files but are not the
@@ -237,6 +241,8 @@ class Trainer {
   ImageLoss image_loss_;
   MaskLoss mask_loss_;
   Sky sky_;
+  ModelPlyReport last_ply_;  // what the last save() wrote
+  double sky_fit_rms_ = 0;   // RMS colour error of the sky's start over the open pixels
   DeviceBuffer sky_grad_alpha_;  // the sky's alpha gradient when no mask loss wrote one
   // Per scene view (training views only): 1 where a pixel is open
   // (open_sky_pixels), the weights of the sky's gradient.

@@ -4,7 +4,9 @@
 // differences, and a training run under an open sky with and without it.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
+#include <filesystem>
 #include <cstdlib>
 #include <cstring>
 #include <fstream>
@@ -13,7 +15,10 @@
 
 #include "cli_test_util.h"
 #include "host/io/image_io.h"
+#include "host/io/colmap_reader.h"
+#include "host/io/ply_io.h"
 #include "host/render/sky.h"
+#include "host/render/sky_bake.h"
 #include "io_test_util.h"
 #include "reference/reference_renderer.h"
 #include "test_util.h"
@@ -419,6 +424,7 @@ TEST(Sky, OpenSkySceneTrainsWithTheSkyAndNotWithout) {
   ASSERT_EQ(r.code, 0) << r.output;
   // The default chose the sky from the scene (its open share is above 5%).
   EXPECT_NE(r.output.find("sky: on ("), std::string::npos) << r.output;
+  const std::string sky_log = r.output;
   r = test::run_cli("train " + scene + " -o " + dir.file("black") + common + " --sky-degree -1");
   ASSERT_EQ(r.code, 0) << r.output;
   const double with = test_psnr(dir.file("sky")), without = test_psnr(dir.file("black"));
@@ -455,6 +461,43 @@ TEST(Sky, OpenSkySceneTrainsWithTheSkyAndNotWithout) {
   std::printf("  render of view_000: mean |error| %.4f over the sky, %.4f over black\n", err_sky, err_black);
   EXPECT_LT(err_sky, 0.06);
   EXPECT_GT(err_black, 2 * err_sky);
+
+  // point_cloud.ply holds the sky baked into Gaussians, so a standard 3DGS
+  // renderer of the file draws the model's picture: ours (render --ply) and
+  // the double-precision reference, against `render MODEL_DIR` (the
+  // Gaussians alone from point_cloud_objects.ply, over the sky).
+  EXPECT_NE(sky_log.find("point_cloud_objects.ply holds"), std::string::npos) << "the log says what the .ply holds";
+  EXPECT_FALSE(std::filesystem::exists(dir.file("black/point_cloud_objects.ply"))) << "no sky, one .ply";
+  const GaussianSet objects = read_ply(dir.file("sky/point_cloud_objects.ply"));
+  const GaussianSet full = read_ply(dir.file("sky/point_cloud.ply"));
+  EXPECT_EQ(full.size(), objects.size() + static_cast<size_t>(sky_bake_count(3)));
+  r = test::run_cli("render --ply " + dir.file("sky/point_cloud.ply") + " --scene " + scene + " -o " +
+                    dir.file("r_ply") + " --views test");
+  ASSERT_EQ(r.code, 0) << r.output;
+  r = test::run_cli("render " + dir.file("sky") + " --scene " + scene + " -o " + dir.file("r_model") + " --views test");
+  ASSERT_EQ(r.code, 0) << r.output;
+  const ColmapModel cm = read_colmap_model(scene + "/sparse/0");
+  for (const Camera& cam : cm.cameras_for_images) {
+    const std::string stem = cam.name.substr(0, cam.name.rfind('.'));
+    if (!std::filesystem::exists(dir.file("r_model/rgb/" + stem + ".png"))) continue;  // a training view
+    int mw = 0, mh = 0, pw = 0, ph = 0;
+    const std::vector<float> model_img = read_rgb(dir.file("r_model/rgb/" + stem + ".png"), mw, mh);
+    const std::vector<float> ply_img = read_rgb(dir.file("r_ply/rgb/" + stem + ".png"), pw, ph);
+    ASSERT_EQ(model_img.size(), ply_img.size());
+    const ref::RefImages ref_img = ref::render(full, cam, {});
+    double se_ply = 0, se_ref = 0;
+    for (size_t i = 0; i < model_img.size(); ++i) {
+      se_ply += std::pow(ply_img[i] - model_img[i], 2);
+      se_ref += std::pow(std::clamp(ref_img.rgb[i], 0.0, 1.0) - model_img[i], 2);
+    }
+    const double n = static_cast<double>(model_img.size());
+    const double psnr_ply = -10 * std::log10(std::max(se_ply / n, 1e-12));
+    const double psnr_ref = -10 * std::log10(std::max(se_ref / n, 1e-12));
+    std::printf("  %s: point_cloud.ply against the model's render: %.1f dB (render --ply), %.1f dB (reference)\n",
+                stem.c_str(), psnr_ply, psnr_ref);
+    EXPECT_GT(psnr_ply, 35.0);
+    EXPECT_GT(psnr_ref, 35.0);
+  }
 }
 
 }  // namespace

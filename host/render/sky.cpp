@@ -143,13 +143,13 @@ void Sky::backward(const DeviceBuffer& grad_out, const DeviceBuffer& alpha, cons
 }
 
 void Sky::add_fit(const DeviceBuffer& image, const Camera& camera, Eigen::MatrixXd& gram, Eigen::MatrixXd& rhs,
-                  const DeviceBuffer* weight) {
+                  const DeviceBuffer* weight, Eigen::Vector3d* squares) {
   if (!enabled()) throw std::logic_error("Sky::add_fit without a degree (Sky::set)");
   const int k_count = static_cast<int>(values_ / 3);
   const size_t npix = static_cast<size_t>(camera.width) * camera.height;
   const size_t chunk = std::max<size_t>(64, (npix + 1023) / 1024);
   const size_t rows = (npix + chunk - 1) / chunk;
-  const size_t values = static_cast<size_t>(k_count) * k_count + 3 * static_cast<size_t>(k_count);
+  const size_t values = static_cast<size_t>(k_count) * k_count + 3 * static_cast<size_t>(k_count) + 3;
   partial_.reserve(std::max<size_t>(rows, 1) * values * sizeof(float));
   DeviceBuffer sums(&rt_);
   sums.reserve(values * sizeof(float));
@@ -170,6 +170,22 @@ void Sky::add_fit(const DeviceBuffer& image, const Camera& camera, Eigen::Matrix
     for (int b = 0; b < k_count; ++b) gram(a, b) += v[static_cast<size_t>(a) * k_count + b];
     for (int c = 0; c < 3; ++c) rhs(a, c) += v[static_cast<size_t>(k_count) * k_count + 3 * a + c];
   }
+  if (squares)
+    for (int c = 0; c < 3; ++c) (*squares)[c] += v[static_cast<size_t>(k_count) * k_count + 3 * k_count + c];
+}
+
+double Sky::fit_residual_rms(const Eigen::MatrixXd& gram, const Eigen::MatrixXd& rhs, const Eigen::Vector3d& squares,
+                             const std::vector<float>& coefficients) {
+  const Eigen::Index k = gram.rows();
+  const double weight = k > 0 ? gram(0, 0) / (kShC0 * kShC0) : 0.0;  // Y_0 is the constant C0
+  if (!(weight > 0) || coefficients.size() != static_cast<size_t>(k) * 3) return 0.0;
+  double e = 0;
+  for (int c = 0; c < 3; ++c) {
+    Eigen::VectorXd x(k);
+    for (Eigen::Index i = 0; i < k; ++i) x(i) = coefficients[static_cast<size_t>(i) * 3 + c];
+    e += squares[c] - 2.0 * x.dot(rhs.col(c)) + x.dot(gram * x);
+  }
+  return std::sqrt(std::max(0.0, e / (3.0 * weight)));
 }
 
 std::vector<float> Sky::solve_fit(const Eigen::MatrixXd& gram, const Eigen::MatrixXd& rhs,

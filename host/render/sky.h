@@ -99,8 +99,18 @@ class Sky {
   // the Gram matrix's mean diagonal, and at least the degree-0 diagonal
   // entry that `min_ridge_pixels` pixels give (each adds Y_0^2), so
   // directions no open pixel saw stay near the start.
+  // `squares` (when given) gains the weighted sum of I_c^2 per channel,
+  // which fit_residual_rms needs.
   void add_fit(const DeviceBuffer& image, const Camera& camera, Eigen::MatrixXd& gram, Eigen::MatrixXd& rhs,
-               const DeviceBuffer* weight = nullptr);
+               const DeviceBuffer* weight = nullptr, Eigen::Vector3d* squares = nullptr);
+  // The root-mean-square colour error of `coefficients` [K, 3] over the
+  // fitted pixels (weighted), from the sums alone: E = sum W I^2 - 2 x.rhs
+  // + x^T gram x per channel. A sky seen through many photos is one colour
+  // per direction and fits them closely; surfaces at a finite distance do
+  // not (each photo shows them in other directions), nor does a textured
+  // wall. 0 when nothing was fitted.
+  static double fit_residual_rms(const Eigen::MatrixXd& gram, const Eigen::MatrixXd& rhs,
+                                 const Eigen::Vector3d& squares, const std::vector<float>& coefficients);
   static std::vector<float> solve_fit(const Eigen::MatrixXd& gram, const Eigen::MatrixXd& rhs,
                                       const std::vector<float>& start = {}, double min_ridge_pixels = 0);
 
