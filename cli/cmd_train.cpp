@@ -86,12 +86,13 @@ void apply_preset(const CLI::App& sub, TrainArgs& a) {
   unless_given("--final-prune-opacity", c.final_prune_opacity, 0.015);
   unless_given("--lr-offset", c.offset_lr_init, 1e-2);
   unless_given("--lr-scaling", c.scaling_lr, 0.01);
+  unless_given("--grow-min-seen", c.grow_min_seen, 0.1);
   spdlog::info(
-      "preset {}: --scale-cap {} --children {} --init-layers {} --{} --grow-budget {} --recycle-opacity {} "
-      "--final-prune-opacity {} --lr-offset {} --lr-scaling {}",
+      "preset {}: --scale-cap {} --children {} --init-layers {} --{} --grow-budget {} --grow-min-seen {} "
+      "--recycle-opacity {} --final-prune-opacity {} --lr-offset {} --lr-scaling {}",
       a.preset, c.anchors.scale_cap, c.anchors.children, c.anchors.init_layers,
       c.anchors.init_children_at_points ? "init-children-at-points" : "init-children-random", c.grow_budget,
-      c.recycle_opacity, c.final_prune_opacity, c.offset_lr_init, c.scaling_lr);
+      c.grow_min_seen, c.recycle_opacity, c.final_prune_opacity, c.offset_lr_init, c.scaling_lr);
 }
 
 bool has_stage(const TrainArgs& a, int s) {
@@ -258,10 +259,10 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   if (c.grow_every > 0 && c.grow_from <= c.effective_grow_until()) {
     const GrowthConfig g = c.growth_config(scene->train_views().size());
     spdlog::info(
-        "anchor growing{} every {} iterations from {} to {} (threshold {:.3g}); pruning: opacity < {:.3g}{}, "
-        "unseen {}{}",
+        "anchor growing{} every {} iterations from {} to {} (threshold {:.3g}, for children seen in at least {:.0f}% "
+        "of a round's views); pruning: opacity < {:.3g}{}, unseen {}{}",
         c.anchors.layers > 1 ? "" : " (one layer: pruning only)", c.grow_every, c.grow_from, c.effective_grow_until(),
-        c.grow_threshold, c.prune_opacity, c.prune_opacity > 0 ? "" : " (off)",
+        c.grow_threshold, 100 * c.grow_min_seen, c.prune_opacity, c.prune_opacity > 0 ? "" : " (off)",
         g.prune_unseen ? "in the last " + std::to_string(g.unseen_window) + " views" : std::string("off"),
         c.final_prune_opacity > 0
             ? fmt::format("; after iteration {}: mean opacity < {:.3g}", c.iterations, c.final_prune_opacity)
@@ -570,7 +571,9 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                   "Mean screen-space gradient (NDC units) above which a child grows a finer anchor (default 1.5e-4, "
                   "x2 per layer)");
   sub->add_option("--grow-min-seen", c.grow_min_seen,
-                  "Fraction of a round's iterations a child must be visible in to grow (default 0.4)")
+                  "Fraction of a round's iterations a child must be visible in to grow (default 0.1, so the far "
+                  "background that a circling capture sees in a few views grows too; --preset paper and the "
+                  "official code 0.4)")
       ->check(finite_range(0.0, 1.0));
   sub->add_option("--prune-opacity", c.prune_opacity,
                   "In growing rounds, remove anchors whose children's mean opacity is below this (default 0.01; 0 = "
@@ -630,7 +633,8 @@ void register_train(CLI::App& app, GlobalOptions& global) {
       ->check(finite_range(0.5, 0.999));
   sub->add_option("--preset", a->preset,
                   "default (= appearance: --scale-cap 64 --children 2 --init-layers 2 --init-children-at-points "
-                  "--grow-budget 0.1 --recycle-opacity 0.02 --lr-offset 1e-2 --lr-scaling 0.01, the voxel from the "
+                  "--grow-budget 0.1 --grow-min-seen 0.1 --recycle-opacity 0.02 --lr-offset 1e-2 --lr-scaling 0.01, "
+                  "the voxel from the "
                   "scene) or paper (the method as published: --top-cells 200, 5 children inside their voxels, "
                   "--scale-cap 1, one seeded layer, no growth budget); flags given explicitly win")
       ->check(CLI::IsMember({"default", "appearance", "paper"}));

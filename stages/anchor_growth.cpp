@@ -189,8 +189,14 @@ GrowthResult AnchorGrowth::step(AnchorModel& model, uint64_t seed) {
     int64_t child;
     int layer;
     Eigen::Vector3i cell;
-    double score;  // mean gradient / threshold of the child's layer
+    double score;  // mean gradient / threshold of the child's layer, x its seen share (below)
   };
+  // Under the budget, a child seen in fewer than 40% of the round's steps
+  // (the official rule's bar) ranks by its mean gradient scaled by its share
+  // of that bar: a mean over a few views is a noisy one, and the children
+  // that the views agree on keep the budget first; the rarely seen ones
+  // (the far background of a circling capture) grow from what is left.
+  const double full_seen = std::max(1.0, 0.4 * static_cast<double>(steps_));
   std::vector<Request> requests;
   for (size_t g = 0; g < n_; ++g) {
     if (st.count[g] < min_count) continue;
@@ -208,8 +214,9 @@ GrowthResult AnchorGrowth::step(AnchorModel& model, uint64_t seed) {
     auto request = [&](int to_layer) {
       const Eigen::Vector3i cell = grid.cell_of(to_layer, mean);
       if ((cell.array() < -kMaxAnchorCell).any() || (cell.array() >= kMaxAnchorCell).any()) return;
+      const double seen = std::min(1.0, static_cast<double>(st.count[g]) / full_seen);
       requests.push_back(
-          {anchor_voxel_key(to_layer, cell), static_cast<int64_t>(g), to_layer, cell, mean_grad / threshold});
+          {anchor_voxel_key(to_layer, cell), static_cast<int64_t>(g), to_layer, cell, mean_grad / threshold * seen});
     };
     if (layer + 1 < layers) request(layer + 1);
     if (config_.same_layer) {

@@ -218,6 +218,7 @@ class Trainer {
   // radius), and the sky's start (config.sky_degree >= 0).
   void find_open_pixels();
   void init_sky();
+  void log_sky_fit() const;
 
   Runtime& rt_;
   Scene& scene_;

@@ -181,7 +181,7 @@ TEST(Cli, TrainPresetsDefaultAppearanceAndPaperExplicitFlagsWin) {
   Result app = run(common + (dir / "app").string() + " --preset appearance --children 4");
   ASSERT_EQ(app.code, 0) << app.output;
   EXPECT_NE(app.output.find("preset appearance: --scale-cap 64 --children 4 --init-layers 2 "
-                            "--init-children-at-points --grow-budget 0.1 --recycle-opacity 0.02 "
+                            "--init-children-at-points --grow-budget 0.1 --grow-min-seen 0.1 --recycle-opacity 0.02 "
                             "--final-prune-opacity 0.015 --lr-offset 0.01 --lr-scaling 0.01"),
             std::string::npos)
       << app.output;

@@ -95,9 +95,10 @@ TEST(SkyBake, ShellHoldsEveryCameraAndGaussian) {
   double far = 0;
   for (const Camera& c : rig.cameras) far = std::max(far, (c.center() - shell.centre).norm());
   for (size_t i = 0; i < rig.objects.size(); ++i)
-    far = std::max(far, (Vector3d(rig.objects.means[3 * i], rig.objects.means[3 * i + 1], rig.objects.means[3 * i + 2]) -
-                         shell.centre)
-                            .norm());
+    far = std::max(
+        far,
+        (Vector3d(rig.objects.means[3 * i], rig.objects.means[3 * i + 1], rig.objects.means[3 * i + 2]) - shell.centre)
+            .norm());
   EXPECT_NEAR(shell.radius, 4.0 * far, 1e-9);
   EXPECT_LT((shell.centre - Vector3d(0, 0.5, 0)).norm(), 1e-9) << "the cameras' mean centre";
   // No cameras, no Gaussians: a unit-sized shell, still finite.

@@ -44,8 +44,8 @@ GaussianSet bake_sky(const std::vector<float>& coefficients, const SkyShell& she
     throw std::invalid_argument("bake_sky: " + std::to_string(coefficients.size()) +
                                 " coefficients are no sky of SH degree 0..3");
   if (sh_degree_out < degree || sh_degree_out > kSkyMaxDegree)
-    throw std::invalid_argument("bake_sky: output SH degree " + std::to_string(sh_degree_out) +
-                                " is below the sky's " + std::to_string(degree) + " or above 3");
+    throw std::invalid_argument("bake_sky: output SH degree " + std::to_string(sh_degree_out) + " is below the sky's " +
+                                std::to_string(degree) + " or above 3");
   const int n = config.count > 0 ? config.count : sky_bake_count(degree);
   const double kPi = 3.14159265358979323846;
   const double golden = kPi * (3.0 - std::sqrt(5.0));  // the golden angle

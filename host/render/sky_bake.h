@@ -26,14 +26,14 @@
 namespace ag2gs {
 
 struct SkyBakeConfig {
-  int count = 0;                // Gaussians on the shell; 0 = from the sky's degree (sky_bake_count)
+  int count = 0;  // Gaussians on the shell; 0 = from the sky's degree (sky_bake_count)
   // Standard deviation in lattice spacings. Measured on a generated open-sky
   // scene (3,000 Gaussians): 0.65 -> 42.2 dB, 0.75 -> 47.6, 1.0 -> 41.9,
   // 1.5 -> 37.1 (wider ones blend the sky over more directions; at 0.55 the
   // shell has gaps and falls to 30.5).
   double sigma_spacing = 0.75;
-  double opacity = 0.99;        // each Gaussian's opacity
-  double radius_factor = 4.0;   // the shell's radius over the farthest Gaussian's or camera's distance
+  double opacity = 0.99;       // each Gaussian's opacity
+  double radius_factor = 4.0;  // the shell's radius over the farthest Gaussian's or camera's distance
 };
 
 // The shell's centre and radius for a scene: centred on the cameras' mean
