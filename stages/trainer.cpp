@@ -62,46 +62,29 @@ Trainer::Trainer(Runtime& rt, Scene& scene, const TrainConfig& config)
                              std::to_string(scene_.points().size()) + " SfM points (all non-finite or out of range)");
   extent_ = scene_.bounds().camera_radius > 0 ? scene_.bounds().camera_radius : scene_.bounds().longest_extent();
   anchors_.upload(model_);
-  for (DeviceBuffer* b : {&target_dev_, &grad_rgb_dev_, &grad_dist_dev_, &grad_feat_dev_, &grad_alpha_dev_,
-                          &sky_grad_alpha_, &sky_weight_dev_})
-    b->bind(&rt_);
   if (config_.sky_degree != -1) find_open_pixels();
   if (config_.sky_degree == TrainConfig::kSkyAuto) {
-    // A sky of degree 3 is fitted to the open pixels when there are enough
-    // of them.
-    const bool enough = sky_open_fraction_ >= TrainConfig::kSkyMinOpenShare;
-    if (enough) {
-      config_.sky_degree = 3;
-      init_sky();
-    }
-    // The fit's error is reported, not used: it tells an open sky (0.007-
-    // 0.012 on generated ones) from a room without SfM points (0.13-0.23 on
-    // real captures, 0.08 on a generated textured wall), but on real rooms
-    // the sky still helps some (the cup, the fox) and hurts others
-    // (kumamon): docs/benchmarks.md, "Cluttered rooms".
-    const bool on = enough;
-    const std::string why =
-        !enough ? fmt::format("{:.1f}% of the training pixels have no SfM point within {} px, below {:.0f}%",
-                              100.0 * sky_open_fraction_, sky_radius_, 100.0 * TrainConfig::kSkyMinOpenShare)
-                : fmt::format("{:.1f}% of the training pixels have no SfM point within {} px, at least {:.0f}%; a "
-                              "sky fitted to them is off by {:.3f} RMS, an open sky by about 0.01",
-                              100.0 * sky_open_fraction_, sky_radius_, 100.0 * TrainConfig::kSkyMinOpenShare,
-                              sky_fit_rms_);
-    spdlog::info("sky: {} ({}); --sky-degree D sets it", on ? "on" : "off, a fixed background", why);
+    // The rule uses the open share alone. The start fit's error (logged by
+    // init_sky) tells an open sky (0.007-0.012 on generated ones) from a
+    // room without SfM points (0.08-0.23), but on real rooms the sky helps
+    // some (the cup, the fox) and hurts others (kumamon):
+    // docs/benchmarks.md, "Cluttered rooms".
+    const bool on = sky_open_fraction_ >= TrainConfig::kSkyMinOpenShare;
     config_.sky_degree = on ? 3 : -1;
-    if (on) {
-      log_sky_fit();
-    } else {
-      sky_open_.clear();
-      sky_.clear();
-    }
-  } else if (config_.sky_degree >= 0) {
-    init_sky();
-    log_sky_fit();
+    spdlog::info("sky: {} ({:.1f}% of the training pixels have no SfM point within {} px; the rule: a sky of SH degree 3 "
+                 "from {:.0f}%); --sky-degree D sets it",
+                 on ? "on" : "off, a fixed background", 100.0 * sky_open_fraction_, sky_radius_,
+                 100.0 * TrainConfig::kSkyMinOpenShare);
+    if (!on) sky_open_.clear();
   }
   const size_t n = model_.gaussians();
   groups_ = std::make_unique<ParamGroups>(rt_, group_specs(), n, model_.size());
   reg_value_.bind(&rt_);
+  for (DeviceBuffer* b :
+       {&target_dev_, &grad_rgb_dev_, &grad_dist_dev_, &grad_feat_dev_, &grad_alpha_dev_, &sky_grad_alpha_,
+        &sky_weight_dev_})
+    b->bind(&rt_);
+  if (config_.sky_degree >= 0) init_sky();
   if (scene_.semantics() == SemanticsKind::none) {
     spdlog::info("scene {} has no SAM masks (language_features/ or masks/): training appearance only", scene_.dir());
   } else if (config_.w_is <= 0 && config_.w_ic <= 0) {
@@ -165,14 +148,11 @@ void Trainer::init_sky() {
   // pixels cannot bend the whole sky.
   const std::vector<float> fitted = Sky::solve_fit(gram, rhs, start, 0.01 * static_cast<double>(largest));
   sky_.set(config_.sky_degree, fitted);
-  sky_fit_rms_ = Sky::fit_residual_rms(gram, rhs, squares, fitted);
-}
-
-void Trainer::log_sky_fit() const {
   spdlog::info(
       "sky: SH degree {}, fitted to the {:.1f}% of the training pixels with no SfM point within {} px "
-      "(RMS error of the fit {:.3f})",
-      config_.sky_degree, 100.0 * sky_open_fraction_, sky_radius_, sky_fit_rms_);
+      "(RMS error of the fit {:.3f}; an open sky fits within about 0.01, a room without SfM points does not)",
+      config_.sky_degree, 100.0 * sky_open_fraction_, sky_radius_,
+      Sky::fit_residual_rms(gram, rhs, squares, fitted));
 }
 
 int Trainer::active_sh_degree() const {

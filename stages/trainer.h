@@ -218,7 +218,6 @@ class Trainer {
   // radius), and the sky's start (config.sky_degree >= 0).
   void find_open_pixels();
   void init_sky();
-  void log_sky_fit() const;
 
   Runtime& rt_;
   Scene& scene_;
@@ -243,7 +242,6 @@ class Trainer {
   MaskLoss mask_loss_;
   Sky sky_;
   ModelPlyReport last_ply_;  // what the last save() wrote
-  double sky_fit_rms_ = 0;   // RMS colour error of the sky's start over the open pixels
   DeviceBuffer sky_grad_alpha_;  // the sky's alpha gradient when no mask loss wrote one
   // Per scene view (training views only): 1 where a pixel is open
   // (open_sky_pixels), the weights of the sky's gradient.

@@ -6,16 +6,16 @@
 
 #include <algorithm>
 #include <cmath>
-#include <filesystem>
 #include <cstdlib>
 #include <cstring>
+#include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
 #include <random>
 
 #include "cli_test_util.h"
-#include "host/io/image_io.h"
 #include "host/io/colmap_reader.h"
+#include "host/io/image_io.h"
 #include "host/io/ply_io.h"
 #include "host/render/sky.h"
 #include "host/render/sky_bake.h"
@@ -339,6 +339,60 @@ TEST(Sky, FitRecoversAKnownSky) {
   for (size_t j = 0; j < got.size(); ++j) EXPECT_NEAR(got[j], truth[j], 0.02) << "coefficient " << j;
   // Nothing seen: no sky.
   EXPECT_EQ(Sky::solve_fit(Eigen::MatrixXd::Zero(16, 16), Eigen::MatrixXd::Zero(16, 3)), std::vector<float>(48, 0.f));
+}
+
+// The fit's RMS error from its sums alone (Sky::fit_residual_rms) against
+// the error computed pixel by pixel in double: photos of a known sky plus a
+// fixed pattern of +-0.1 and +-0.05 (so the error is not the sky's to fit
+// away), and of the sky alone (error about 0).
+TEST(Sky, FitResidualMatchesThePixelError) {
+  Runtime& rt = test::runtime();
+  const int degree = 2, w = 40, h = 32;
+  const std::vector<float> truth = random_coefficients(degree, 5);
+  Sky sky(rt);
+  sky.set(degree, truth);
+  DeviceBuffer rgb(&rt), alpha(&rt), photo(&rt);
+  rgb.upload(std::vector<float>(3 * w * h, 0.f));
+  alpha.upload(std::vector<float>(w * h, 0.f));
+  const Vector3d dirs[] = {{1, 0, 0}, {-1, 0.2, 0}, {0, 0.1, 1}, {0.3, -0.2, -1}};
+  for (const double noise : {0.0, 1.0}) {
+    Eigen::MatrixXd gram, rhs;
+    Eigen::Vector3d squares = Eigen::Vector3d::Zero();
+    Sky fit(rt);
+    fit.set(degree, sky_constant(degree, {0.f, 0.f, 0.f}));
+    std::vector<std::vector<float>> photos;
+    std::vector<Camera> cams;
+    for (const Vector3d& d : dirs) {
+      const Camera cam = test::look_at(Vector3d::Zero(), d, w, h, 0.4 * w);
+      std::vector<float> img;
+      sky.compose(rgb, alpha, cam).download(img, 3 * w * h);
+      for (size_t i = 0; i < img.size(); ++i)
+        img[i] += static_cast<float>(noise * (i % 2 ? 0.1 : -0.05) * (i % 3 ? 1 : -1));
+      photo.upload(img);
+      fit.add_fit(photo, cam, gram, rhs, nullptr, &squares);
+      photos.push_back(img);
+      cams.push_back(cam);
+    }
+    const std::vector<float> got = Sky::solve_fit(gram, rhs);
+    double se = 0, n = 0;
+    for (size_t v = 0; v < cams.size(); ++v)
+      for (int y = 0; y < h; ++y)
+        for (int x = 0; x < w; ++x) {
+          const Vector3d s = sky_ref(degree, got, ray_direction(cams[v], x, y));
+          for (int c = 0; c < 3; ++c) {
+            const double e = photos[v][static_cast<size_t>(c) * w * h + y * w + x] - s[c];
+            se += e * e;
+            n += 1;
+          }
+        }
+    const double direct = std::sqrt(se / n), from_sums = Sky::fit_residual_rms(gram, rhs, squares, got);
+    std::printf("  noise x%.0f: fit RMS %.5f from the sums, %.5f pixel by pixel\n", noise, from_sums, direct);
+    EXPECT_NEAR(from_sums, direct, 2e-3);
+    if (noise > 0)
+      EXPECT_GT(direct, 0.05) << "the pattern must not be the sky's to fit";
+    else
+      EXPECT_LT(from_sums, 5e-3);
+  }
 }
 
 // A pixel is open when no SfM point in front of the camera projects within

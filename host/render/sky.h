@@ -63,12 +63,6 @@ class Sky {
   // Uploads [K, 3] coefficients of a degree in 0..3 (std::invalid_argument
   // for another degree or a size that does not match it).
   void set(int degree, const std::vector<float>& coefficients);
-  // Back to no sky (enabled() false).
-  void clear() {
-    degree_ = -1;
-    values_ = 0;
-    composed_ = {};
-  }
   bool enabled() const { return degree_ >= 0; }
   int degree() const { return degree_; }
   size_t values() const { return values_; }  // K * 3

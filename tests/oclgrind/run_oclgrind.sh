@@ -117,7 +117,7 @@ step instance_map "$build/test_instance_map" --gtest_filter='InstanceMap.NearHal
 step propagation "$build/test_anchor_graph" --gtest_filter='PropagationLoss.DeviceMatchesReference'
 step expander "$build/test_anchors" --gtest_filter='Expander.ForwardMatchesReference:Expander.ExtremeLogitsStayFinite'
 step sky "$build/test_sky" \
-  --gtest_filter='Sky.ComposeMatchesTheDoubleReference:Sky.ConstantStartAndArchiveRoundTrip:Sky.FitRecoversAKnownSky:Sky.BackwardAfterComposeGivesTheBitsOfBackwardAlone'
+  --gtest_filter='Sky.ComposeMatchesTheDoubleReference:Sky.ConstantStartAndArchiveRoundTrip:Sky.FitRecoversAKnownSky:Sky.FitResidualMatchesThePixelError:Sky.BackwardAfterComposeGivesTheBitsOfBackwardAlone'
 # The MLS-MPM solver's substep against its double reference (every material),
 # and the Gaussians that follow the particles.
 step mpm "$build/test_mpm" --gtest_filter='Mpm.FewParticlesMatchTheDoubleReference'
