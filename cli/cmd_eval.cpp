@@ -46,7 +46,8 @@ void cmd_eval(const GlobalOptions& global, EvalArgs a) {
   const std::string model_file = (fs::path(a.model) / "model.ag2gs").string();
   {
     std::vector<std::string> inputs = {a.scene, a.labels, a.vocab, a.clicks};
-    for (const char* f : {"model.ag2gs", "checkpoint.ag2gs", "point_cloud.ply", "metrics.json"})
+    for (const char* f :
+         {"model.ag2gs", "checkpoint.ag2gs", "point_cloud.ply", "point_cloud_objects.ply", "metrics.json"})
       inputs.push_back((fs::path(a.model) / f).string());
     refuse_output_over_inputs(a.out, inputs, "-o");
   }

@@ -73,7 +73,7 @@ void InterruptGuard::exit_after_saving() {
 std::vector<std::string> model_files_in(const std::string& dir) {
   std::vector<std::string> found;
   std::error_code ec;
-  for (const char* name : {"model.ag2gs", "checkpoint.ag2gs", "point_cloud.ply"})
+  for (const char* name : {"model.ag2gs", "checkpoint.ag2gs", "point_cloud.ply", "point_cloud_objects.ply"})
     if (fs::exists(fs::path(dir) / name, ec)) found.push_back(name);
   return found;
 }

@@ -98,10 +98,12 @@ TEST(CliGuards, EvalRefusesAReportOverItsInputs) {
   const std::string scene = sample_scene();
   test::write_bytes(dir.file("m/model.ag2gs"), "the user's model");
   test::write_bytes(dir.file("m/metrics.json"), "{\"final\": 1}");
+  test::write_bytes(dir.file("m/point_cloud_objects.ply"), "the user's Gaussians without the sky");
   const auto before = snapshot(dir.path() / "m");
   const std::string common = "eval " + dir.file("m") + " --scene " + scene + " --labels " + scene + "/label --vocab " +
                              scene + "/vocab.json --clicks " + scene + "/clicks.json -o ";
-  for (const std::string& out : {dir.file("m/model.ag2gs"), dir.file("m/./metrics.json"), dir.file("m/../m/model.ag2gs")}) {
+  for (const std::string& out : {dir.file("m/model.ag2gs"), dir.file("m/./metrics.json"), dir.file("m/../m/model.ag2gs"),
+                                  dir.file("m/point_cloud_objects.ply")}) {
     test::CliResult r = test::run_cli(common + out);
     EXPECT_EQ(r.code, 1) << r.output;
     EXPECT_NE(r.output.find("is the input"), std::string::npos) << r.output;
