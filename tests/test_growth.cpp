@@ -395,6 +395,37 @@ TEST(GrowthDecision, PrunesLowOpacityAndUnseenButNotNewAnchors) {
   EXPECT_EQ(run_scenario(f).r.added, 4);
 }
 
+// Under the budget, a child seen in fewer than 40% of the steps ranks by its
+// mean gradient times the square of its share of that bar: row 7, seen in 3
+// of 10 steps (share 0.75, factor 0.5625), asks at 8x its threshold, above
+// rows 2/3 and 15 (6.7x), but ranks at 4.5x and loses the two places to
+// them; it still beats (42,10,10) at 1.3x when there are three.
+TEST(GrowthDecision, BudgetRanksRarelySeenChildrenBelowWellSeenOnes) {
+  auto run = [](float round_growth) {
+    Scenario s = scenario();
+    s.v_px[2 * 7] = 1.2e-3f / (0.5f * kW);
+    GrowthConfig c;
+    c.min_seen_fraction = 0;
+    c.round_growth = round_growth;
+    c.min_round_anchors = 0;
+    AnchorGrowth growth(runtime(), c);
+    growth.reset(s.model.gaussians());
+    feed(growth, s.v_px, s.radii, 10, kW, kH, s.seen);
+    const GrowthResult r = growth.step(s.model, 5);
+    return std::make_pair(r, s.model);
+  };
+  const auto [two, m2] = run(0.3f);  // ceil(0.3 x 6) = 2 places for 4 voxels
+  EXPECT_EQ(two.added, 2);
+  EXPECT_EQ(two.over_budget, 2);
+  EXPECT_GE(m2.find(1, {3, 2, 2}), 0);
+  EXPECT_GE(m2.find(1, {18, 2, 2}), 0);
+  EXPECT_EQ(m2.find(1, {11, 2, 2}), -1) << "the rarely seen child took a place";
+  const auto [three, m3] = run(0.5f);  // 3 places
+  EXPECT_EQ(three.added, 3);
+  EXPECT_GE(m3.find(1, {11, 2, 2}), 0);
+  EXPECT_EQ(m3.find(2, {42, 10, 10}), -1);
+}
+
 // recycle_opacity: the transparent children of a kept anchor become copies
 // of its most opaque child, the pair exactly as opaque as that child was,
 // with fresh moments; anchors without a worthy donor, anchors grown in the
