@@ -96,13 +96,15 @@ int main(int argc, char** argv) {
   app.add_option("--counts", only, "Gaussian counts to run (default 10000 100000 1000000)");
   std::vector<std::string> size_args;
   app.add_option("--sizes", size_args, "image sizes WxH to run (default 400x300 800x600)");
+  bool by_kernel = false;
+  app.add_flag("--kernels", by_kernel, "after each row, every kernel's median time");
   CLI11_PARSE(app, argc, argv);
   spdlog::set_level(spdlog::level::warn);
 
   Runtime rt(device);
-  rt.set_profiling(true);
-  std::printf("device: %s (%s), vector width %d\n", rt.info().name.c_str(), rt.info().platform.c_str(),
-              rt.vector_width());
+  rt.set_profiling(true, by_kernel);
+  std::printf("device: %s (%s), vector width %d, sort %s\n", rt.info().name.c_str(), rt.info().platform.c_str(),
+              rt.vector_width(), radix_sort_plan_for(rt.info()).describe().c_str());
   std::vector<size_t> counts = quick ? std::vector<size_t>{10000} : std::vector<size_t>{10000, 100000, 1000000};
   if (!only.empty()) counts = only;
   std::vector<std::pair<int, int>> sizes = {{400, 300}, {800, 600}};
@@ -139,9 +141,23 @@ int main(int argc, char** argv) {
       for (auto& x : og.rgb) x = ud(rng);
       for (auto& x : og.alpha) x = ud(rng);
       for (auto& x : og.distortion) x = ud(rng);
+      // The upstream gradients on the device, planar, as a trainer's losses
+      // leave them (Renderer::DeviceOutputGrads): the timed backward is the
+      // device's work, not the host's conversion and upload of 5 planes.
+      std::vector<float> rgb_planar(npix * 3);
+      for (size_t p = 0; p < npix; ++p)
+        for (int c = 0; c < 3; ++c) rgb_planar[c * npix + p] = og.rgb[3 * p + c];
+      DeviceBuffer g_rgb(&rt), g_alpha(&rt), g_dist(&rt);
+      g_rgb.upload(rgb_planar);
+      g_alpha.upload(og.alpha);
+      g_dist.upload(og.distortion);
+      Renderer::DeviceOutputGrads dog;
+      dog.rgb = &g_rgb;
+      dog.alpha = &g_alpha;
+      dog.distortion = &g_dist;
       // Warm-up (kernel builds, buffer growth), then timed repeats.
       r.forward(dg, cam, {});
-      r.backward(og);
+      r.backward(dog);
       rt.take_timings();
       rt.reset_peak();
       std::map<std::string, std::vector<double>> t;
@@ -151,7 +167,7 @@ int main(int argc, char** argv) {
         r.forward(dg, cam, {});
         rt.queue().finish();
         auto t1 = std::chrono::steady_clock::now();
-        r.backward(og);
+        r.backward(dog);
         rt.queue().finish();
         auto t2 = std::chrono::steady_clock::now();
         wall_f.push_back(std::chrono::duration<double, std::milli>(t1 - t0).count());
@@ -190,6 +206,12 @@ int main(int argc, char** argv) {
           n, w, h, M, median(wall_f), median(t["project"]), median(t["sort"]), median(t["bin"]), blend,
           median(wall_fb) - median(wall_f), median(t["blend_bwd"]), median(t["project_bwd"]), median(wall_fb), evals,
           rt.peak_bytes() / double(1 << 20), e.fwd_abs, e.fwd_rel, bwd_err);
+      if (by_kernel) {
+        std::printf("  kernels (median ms per forward + backward):");
+        for (auto& [k, v] : t)
+          if (k.rfind("kernel:", 0) == 0) std::printf(" %s %.3f", k.c_str() + 7, median(v));
+        std::printf("\n");
+      }
       std::fflush(stdout);
     }
   }

@@ -4,8 +4,9 @@
 //   3. emit one intersection per (Gaussian, tile), Gaussians in depth order
 //   4. stable radix sort of the intersections by tile id -> per tile, depth order
 //   5. per-tile [start, end) ranges
-// All integer work: the result is the same whatever the thread count.
-// Defines: SCAN_BLOCK, RADIX_BLOCK (elements per work-item).
+// The sorts (1 and 4) are radix_sort.cl's. All integer work: the result is
+// the same whatever the thread count.
+// Defines: SCAN_BLOCK, SCAN_WG (the GPU scan's work-group, SCAN_BLOCK / SCAN_WG whole).
 
 __kernel void iota(int n, __global uint* out) {  // [n]
   int i = get_global_id(0);
@@ -48,6 +49,52 @@ __kernel void scan_block_sums(int nblocks, __global uint* block_sums) {  // [nbl
   block_sums[nblocks] = acc;
 }
 
+// The same sums for GPUs: a work-group of SCAN_WG per block, loads and
+// stores coalesced through local memory, and one work-group for the block
+// sums (integer sums: the same bits as the two kernels above).
+__kernel __attribute__((reqd_work_group_size(SCAN_WG, 1, 1)))
+void scan_blocks_wg(int n, __global const uint* in, __global uint* out,  // [n]
+                    __global uint* block_sums) {                         // [nblocks + 1]
+  __local uint vals[SCAN_BLOCK];
+  __local uint tmp[SCAN_WG];
+  const int lid = get_local_id(0), b = get_group_id(0);
+  const int begin = b * SCAN_BLOCK;
+  for (int i = lid; i < SCAN_BLOCK; i += SCAN_WG) vals[i] = begin + i < n ? in[begin + i] : 0u;
+  barrier(CLK_LOCAL_MEM_FENCE);
+  const int per = SCAN_BLOCK / SCAN_WG;
+  uint s = 0;
+  for (int j = 0; j < per; ++j) s += vals[lid * per + j];
+  uint total;
+  uint acc = group_exclusive_scan(s, tmp, &total);
+  for (int j = 0; j < per; ++j) {
+    uint v = vals[lid * per + j];
+    vals[lid * per + j] = acc;
+    acc += v;
+  }
+  barrier(CLK_LOCAL_MEM_FENCE);
+  for (int i = lid; i < SCAN_BLOCK; i += SCAN_WG)
+    if (begin + i < n) out[begin + i] = vals[i];
+  if (lid == 0) block_sums[b] = total;
+}
+
+__kernel __attribute__((reqd_work_group_size(SCAN_WG, 1, 1)))
+void scan_block_sums_wg(int nblocks, __global uint* block_sums) {  // [nblocks + 1], total at the end
+  __local uint tmp[SCAN_WG];
+  const int lid = get_local_id(0);
+  const int per = (nblocks + SCAN_WG - 1) / SCAN_WG;
+  const int b = min(nblocks, lid * per), e = min(nblocks, b + per);
+  uint s = 0;
+  for (int i = b; i < e; ++i) s += block_sums[i];
+  uint total;
+  uint acc = group_exclusive_scan(s, tmp, &total);
+  for (int i = b; i < e; ++i) {
+    uint v = block_sums[i];
+    block_sums[i] = acc;
+    acc += v;
+  }
+  if (lid == 0) block_sums[nblocks] = total;
+}
+
 __kernel void scan_add(int n, __global uint* out, __global const uint* block_sums) {
   int i = get_global_id(0);
   if (i < n) out[i] += block_sums[i / SCAN_BLOCK];
@@ -82,63 +129,6 @@ __kernel void emit_isects(int n,
       isect_gid[e] = g;
       ++e;
     }
-}
-
-// ---------------------------------------------------------------- radix sort
-// One LSD pass over 8 bits. Each work-item owns a contiguous block, so the
-// scatter is stable; counts are digit-major: counts[digit * nblocks + block].
-__kernel void radix_hist(int n, int shift, __global const uint* keys,
-                         __global uint* counts, int nblocks) {  // [256 * nblocks]
-  int b = get_global_id(0);
-  if (b >= nblocks) return;
-  uint h[256];
-  for (int d = 0; d < 256; ++d) h[d] = 0;
-  int end = min(n, (b + 1) * RADIX_BLOCK);
-  for (int i = b * RADIX_BLOCK; i < end; ++i) h[(keys[i] >> shift) & 255u]++;
-  for (int d = 0; d < 256; ++d) counts[d * nblocks + b] = h[d];
-}
-
-// One work-group of 256: exclusive scan of counts in digit-major order.
-__kernel __attribute__((reqd_work_group_size(256, 1, 1)))
-void radix_scan(int nblocks, __global uint* counts) {
-  __local uint totals[256];
-  int d = get_local_id(0);
-  uint acc = 0;
-  for (int b = 0; b < nblocks; ++b) {
-    uint v = counts[d * nblocks + b];
-    counts[d * nblocks + b] = acc;
-    acc += v;
-  }
-  totals[d] = acc;
-  barrier(CLK_LOCAL_MEM_FENCE);
-  if (d == 0) {
-    uint run = 0;
-    for (int i = 0; i < 256; ++i) {
-      uint v = totals[i];
-      totals[i] = run;
-      run += v;
-    }
-  }
-  barrier(CLK_LOCAL_MEM_FENCE);
-  uint base = totals[d];
-  for (int b = 0; b < nblocks; ++b) counts[d * nblocks + b] += base;
-}
-
-__kernel void radix_scatter(int n, int shift,
-                            __global const uint* keys_in, __global const uint* vals_in,
-                            __global uint* keys_out, __global uint* vals_out,
-                            __global const uint* counts, int nblocks) {
-  int b = get_global_id(0);
-  if (b >= nblocks) return;
-  uint pos[256];
-  for (int d = 0; d < 256; ++d) pos[d] = counts[d * nblocks + b];
-  int end = min(n, (b + 1) * RADIX_BLOCK);
-  for (int i = b * RADIX_BLOCK; i < end; ++i) {
-    uint k = keys_in[i];
-    uint p = pos[(k >> shift) & 255u]++;
-    keys_out[p] = k;
-    vals_out[p] = vals_in[i];
-  }
 }
 
 // ---------------------------------------------------------------- ranges

@@ -508,3 +508,24 @@ inline float4 group_sum4(float4 v, __local float4* scratch) {
   return scratch[0];
 }
 #endif
+
+// --------------------------------------------------------------- group scan
+// Exclusive prefix sum over the work-group of one uint per work-item
+// (Hillis-Steele in local memory); *total gets the sum of all. Every
+// work-item of the group must call it. tmp: [local size].
+uint group_exclusive_scan(uint v, __local uint* tmp, uint* total) {
+  const uint lid = get_local_id(0), wg = get_local_size(0);
+  tmp[lid] = v;
+  barrier(CLK_LOCAL_MEM_FENCE);
+  for (uint off = 1; off < wg; off <<= 1) {
+    uint a = lid >= off ? tmp[lid - off] : 0u;
+    barrier(CLK_LOCAL_MEM_FENCE);
+    tmp[lid] += a;
+    barrier(CLK_LOCAL_MEM_FENCE);
+  }
+  const uint incl = tmp[lid];
+  *total = tmp[wg - 1];
+  barrier(CLK_LOCAL_MEM_FENCE);  // tmp is free again
+  return incl - v;
+}
+

@@ -146,19 +146,20 @@ TEST(RenderForward, WithoutFeaturesSameImageZeroFeatures) {
   EXPECT_THROW(r.render_backward(og), std::logic_error);
 }
 
-// The radix sort's block (keys per work-item: 4096 on CPUs, 256 on GPUs)
-// sets only its parallelism: a stable sort has one result, so every block
-// gives the same pictures and gradients, bit for bit, a partial last block
-// and a single block included.
-TEST(RenderForward, RadixBlockChangesNoBit) {
+// The sort plan (the CPU block sort at any block size, the GPU work-group
+// sort at any digit width, work-group and tile) sets only the speed: a
+// stable sort has one result, so every plan gives the same pictures and
+// gradients, bit for bit, a partial last block and a single block included.
+// (tests/test_radix_sort.cpp checks the sort itself.)
+TEST(RenderForward, SortPlanChangesNoBit) {
   test::SceneSpec spec;
   spec.n = 12000;
   GaussianSet g = test::random_scene(spec, 23);
   Camera cam = test::look_at_origin(333, 250);
-  auto run = [&](const char* block, RenderOutput* out, std::vector<float>* grad_means) {
-    setenv("AG2GS_RADIX_BLOCK", block, 1);
+  auto run = [&](const char* plan, RenderOutput* out, std::vector<float>* grad_means) {
+    setenv("AG2GS_SORT", plan, 1);
     Renderer r(test::runtime());
-    unsetenv("AG2GS_RADIX_BLOCK");
+    unsetenv("AG2GS_SORT");
     *out = r.render(g, cam, RenderSettings{});
     OutputGrads og;
     og.rgb.assign(out->rgb.size(), 0.f);
@@ -167,20 +168,20 @@ TEST(RenderForward, RadixBlockChangesNoBit) {
   };
   RenderOutput ref, other;
   std::vector<float> ref_grad, grad;
-  run("4096", &ref, &ref_grad);
-  for (const char* block : {"256", "33", "65536"}) {
-    run(block, &other, &grad);
-    EXPECT_TRUE(ref.rgb == other.rgb) << "block " << block;
-    EXPECT_TRUE(ref.alpha == other.alpha) << "block " << block;
-    EXPECT_TRUE(ref.depth == other.depth) << "block " << block;
-    EXPECT_TRUE(ref.n_contrib == other.n_contrib) << "block " << block;
-    EXPECT_TRUE(ref_grad == grad) << "block " << block;
+  run("block:4096", &ref, &ref_grad);
+  for (const char* plan : {"block:256", "block:33", "block:65536", "group", "group:5:64:3", "group:2:32:1:2"}) {
+    run(plan, &other, &grad);
+    EXPECT_TRUE(ref.rgb == other.rgb) << "plan " << plan;
+    EXPECT_TRUE(ref.alpha == other.alpha) << "plan " << plan;
+    EXPECT_TRUE(ref.depth == other.depth) << "plan " << plan;
+    EXPECT_TRUE(ref.n_contrib == other.n_contrib) << "plan " << plan;
+    EXPECT_TRUE(ref_grad == grad) << "plan " << plan;
   }
-  setenv("AG2GS_RADIX_BLOCK", "0", 1);
-  EXPECT_THROW(Renderer{test::runtime()}, std::invalid_argument);
-  setenv("AG2GS_RADIX_BLOCK", "64k", 1);
-  EXPECT_THROW(Renderer{test::runtime()}, std::invalid_argument);
-  unsetenv("AG2GS_RADIX_BLOCK");
+  for (const char* bad : {"block:0", "block:64k", "group:6:256:8"}) {
+    setenv("AG2GS_SORT", bad, 1);
+    EXPECT_THROW(Renderer{test::runtime()}, std::invalid_argument) << bad;
+  }
+  unsetenv("AG2GS_SORT");
 }
 
 }  // namespace

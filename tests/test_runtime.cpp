@@ -51,7 +51,7 @@ TEST(Runtime, BadDeviceEnvironmentVariableIsRejected) {
 TEST(Runtime, DiskCacheIsWrittenReusedAndCorruptEntriesRebuilt) {
   fs::path dir = fresh_dir("cache");
   setenv("AG2GS_CACHE_DIR", dir.c_str(), 1);
-  std::map<std::string, std::string> defs{{"SCAN_BLOCK", "64"}, {"RADIX_BLOCK", "64"}};
+  std::map<std::string, std::string> defs{{"SCAN_BLOCK", "64"}, {"SCAN_WG", "64"}};
   {
     Runtime rt;
     rt.kernel("bin.cl", "iota", defs);
@@ -138,7 +138,7 @@ TEST(Runtime, BuffersGrowAndTimingsAreRecorded) {
   EXPECT_GE(b.capacity(), 100000u);
   EXPECT_GE(rt.peak_bytes(), 100000u);
   std::vector<uint32_t> out;
-  cl::Kernel k = rt.kernel("bin.cl", "iota", {{"SCAN_BLOCK", "64"}, {"RADIX_BLOCK", "64"}});
+  cl::Kernel k = rt.kernel("bin.cl", "iota", {{"SCAN_BLOCK", "64"}, {"SCAN_WG", "64"}});
   k.setArg(0, 1000);
   k.setArg(1, b.get());
   rt.launch("iota", k, cl::NDRange(1000), cl::NDRange(64));

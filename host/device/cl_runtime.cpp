@@ -331,7 +331,8 @@ void Runtime::launch(const std::string& label, cl::Kernel& k, const cl::NDRange&
   cl::Event ev;
   cl_int err = queue_.enqueueNDRangeKernel(k, cl::NullRange, g, local, nullptr, profiling_ ? &ev : nullptr);
   if (err != CL_SUCCESS) throw ClError(err, "enqueueNDRangeKernel(" + label + ")", __FILE__, __LINE__);
-  if (profiling_) pending_events_.emplace_back(label, ev);
+  if (profiling_)
+    pending_events_.push_back({label, by_kernel_ ? k.getInfo<CL_KERNEL_FUNCTION_NAME>() : std::string(), ev});
   if (launch_log_) {
     std::fprintf(launch_log_, "%s vw=%d\n", k.getInfo<CL_KERNEL_FUNCTION_NAME>().c_str(), vector_width_);
     std::fflush(launch_log_);
@@ -340,11 +341,13 @@ void Runtime::launch(const std::string& label, cl::Kernel& k, const cl::NDRange&
 
 std::map<std::string, double> Runtime::take_timings() {
   queue_.finish();
-  for (auto& [label, ev] : pending_events_) {
+  for (auto& [label, kernel, ev] : pending_events_) {
     cl_ulong a = 0, b = 0;
     if (ev.getProfilingInfo(CL_PROFILING_COMMAND_START, &a) == CL_SUCCESS &&
-        ev.getProfilingInfo(CL_PROFILING_COMMAND_END, &b) == CL_SUCCESS)
+        ev.getProfilingInfo(CL_PROFILING_COMMAND_END, &b) == CL_SUCCESS) {
       timings_[label] += (b - a) * 1e-6;
+      if (!kernel.empty()) timings_["kernel:" + kernel] += (b - a) * 1e-6;
+    }
   }
   pending_events_.clear();
   auto out = std::move(timings_);

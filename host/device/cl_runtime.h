@@ -86,8 +86,12 @@ class Runtime {
   void launch(const std::string& label, cl::Kernel& k, const cl::NDRange& global,
               const cl::NDRange& local = cl::NullRange);
 
-  // Per-kernel times in ms, summed since the last reset (profiling events).
-  void set_profiling(bool on) { profiling_ = on; }
+  // Per-label times in ms, summed since the last reset (profiling events).
+  // With by_kernel, every kernel's own time is also kept, as "kernel:<name>".
+  void set_profiling(bool on, bool by_kernel = false) {
+    profiling_ = on;
+    by_kernel_ = on && by_kernel;
+  }
   std::map<std::string, double> take_timings();
 
   // Bytes currently allocated through DeviceBuffer, and the peak.
@@ -103,10 +107,14 @@ class Runtime {
   cl::Context context_;
   cl::CommandQueue queue_;
   int vector_width_ = 1;
-  bool profiling_ = false;
+  bool profiling_ = false, by_kernel_ = false;
   std::map<std::string, cl::Program> programs_;
   std::map<std::string, cl::Kernel> kernels_;  // by file|name|defines
-  std::vector<std::pair<std::string, cl::Event>> pending_events_;
+  struct PendingEvent {
+    std::string label, kernel;  // kernel: set with by_kernel_
+    cl::Event event;
+  };
+  std::vector<PendingEvent> pending_events_;
   std::map<std::string, double> timings_;
   uint64_t allocated_ = 0, peak_ = 0;
   std::mutex mutex_;

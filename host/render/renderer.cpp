@@ -15,22 +15,7 @@ namespace {
 
 constexpr int kTile = TILE;
 constexpr int kScanBlock = 1024;
-
-// Keys each radix-sort work-item counts and scatters, in order. A stable sort
-// has one result, so the block changes no bit, only the parallelism: CPUs
-// want few long blocks (one per core is plenty), GPUs many short ones (4096
-// left 25 work-items to sort 100k Gaussians on an H100, 9.6 of its 10.5 ms
-// forward pass). AG2GS_RADIX_BLOCK overrides (tests compare blocks).
-int radix_block_for(const Runtime& rt) {
-  if (const char* e = std::getenv("AG2GS_RADIX_BLOCK"); e && *e) {
-    char* end = nullptr;
-    long v = std::strtol(e, &end, 10);
-    if (*end != '\0' || v < 1 || v > 65536)
-      throw std::invalid_argument(std::string("AG2GS_RADIX_BLOCK must be an integer in [1, 65536], got '") + e + "'");
-    return static_cast<int>(v);
-  }
-  return rt.info().is_gpu ? 256 : 4096;
-}
+constexpr int kScanWg = 256;  // the GPU scan's work-group (bin.cl)
 
 // GPUs stage Gaussians through local memory in work-groups of a tile's
 // pixels; CPUs walk the lists without barriers. AG2GS_BLEND_STAGING=1 or 0
@@ -79,11 +64,11 @@ void DeviceGaussians::upload(const GaussianSet& set) {
   features.upload(set.features);
 }
 
-Renderer::Renderer(Runtime& rt) : rt_(rt), radix_block_(radix_block_for(rt)) {
+Renderer::Renderer(Runtime& rt) : rt_(rt), sort_(rt) {
   for (DeviceBuffer* b :
        {&cam_buf_,        &records_,     &rects_,          &tile_counts_,   &depth_keys_,     &radii_,
         &order_keys_tmp_, &order_vals_,  &order_vals_tmp_, &counts_sorted_, &offsets_,        &block_sums_,
-        &radix_counts_,   &tile_keys_,   &tile_keys_tmp_,  &isect_vals_,    &isect_vals_tmp_, &isect_gid_,
+        &tile_keys_,   &tile_keys_tmp_,  &isect_vals_,    &isect_vals_tmp_, &isect_gid_,
         &isect_start_,    &ranges_,      &out_rgb_,        &out_feat_,      &out_depth_,      &out_alpha_,
         &out_dist_,       &out_aux_,     &out_last_,       &out_count_,     &g_rgb_,          &g_feat_,
         &g_depth_,        &g_alpha_,     &g_dist_,         &isect_grads_,   &v_means_,        &v_scales_,
@@ -92,28 +77,7 @@ Renderer::Renderer(Runtime& rt) : rt_(rt), radix_block_(radix_block_for(rt)) {
 }
 
 std::map<std::string, std::string> Renderer::bin_defines() const {
-  return {{"SCAN_BLOCK", std::to_string(kScanBlock)}, {"RADIX_BLOCK", std::to_string(radix_block_)}};
-}
-
-void Renderer::sort_pairs(DeviceBuffer*& keys, DeviceBuffer*& vals, DeviceBuffer*& keys_tmp, DeviceBuffer*& vals_tmp,
-                          size_t n, int bits) {
-  if (n == 0) return;
-  const int nblocks = static_cast<int>(ceil_div(n, radix_block_));
-  radix_counts_.reserve(sizeof(cl_uint) * 256 * nblocks);
-  cl::Kernel hist = rt_.kernel("bin.cl", "radix_hist", bin_defines());
-  cl::Kernel scan = rt_.kernel("bin.cl", "radix_scan", bin_defines());
-  cl::Kernel scatter = rt_.kernel("bin.cl", "radix_scatter", bin_defines());
-  const int ni = static_cast<int>(n);
-  for (int shift = 0; shift < bits; shift += 8) {
-    set_kernel_args(hist, ni, shift, *keys, radix_counts_, nblocks);
-    rt_.launch("sort", hist, cl::NDRange(nblocks));
-    set_kernel_args(scan, nblocks, radix_counts_);
-    rt_.launch("sort", scan, cl::NDRange(256), cl::NDRange(256));
-    set_kernel_args(scatter, ni, shift, *keys, *vals, *keys_tmp, *vals_tmp, radix_counts_, nblocks);
-    rt_.launch("sort", scatter, cl::NDRange(nblocks));
-    std::swap(keys, keys_tmp);
-    std::swap(vals, vals_tmp);
-  }
+  return {{"SCAN_BLOCK", std::to_string(kScanBlock)}, {"SCAN_WG", std::to_string(kScanWg)}};
 }
 
 std::vector<float> pack_camera(const Camera& cam, const RenderSettings& settings) {
@@ -218,18 +182,27 @@ void Renderer::forward(const DeviceGaussians& g, const Camera& cam, const Render
     set_kernel_args(iota, ni, order_vals_);
     rt_.launch("sort", iota, cl::NDRange(n), cl::NDRange(64));
     DeviceBuffer *keys = &depth_keys_, *vals = &order_vals_, *ktmp = &order_keys_tmp_, *vtmp = &order_vals_tmp_;
-    sort_pairs(keys, vals, ktmp, vtmp, n, 32);
+    sort_.sort(keys, vals, ktmp, vtmp, n, 32);
     sorted_order_ = vals;
 
     cl::Kernel gather = rt_.kernel("bin.cl", "gather_counts", bin_defines());
     set_kernel_args(gather, ni, *sorted_order_, tile_counts_, counts_sorted_);
     rt_.launch("bin", gather, cl::NDRange(n), cl::NDRange(64));
-    cl::Kernel sb = rt_.kernel("bin.cl", "scan_blocks", bin_defines());
+    // GPUs scan with work-groups (the work-group sort's devices), CPUs with
+    // one work-item per block: the same integer sums.
+    const bool wg_scan = sort_.plan().kind == RadixSortPlan::Kind::Group;
+    cl::Kernel sb = rt_.kernel("bin.cl", wg_scan ? "scan_blocks_wg" : "scan_blocks", bin_defines());
     set_kernel_args(sb, ni, counts_sorted_, offsets_, block_sums_);
-    rt_.launch("bin", sb, cl::NDRange(nscan));
-    cl::Kernel ss = rt_.kernel("bin.cl", "scan_block_sums", bin_defines());
+    if (wg_scan)
+      rt_.launch("bin", sb, cl::NDRange(static_cast<size_t>(nscan) * kScanWg), cl::NDRange(kScanWg));
+    else
+      rt_.launch("bin", sb, cl::NDRange(nscan));
+    cl::Kernel ss = rt_.kernel("bin.cl", wg_scan ? "scan_block_sums_wg" : "scan_block_sums", bin_defines());
     set_kernel_args(ss, nscan, block_sums_);
-    rt_.launch("bin", ss, cl::NDRange(1), cl::NDRange(1));
+    if (wg_scan)
+      rt_.launch("bin", ss, cl::NDRange(kScanWg), cl::NDRange(kScanWg));
+    else
+      rt_.launch("bin", ss, cl::NDRange(1), cl::NDRange(1));
     cl::Kernel sa = rt_.kernel("bin.cl", "scan_add", bin_defines());
     set_kernel_args(sa, ni, offsets_, block_sums_);
     rt_.launch("bin", sa, cl::NDRange(n), cl::NDRange(64));
@@ -261,7 +234,7 @@ void Renderer::forward(const DeviceGaussians& g, const Camera& cam, const Render
     int bits = 1;
     while ((1 << bits) < ntiles) ++bits;
     DeviceBuffer *keys = &tile_keys_, *vals = &isect_vals_, *ktmp = &tile_keys_tmp_, *vtmp = &isect_vals_tmp_;
-    sort_pairs(keys, vals, ktmp, vtmp, M, bits);
+    sort_.sort(keys, vals, ktmp, vtmp, M, bits);
     sorted_tile_keys_ = keys;
     sorted_isect_vals_ = vals;
     cl::Kernel tr = rt_.kernel("bin.cl", "tile_ranges", bin_defines());

@@ -8,6 +8,7 @@
 
 #include "host/core/gaussians.h"
 #include "host/device/cl_runtime.h"
+#include "host/render/radix_sort.h"
 
 namespace ag2gs {
 
@@ -125,9 +126,7 @@ class Renderer {
   Runtime& runtime() { return rt_; }
 
  private:
-  void sort_pairs(DeviceBuffer*& keys, DeviceBuffer*& vals, DeviceBuffer*& keys_tmp, DeviceBuffer*& vals_tmp, size_t n,
-                  int bits);
-  // SCAN_BLOCK and RADIX_BLOCK for kernels/bin.cl.
+  // SCAN_BLOCK for kernels/bin.cl.
   std::map<std::string, std::string> bin_defines() const;
   void upload_plane(DeviceBuffer& buf, const std::vector<float>& host_hwc, int channels, const char* what);
   // Which upstream gradients were given (the others are zero buffers): the
@@ -140,7 +139,7 @@ class Renderer {
                      const DeviceBuffer& g_alpha, const DeviceBuffer& g_dist, const GradsPresent& present);
 
   Runtime& rt_;
-  int radix_block_;  // keys per radix-sort work-item (radix_block_for in renderer.cpp)
+  RadixSort sort_;  // depth order and tile order (the device's plan)
   std::unique_ptr<DeviceGaussians> owned_;  // for render()
   const DeviceGaussians* gaussians_ = nullptr;
   Camera cam_;
@@ -153,7 +152,6 @@ class Renderer {
 
   DeviceBuffer cam_buf_, records_, rects_, tile_counts_, depth_keys_, radii_;
   DeviceBuffer order_keys_tmp_, order_vals_, order_vals_tmp_, counts_sorted_, offsets_, block_sums_;
-  DeviceBuffer radix_counts_;
   DeviceBuffer tile_keys_, tile_keys_tmp_, isect_vals_, isect_vals_tmp_, isect_gid_, isect_start_, ranges_;
   DeviceBuffer out_rgb_, out_feat_, out_depth_, out_alpha_, out_dist_, out_aux_, out_last_, out_count_;
   DeviceBuffer g_rgb_, g_feat_, g_depth_, g_alpha_, g_dist_, isect_grads_;

@@ -7,7 +7,8 @@
 #   tests/oclgrind/run_oclgrind.sh gpu|cpu|selfcheck BUILD_DIR
 #
 # gpu: the GPU layout (one pixel per work-item, 256-wide work-groups,
-#      records staged through local memory), as on a real GPU.
+#      records staged through local memory, the work-group radix sort), as
+#      on a real GPU.
 # cpu: the CPU layout (16-pixel vectors, one work-item per tile, no staging).
 # selfcheck: plants an out-of-bounds access and a local-memory race in copies
 #      of our kernels and passes only if both are reported: the check can fail.
@@ -88,8 +89,8 @@ invalid accesses, $(grep -ci "data race" "$work/blend_bwd_without_barrier.log") 
 fi
 
 case "$layout" in
-  gpu) export AG2GS_VECTOR_WIDTH=1 AG2GS_BLEND_STAGING=1 ;;
-  cpu) export AG2GS_VECTOR_WIDTH=16 AG2GS_BLEND_STAGING=0 ;;
+  gpu) export AG2GS_VECTOR_WIDTH=1 AG2GS_BLEND_STAGING=1 AG2GS_SORT=group ;;
+  cpu) export AG2GS_VECTOR_WIDTH=16 AG2GS_BLEND_STAGING=0 AG2GS_SORT=block ;;
   *) echo "unknown layout '$layout' (gpu, cpu or selfcheck)" >&2; exit 1 ;;
 esac
 export AG2GS_SOURCE_DIR="$src" AG2GS_BINARY="$build/ag2gs" AG2GS_FILL_SENTINEL=1
@@ -104,6 +105,17 @@ step render_forward "$build/test_render_forward" \
   --gtest_filter='RenderForward.OnePixel:RenderForward.OddSize17x9:RenderForward.Background:RenderForward.LowerActiveShDegree'
 step render_backward "$build/test_render_backward" \
   --gtest_filter='RenderBackward.OddSize:RenderBackward.BackgroundAndActiveDegree:RenderBackward.CrowdedTileAndEmptyTiles'
+# The radix sorts (the CPU block sort and the GPU work-group sort, every
+# digit width and work-group shape) against std::stable_sort, once; and
+# renders with the other layout's sort and scans (AG2GS_SORT picks both).
+if [ "$layout" = gpu ]; then
+  step radix_sort "$build/test_radix_sort" --gtest_filter='RadixSort.EveryPlanGivesTheSameOrder'
+  other_sort=block
+else
+  other_sort=group
+fi
+AG2GS_SORT=$other_sort step render_${other_sort}_sort "$build/test_render_forward" \
+  --gtest_filter='RenderForward.OnePixel:RenderForward.OddSize17x9:RenderForward.Background'
 # Culling, clamps, NaN and infinite parameters, empty scenes, bad input.
 step hard_cases "$build/test_render_hard_cases" --gtest_filter='-HardCases.DeepStackSaturatesTransmittance'
 # Losses, optimiser and the graph-stage kernels, each against its reference.
