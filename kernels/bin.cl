@@ -80,19 +80,8 @@ void scan_blocks_wg(int n, __global const uint* in, __global uint* out,  // [n]
 __kernel __attribute__((reqd_work_group_size(SCAN_WG, 1, 1)))
 void scan_block_sums_wg(int nblocks, __global uint* block_sums) {  // [nblocks + 1], total at the end
   __local uint tmp[SCAN_WG];
-  const int lid = get_local_id(0);
-  const int per = (nblocks + SCAN_WG - 1) / SCAN_WG;
-  const int b = min(nblocks, lid * per), e = min(nblocks, b + per);
-  uint s = 0;
-  for (int i = b; i < e; ++i) s += block_sums[i];
-  uint total;
-  uint acc = group_exclusive_scan(s, tmp, &total);
-  for (int i = b; i < e; ++i) {
-    uint v = block_sums[i];
-    block_sums[i] = acc;
-    acc += v;
-  }
-  if (lid == 0) block_sums[nblocks] = total;
+  const uint total = group_scan_in_place(block_sums, (uint)nblocks, tmp);
+  if (get_local_id(0) == 0) block_sums[nblocks] = total;
 }
 
 __kernel void scan_add(int n, __global uint* out, __global const uint* block_sums) {

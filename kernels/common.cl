@@ -529,3 +529,22 @@ uint group_exclusive_scan(uint v, __local uint* tmp, uint* total) {
   return incl - v;
 }
 
+// Exclusive prefix sum of a[0, n) in place by one work-group: each
+// work-item sums a contiguous run, the runs' sums are scanned, then each
+// run is rewritten. Returns the total to every work-item. tmp: [local size].
+uint group_scan_in_place(__global uint* a, uint n, __local uint* tmp) {
+  const uint wg = get_local_size(0);
+  const uint per = (n + wg - 1) / wg;
+  const uint b = min(n, (uint)get_local_id(0) * per), e = min(n, b + per);
+  uint s = 0;
+  for (uint i = b; i < e; ++i) s += a[i];
+  uint total;
+  uint acc = group_exclusive_scan(s, tmp, &total);
+  for (uint i = b; i < e; ++i) {
+    const uint v = a[i];
+    a[i] = acc;
+    acc += v;
+  }
+  return total;
+}
+

@@ -66,19 +66,7 @@ void rs_count(uint n, int shift, uint tiles_per_group,
 __kernel __attribute__((reqd_work_group_size(RS_WG, 1, 1)))
 void rs_scan(uint groups, __global uint* counts) {  // [BINS * groups]
   __local uint tmp[RS_WG];
-  const uint lid = get_local_id(0);
-  const uint total = BINS * groups;
-  const uint per = (total + RS_WG - 1) / RS_WG;
-  const uint b = min(total, lid * per), e = min(total, b + per);
-  uint s = 0;
-  for (uint i = b; i < e; ++i) s += counts[i];
-  uint all;
-  uint acc = group_exclusive_scan(s, tmp, &all);
-  for (uint i = b; i < e; ++i) {
-    uint v = counts[i];
-    counts[i] = acc;
-    acc += v;
-  }
+  group_scan_in_place(counts, BINS * groups, tmp);
 }
 
 __kernel __attribute__((reqd_work_group_size(RS_WG, 1, 1)))
