@@ -50,6 +50,7 @@ void cmd_eval(const GlobalOptions& global, EvalArgs a) {
          {"model.ag2gs", "checkpoint.ag2gs", "point_cloud.ply", "point_cloud_objects.ply", "metrics.json"})
       inputs.push_back((fs::path(a.model) / f).string());
     refuse_output_over_inputs(a.out, inputs, "-o");
+    refuse_output_in_inputs(a.out, a.scene, {a.model}, "-o");
   }
   if (!fs::exists(model_file))
     throw std::runtime_error(a.model + ": no model.ag2gs; give a model folder written by `ag2gs train`");

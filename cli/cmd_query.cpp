@@ -15,6 +15,7 @@
 #include <string>
 
 #include "cli/commands.h"
+#include "cli/run_guard.h"
 #include "host/device/cl_runtime.h"
 #include "host/io/atomic_file.h"
 #include "host/io/model_io.h"
@@ -235,6 +236,9 @@ TrainedModel load_trained_model(const std::string& model_dir, bool with_language
   t.sh_degree = std::min(train.value("active_sh_degree", t.model.config().sh_degree), t.model.config().sh_degree);
   t.resolution = train.value("resolution", 1);
   t.eval_split = train.value("eval_split", true);
+  // Stage 3's cluster ids, checked whenever present (remove copies them).
+  if (t.archive.meta.contains("clusters") && t.archive.has("clusters/anchor_cluster"))
+    t.clustering = clustering_from_archive(t.archive, t.model.size());
   if (with_language) {
     if (!t.archive.meta.contains("clusters") || !t.archive.meta.contains("language"))
       throw std::runtime_error(t.file +
@@ -267,6 +271,7 @@ void cmd_query(const GlobalOptions& global, QueryArgs a) {
   so.eval = true;  // test = every 8th view in name order, train = the rest
   so.sparse = a.sparse;
   std::unique_ptr<Scene> scene = Scene::open(a.scene, so);
+  refuse_output_in_inputs(a.out, a.scene, {a.model}, "-o");
   int click_view = -1;
   if (by_click) click_view = scene->find_view(a.request.view);
   std::vector<int> views = pick_scene_views(*scene, a.views);

@@ -17,6 +17,7 @@
 
 #include "cli/commands.h"
 #include "cli/render_colours.h"
+#include "cli/run_guard.h"
 #include "host/device/cl_runtime.h"
 #include "host/io/colmap_reader.h"
 #include "host/io/image_io.h"
@@ -31,6 +32,7 @@
 #include "stages/clustering.h"
 #include "stages/instance_map.h"
 #include "stages/train_common.h"
+#include "host/io/json_input.h"
 
 namespace fs = std::filesystem;
 
@@ -110,8 +112,7 @@ std::pair<int, std::string> render_resolution(int given, const std::string& mode
   }
   if (!model_dir.empty() && fs::exists(metrics)) {
     try {
-      std::ifstream in(metrics);
-      const nlohmann::json j = nlohmann::json::parse(in);
+      const nlohmann::json j = read_json_file(metrics.string());
       if (j.contains("resolution")) {
         const int r = j.at("resolution").get<int>();
         return {r, "the model was trained at -r " + std::to_string(r) + " (" + metrics.string() + "); -r overrides"};
@@ -196,6 +197,7 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
                              ": no such scene directory; --scene names the folder holding the COLMAP model "
                              "(sparse/0/ or sparse/)");
   const std::string sparse = find_colmap_model(a.scene, a.sparse);
+  refuse_output_in_inputs(a.out, a.scene, {a.model}, "-o");
   ColmapModel model = read_colmap_model(sparse);
   std::vector<Camera> cams = pick_views(model.cameras_for_images, a.views);
   if (cams.empty()) throw std::runtime_error(sparse + " has no views to render for --views '" + a.views + "'");

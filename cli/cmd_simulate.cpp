@@ -60,6 +60,7 @@ struct SimulateArgs {
   bool move_hidden = true;  // kept anchors the object hid from every photo move with it
   int frames = 30;
   double fps = 25;
+  double max_substeps = 2e6;  // refused above: a stiffness whose stable substep is tiny runs for days
   double dt = 0;
   int grid = 64;
   std::string gravity, force, force_frames = "0:3", up;
@@ -210,6 +211,20 @@ void cmd_simulate(const GlobalOptions& global, SimulateArgs a) {
                    : std::string("the rest of the scene still"),
       a.grid, sim.frame().up(0), sim.frame().up(1), sim.frame().up(2), sim.frame().ground_world,
       sim.describe()["max_stable_dt_at_rest"].get<double>());
+
+  // The substeps the run needs at least (the stable substep only shrinks as
+  // things move): refuse up front what would run for hours or days.
+  {
+    const double dt_rest = sim.describe()["max_stable_dt_at_rest"].get<double>();
+    const double step = sim.dt() > 0 ? sim.dt() : dt_rest;
+    const double least = a.frames / a.fps / step;
+    if (!(least <= a.max_substeps))
+      throw std::invalid_argument(fmt::format(
+          "simulate: {} frames at {} fps need at least {:.3g} substeps of {:.3g} s (the stable substep of --E {:g} "
+          "on a grid of {}); more than --max-substeps {:g}: lower --E, simulate fewer --frames, use a coarser "
+          "--grid, or raise --max-substeps",
+          a.frames, a.fps, least, step, a.E, a.grid, a.max_substeps));
+  }
 
   TrainConfig tc;
   if (tm.archive.meta.contains("train") && tm.archive.meta["train"].contains("config")) {
@@ -364,6 +379,9 @@ void register_simulate(CLI::App& app, GlobalOptions& global) {
   r->add_option("--frames", a->frames, "Frames to simulate (default 30; frame 0, the start, is written too)")
       ->check(CLI::Range(1, 100000));
   r->add_option("--fps", a->fps, "Frames per second of simulated time (default 25)")->check(positive_number());
+  r->add_option("--max-substeps", a->max_substeps,
+                "Refuse a run that needs more substeps than this (default 2e6; the cup's defaults take ~18k)")
+      ->check(positive_number());
   r->add_option("--dt", a->dt,
                 "Substep in s (default: the largest stable one at the current speed; a value above the stable "
                 "substep is refused)")

@@ -13,6 +13,7 @@
 #include "cli/commands.h"
 #include "cli/run_guard.h"
 #include "synth/synth_scene.h"
+#include "host/io/json_input.h"
 
 namespace fs = std::filesystem;
 
@@ -32,8 +33,7 @@ void cmd_synth(const SynthArgs& a) {
   double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 
   fs::path root(a.out);
-  std::ifstream f(root / "synth.json");
-  nlohmann::json s = nlohmann::json::parse(f);
+  const nlohmann::json s = read_json_file((root / "synth.json").string());
   std::printf("%s: synthetic scene, seed %llu%s, %.1f s\n", a.out.c_str(),
               static_cast<unsigned long long>(a.options.seed), a.options.hard ? " (hard)" : "", seconds);
   std::printf("  objects: %zu\n", s["objects"].size());

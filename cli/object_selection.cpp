@@ -8,6 +8,7 @@
 #include <system_error>
 
 #include "cli/run_guard.h"
+#include "host/io/json_input.h"
 
 namespace fs = std::filesystem;
 
@@ -62,14 +63,9 @@ void StagedFolder::commit() {
 }
 
 std::vector<int32_t> read_selection_file(const std::string& path, size_t anchors) {
-  std::ifstream f(path);
-  if (!f) throw std::runtime_error(path + ": cannot be read (give the selection.json that `ag2gs query` wrote)");
-  nlohmann::json j;
-  try {
-    j = nlohmann::json::parse(f);
-  } catch (const nlohmann::json::exception& e) {
-    throw std::runtime_error(path + ": not valid JSON (" + e.what() + ")");
-  }
+  if (!std::ifstream(path))
+    throw std::runtime_error(path + ": cannot be read (give the selection.json that `ag2gs query` wrote)");
+  const nlohmann::json j = read_json_file(path);
   if (!j.contains("anchors") || !j["anchors"].is_array())
     throw std::runtime_error(path + ": no \"anchors\" list; give the selection.json that `ag2gs query` wrote");
   std::vector<int32_t> out;

@@ -3,6 +3,7 @@
 #include <spdlog/spdlog.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
@@ -35,7 +36,8 @@ extern "C" void on_terminate(int sig) {
 fs::path resolved(const std::string& p) {
   std::error_code ec;
   fs::path r = fs::weakly_canonical(fs::absolute(p), ec);
-  return ec ? fs::absolute(p).lexically_normal() : r;
+  if (ec) r = fs::absolute(p).lexically_normal();
+  return r.has_filename() ? r : r.parent_path();  // "a/b/" is "a/b"
 }
 
 }  // namespace
@@ -103,6 +105,23 @@ void refuse_output_over_inputs(const std::string& out, const std::vector<std::st
       throw std::runtime_error(flag + " " + out + " is the input " + in +
                                "; writing there would destroy it. Nothing was changed: choose another " + flag);
   }
+}
+
+void refuse_output_in_inputs(const std::string& out, const std::string& scene,
+                             const std::vector<std::string>& input_dirs, const std::string& flag) {
+  const fs::path o = resolved(out);
+  if (!scene.empty()) {
+    const fs::path s = resolved(scene);
+    const auto [end_s, end_o] = std::mismatch(s.begin(), s.end(), o.begin(), o.end());
+    if (end_s == s.end())
+      throw std::runtime_error(flag + " " + out + " lies inside the scene folder " + scene +
+                               "; writing there could replace its images, masks or poses. Nothing was changed: "
+                               "choose a folder outside the scene");
+  }
+  for (const std::string& d : input_dirs)
+    if (!d.empty() && o == resolved(d))
+      throw std::runtime_error(flag + " " + out + " is the input folder " + d +
+                               "; nothing was changed: choose another " + flag);
 }
 
 }  // namespace ag2gs::cli

@@ -55,5 +55,11 @@ void refuse_nonempty_dir(const std::string& dir, bool force, const std::string& 
 // the symbolic links of the parts that exist.
 void refuse_output_over_inputs(const std::string& out, const std::vector<std::string>& inputs,
                                const std::string& flag);
+// Refuses an output (folder or file) that lies inside the scene folder, a
+// dataset whose images, masks and poses it could replace, or that is one of
+// the input folders (a model folder: writing beside its files is fine,
+// writing as it is not). Empty entries are skipped.
+void refuse_output_in_inputs(const std::string& out, const std::string& scene,
+                             const std::vector<std::string>& input_dirs, const std::string& flag);
 
 }  // namespace ag2gs::cli

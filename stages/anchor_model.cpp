@@ -466,6 +466,20 @@ AnchorModel AnchorModel::from_archive(const ModelArchive& archive) {
   model.quat_ = archive.get<float>("anchors/quat", {A, K, 4});
   model.opacity_logit_ = archive.get<float>("anchors/opacity_logit", {A, K});
   model.sh_ = archive.get<float>("anchors/sh", {A, K, kAnchorShCoeffs, 3});
+  // Every parameter finite: a NaN or an infinity would otherwise pass through
+  // queries, removal, training and export without a word.
+  for (const auto& [name, values] :
+       {std::pair<const char*, const std::vector<float>*>{"anchors/feature", &model.feature_},
+        {"anchors/offset", &model.offset_},
+        {"anchors/scale_logit", &model.scale_logit_},
+        {"anchors/quat", &model.quat_},
+        {"anchors/opacity_logit", &model.opacity_logit_},
+        {"anchors/sh", &model.sh_}})
+    for (size_t i = 0; i < values->size(); ++i)
+      if (!std::isfinite((*values)[i]))
+        fail_archive(archive, std::string("array '") + name + "': element " + std::to_string(i) + " is " +
+                                  (std::isnan((*values)[i]) ? "NaN" : "infinite") +
+                                  "; the model is damaged: train it again, or resume from an earlier checkpoint");
 
   // Geometry: layers and cells in range, each voxel once, pos and voxel as the grid says.
   for (int64_t a = 0; a < A; ++a) {

@@ -23,6 +23,7 @@
 
 #include "host/core/gaussians.h"
 #include "host/io/colmap_reader.h"
+#include "host/io/json_input.h"
 #include "host/io/ply_io.h"
 #include "io_test_util.h"
 
@@ -676,5 +677,35 @@ TEST(Colmap, TextIntegersMustBePlainDigits) {
     expect_error_with<std::runtime_error>(
         [&] { read_colmap_model(dir.path().string()); },
         {dir.file("cameras.txt") + ":1", std::string("'") + bad_id + "'", "non-negative integer"});
+  }
+}
+
+// JSON from outside the program: nesting is measured outside strings and
+// refused past 64 levels before the parser runs (a model header nested
+// 200,000 deep crashed `info` and `query`), numbers past double's range and
+// folders in place of files give one message naming the source.
+TEST(JsonInput, DepthLimitAndClearErrors) {
+  EXPECT_EQ(json_nesting_depth(R"({"a": [1, {"b": "[[[[{{{{"}]})"), 3);
+  EXPECT_EQ(json_nesting_depth(R"("\"[[[")"), 0);
+  EXPECT_EQ(parse_json_input(std::string(64, '[') + std::string(64, ']'), "x").dump().size(), 128u);
+  const std::string deep = std::string(200000, '[') + std::string(200000, ']');
+  EXPECT_EQ(json_nesting_depth(deep), kJsonMaxDepth + 1);  // stops counting early
+  for (const auto& [text, message] : std::vector<std::pair<std::string, std::string>>{
+           {deep, "model.ag2gs: JSON nested deeper than 64 levels"},
+           {std::string(65, '{'), "nested deeper"},
+           {R"({"a": 1e999})", "model.ag2gs: not valid JSON"},
+           {"{", "model.ag2gs: not valid JSON"}}) {
+    try {
+      parse_json_input(text, "model.ag2gs");
+      ADD_FAILURE() << text.substr(0, 40) << " was accepted";
+    } catch (const std::runtime_error& e) {
+      EXPECT_NE(std::string(e.what()).find(message), std::string::npos) << e.what();
+    }
+  }
+  try {
+    read_json_file(testing::TempDir());
+    ADD_FAILURE() << "a folder was read as JSON";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("is a folder"), std::string::npos) << e.what();
   }
 }

@@ -371,5 +371,76 @@ TEST(Remove, BadInputIsRefusedBeforeAnythingIsWritten) {
   EXPECT_TRUE(fs::exists(out / "keep.txt"));
 }
 
+// Hostile files (issue 42's campaign): each used to crash or pass silently.
+// A selection nested 100,000 levels deep (a stack overflow in remove and
+// simulate), a model whose cluster id is out of range (a heap overrun in
+// remove --click, 3 runs in 8) or whose parameters hold a NaN (copied into
+// every output), and query -o into the scene (it overwrote the masks).
+TEST(Remove, HostileFilesAreRefusedWithoutACrash) {
+  const Fixture& f = fixture();
+  const fs::path out = fresh("hostile");
+  const fs::path deep = f.root / "deep_sel.json";
+  {
+    std::ofstream o(deep);
+    o << "{\"anchors\": " << std::string(100000, '[') << std::string(100000, ']') << "}";
+  }
+  auto r = test::run_cli(remove_cmd(out.string(), "--selection " + deep.string()));
+  EXPECT_EQ(r.code, 1) << r.output;
+  EXPECT_NE(r.output.find("nested deeper than 64"), std::string::npos) << r.output;
+
+  const ModelArchive good = read_model_archive((f.model / "model.ag2gs").string());
+  const size_t anchors = good.get<float>("anchors/pos").size() / 3;
+  auto write_model = [&](const std::string& name, const ModelArchive& a) {
+    const fs::path dir = f.root / name;
+    fs::remove_all(dir);
+    fs::create_directories(dir);
+    for (const char* file : {"point_cloud.ply", "metrics.json"})
+      if (fs::exists(f.model / file)) fs::copy_file(f.model / file, dir / file);
+    write_model_archive((dir / "model.ag2gs").string(), a);
+    return dir;
+  };
+  ModelArchive bad_cluster = good;
+  std::vector<int32_t> ids(anchors, 0);
+  ids[0] = 999;
+  bad_cluster.put("clusters/anchor_cluster", ids, {static_cast<int64_t>(anchors)});
+  bad_cluster.put("clusters/size", std::vector<int32_t>{static_cast<int32_t>(anchors)}, {1});
+  bad_cluster.meta["clusters"] = {{"components", 1}};
+  ModelArchive nan_model = good;
+  std::vector<float> offsets = good.get<float>("anchors/offset");
+  offsets[7] = std::nanf("");
+  nan_model.put("anchors/offset", offsets, good.tensor("anchors/offset").shape);
+  const std::vector<std::pair<ModelArchive*, std::string>> models = {
+      {&bad_cluster, "clusters/anchor_cluster[0] = 999 is outside"},
+      {&nan_model, "array 'anchors/offset': element 7 is NaN"}};
+  for (const auto& [archive, message] : models) {
+    const fs::path dir = write_model("hostile_model", *archive);
+    for (const std::string& cmd :
+         {"remove " + dir.string() + " --scene " + f.scene.string() + " -o " + out.string() +
+              " --view view_001 --click 32,30 --quiet",
+          "query " + dir.string() + " --scene " + f.scene.string() + " -o " + out.string() +
+              " --view view_001 --click 32,30 --quiet",
+          "info " + dir.string()}) {
+      r = test::run_cli(cmd);
+      EXPECT_EQ(r.code, 1) << cmd << "\n" << r.output;
+      EXPECT_NE(r.output.find(message), std::string::npos) << cmd << "\n" << r.output;
+      EXPECT_FALSE(fs::exists(out)) << cmd;
+    }
+  }
+
+  // query -o into the scene (or the scene itself) is refused; the scene's
+  // files (masks/ among them) keep their bytes.
+  std::map<std::string, std::string> scene_files;
+  for (const auto& e : fs::recursive_directory_iterator(f.scene))
+    if (e.is_regular_file()) scene_files[e.path().string()] = read_file(e.path());
+  for (const fs::path& o : {f.scene, f.scene / "sel"}) {
+    r = test::run_cli("query " + f.model.string() + " --scene " + f.scene.string() + " -o " + o.string() +
+                      " --view view_001 --click 32,30 --views all --quiet");
+    EXPECT_EQ(r.code, 1) << r.output;
+    EXPECT_NE(r.output.find("lies inside the scene folder"), std::string::npos) << r.output;
+  }
+  EXPECT_FALSE(fs::exists(f.scene / "sel"));
+  for (const auto& [path, bytes] : scene_files) EXPECT_EQ(read_file(path), bytes) << path;
+}
+
 }  // namespace
 }  // namespace ag2gs

@@ -5,6 +5,7 @@
 #include <gtest/gtest.h>
 #include <unistd.h>
 
+#include <chrono>
 #include <cmath>
 #include <cstdlib>
 #include <filesystem>
@@ -263,6 +264,16 @@ TEST(Simulate, BadInputIsRefusedBeforeAnythingIsWritten) {
                     " -o " + out.string() + " --quiet");
   EXPECT_NE(r.code, 0);
   EXPECT_NE(r.output.find("nothing to simulate"), std::string::npos) << r.output;
+  EXPECT_FALSE(fs::exists(out));
+  // A stiffness whose stable substep is ~1e-8 s ran for hours without a
+  // word (issue 42): it is refused up front with the estimate.
+  const auto t0 = std::chrono::steady_clock::now();
+  r = test::run_cli("simulate " + f.model.string() + " --scene " + f.scene.string() + " --selection " +
+                    f.selection.string() + " -o " + out.string() + " --grid 16 --E 1e15 --quiet");
+  EXPECT_EQ(r.code, 1) << r.output;
+  EXPECT_NE(r.output.find("--max-substeps"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("lower --E"), std::string::npos) << r.output;
+  EXPECT_LT(std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count(), 60.0);
   EXPECT_FALSE(fs::exists(out));
 }
 

@@ -15,6 +15,7 @@
 #include "cli/commands.h"
 #include "cli/run_guard.h"
 #include "cli/viewer/view_session.h"
+#include "host/io/json_input.h"
 
 // Last: httplib.h pulls in <resolv.h>, whose `_res` macro breaks Eigen's
 // headers (a parameter of that name) when they come after it.
@@ -109,9 +110,9 @@ std::string json_string(const nlohmann::json& j, const char* key) {
 nlohmann::json parse_body(const httplib::Request& req) {
   nlohmann::json j;
   try {
-    j = req.body.empty() ? nlohmann::json::object() : nlohmann::json::parse(req.body);
-  } catch (const nlohmann::json::exception& e) {
-    throw std::invalid_argument(std::string("the request body is not JSON: ") + e.what());
+    j = req.body.empty() ? nlohmann::json::object() : parse_json_input(req.body, "the request body");
+  } catch (const std::runtime_error& e) {
+    throw std::invalid_argument(e.what());
   }
   if (!j.is_object()) throw std::invalid_argument("the request body must be a JSON object");
   return j;

@@ -11,6 +11,7 @@
 #include <stdexcept>
 
 #include "host/io/atomic_file.h"
+#include "host/io/json_input.h"
 
 namespace ag2gs {
 namespace {
@@ -283,7 +284,7 @@ nlohmann::json read_model_meta(const std::string& path) {
   uint64_t size = 0, header_len = 0;
   const std::string text = read_header_text(path, in, &size, &header_len);
   try {
-    return nlohmann::json::parse(text).at("meta");
+    return parse_json_input(text, path).at("meta");
   } catch (const std::exception& e) {
     fail(path, std::string("corrupt header: ") + e.what());
   }
@@ -300,7 +301,7 @@ ModelArchive read_model_archive(const std::string& path) {
   archive.source = path;
   nlohmann::json header;
   try {
-    header = nlohmann::json::parse(text);
+    header = parse_json_input(text, path);
     archive.meta = header.at("meta");
     const nlohmann::json& arrays = header.at("arrays");
     if (!arrays.is_array()) throw std::runtime_error("'arrays' is not a list");

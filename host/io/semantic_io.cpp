@@ -1,4 +1,5 @@
 #include "host/io/semantic_io.h"
+#include "host/io/json_input.h"
 
 #include <algorithm>
 #include <cmath>
@@ -19,15 +20,7 @@ using nlohmann::json;
 }
 
 json parse_file(const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) fail(path, "cannot open");
-  std::stringstream ss;
-  ss << in.rdbuf();
-  try {
-    return json::parse(ss.str());
-  } catch (const json::parse_error& e) {
-    fail(path, std::string("is not valid JSON (") + e.what() + ")");
-  }
+  return read_json_file(path);
 }
 
 double finite_number(const json& v, const std::string& path, const std::string& what) {
