@@ -53,7 +53,7 @@ std::array<float, 3> parse_rgb(const std::string& s) {
   std::string item;
   int i = 0;
   while (std::getline(ss, item, ',')) {
-    if (i >= 3) break;
+    if (i >= 3) throw std::invalid_argument("--bg '" + s + "': more than three numbers; expected R,G,B in [0,1], e.g. 1,1,1");
     try {
       size_t used = 0;
       v[i] = std::stof(item, &used);
@@ -62,6 +62,8 @@ std::array<float, 3> parse_rgb(const std::string& s) {
       throw std::invalid_argument("--bg '" + s + "': '" + item +
                                   "' is not a number; expected R,G,B in [0,1], e.g. 1,1,1");
     }
+    if (!(v[i] >= 0.f && v[i] <= 1.f))
+      throw std::invalid_argument("--bg '" + s + "': '" + item + "' is outside [0,1]; expected R,G,B in [0,1], e.g. 1,1,1");
     ++i;
   }
   if (i != 3) throw std::invalid_argument("--bg '" + s + "': expected three numbers R,G,B in [0,1], e.g. 1,1,1");

@@ -2,8 +2,10 @@
 
 #include <spdlog/spdlog.h>
 
+#include <algorithm>
 #include <cerrno>
 #include <cmath>
+#include <cstdint>
 #include <cstdio>
 #include <cstdlib>
 #include <map>
@@ -90,6 +92,46 @@ CLI::Validator seed_number() {
 
 void set_action(CLI::App* sub, std::function<void()> action) {
   actions()[sub] = std::move(action);
+}
+
+std::string unknown_command_hint(CLI::App& app, int argc, const char* const* argv) {
+  std::string word;
+  for (int i = 1; i < argc && word.empty(); ++i) {
+    const std::string a = argv[i];
+    if (a == "--device") {
+      ++i;  // its value
+    } else if (!a.empty() && a[0] != '-') {
+      word = a;
+    }
+  }
+  if (word.empty()) return "";
+  // Levenshtein distance, for the nearest name.
+  auto distance = [](const std::string& x, const std::string& y) {
+    std::vector<size_t> row(y.size() + 1);
+    for (size_t j = 0; j <= y.size(); ++j) row[j] = j;
+    for (size_t i = 1; i <= x.size(); ++i) {
+      size_t diag = row[0];
+      row[0] = i;
+      for (size_t j = 1; j <= y.size(); ++j) {
+        const size_t up = row[j];
+        row[j] = std::min({row[j] + 1, row[j - 1] + 1, diag + (x[i - 1] == y[j - 1] ? 0 : 1)});
+        diag = up;
+      }
+    }
+    return row[y.size()];
+  };
+  std::string best, names;
+  size_t best_d = SIZE_MAX;
+  for (const CLI::App* sub : app.get_subcommands([](CLI::App*) { return true; })) {
+    const std::string& name = sub->get_name();
+    if (name == word) return "";
+    names += (names.empty() ? "" : ", ") + name;
+    const size_t d = distance(word, name);
+    if (d < best_d) best_d = d, best = name;
+  }
+  std::string hint = "ag2gs: unknown command '" + word + "'";
+  if (best_d <= std::max<size_t>(2, word.size() / 3)) hint += "; did you mean '" + best + "'?";
+  return hint + " The commands: " + names + " (`ag2gs --help` says what each does)";
 }
 
 int run_selected(CLI::App& app, const GlobalOptions& global) {

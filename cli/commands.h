@@ -103,5 +103,10 @@ std::vector<uint8_t> encode_mask_png(const std::vector<uint8_t>& mask, int width
 void write_mask_png(const std::string& path, const std::vector<uint8_t>& mask, int width, int height);
 // Runs the parsed subcommand; returns the process exit code.
 int run_selected(CLI::App& app, const GlobalOptions& global);
+// For a command line whose first word is not a subcommand ("ag2gs trian
+// ..."): "unknown command 'trian'; did you mean 'train'? ..." naming the
+// nearest subcommand by edit distance; empty when the word is a subcommand
+// or there is no word.
+std::string unknown_command_hint(CLI::App& app, int argc, const char* const* argv);
 
 }  // namespace ag2gs::cli

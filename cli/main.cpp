@@ -5,6 +5,7 @@
 #include <CLI/CLI.hpp>
 #include <cstdio>
 #include <exception>
+#include <string>
 
 #include "cli/commands.h"
 
@@ -23,6 +24,13 @@ int main(int argc, char** argv) {
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
+    if (e.get_exit_code() != 0) {
+      const std::string hint = ag2gs::cli::unknown_command_hint(app, argc, argv);
+      if (!hint.empty()) {
+        std::fprintf(stderr, "%s\n", hint.c_str());
+        return 2;
+      }
+    }
     return app.exit(e);
   }
   return ag2gs::cli::run_selected(app, global);

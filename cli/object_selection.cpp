@@ -3,6 +3,9 @@
 #include <spdlog/spdlog.h>
 #include <unistd.h>
 
+#include <cerrno>
+#include <csignal>
+#include <cstdlib>
 #include <fstream>
 #include <stdexcept>
 #include <system_error>
@@ -31,10 +34,36 @@ fs::path check_new_output_folder(const std::string& out_arg, const std::string& 
   return out;
 }
 
+namespace {
+
+// Folders "<out>.partial.<pid>" that runs killed with SIGKILL (or by a power
+// cut) left beside OUT_DIR: their process is gone, so nobody else removes
+// them. Live processes' folders stay.
+void remove_stale_partial_folders(const fs::path& out) {
+  const std::string prefix = out.filename().string() + ".partial.";
+  std::error_code ec;
+  for (fs::directory_iterator it(out.parent_path(), ec), end; !ec && it != end; it.increment(ec)) {
+    const std::string name = it->path().filename().string();
+    if (name.rfind(prefix, 0) != 0) continue;
+    const std::string digits = name.substr(prefix.size());
+    if (digits.empty() || digits.size() > 7 || digits.find_first_not_of("0123456789") != std::string::npos) continue;
+    const long pid = std::strtol(digits.c_str(), nullptr, 10);
+    if (pid <= 0 || pid == static_cast<long>(::getpid())) continue;
+    if (::kill(static_cast<pid_t>(pid), 0) == 0 || errno != ESRCH) continue;  // ESRCH: no such process
+    std::error_code rm;
+    if (!it->is_directory(rm)) continue;
+    fs::remove_all(it->path(), rm);
+    if (!rm) spdlog::info("removed {}, left by an interrupted run", it->path().string());
+  }
+}
+
+}  // namespace
+
 StagedFolder::StagedFolder(const fs::path& out, const std::string& out_arg)
     : out_(out),
       tmp_(out.parent_path() / (out.filename().string() + ".partial." + std::to_string(::getpid()))),
       out_arg_(out_arg) {
+  remove_stale_partial_folders(out_);
   std::error_code ec;
   fs::remove_all(tmp_, ec);
   fs::create_directories(tmp_);

@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <cstdio>
 #include <cstdlib>
+#include <ctime>
 #include <filesystem>
 #include <stdexcept>
 
@@ -17,15 +18,26 @@ namespace {
 
 constexpr int kSignals[3] = {SIGINT, SIGTERM, SIGHUP};
 volatile std::sig_atomic_t g_signal = 0;
+timespec g_first{};  // when the first signal came
 
-// Async-signal-safe: only write(2) and _exit(2).
+// The same signal again within this window is one request: `timeout` and
+// job schedulers signal the process and its group, so one SIGTERM arrives
+// twice; a user's second Ctrl-C comes later than that.
+constexpr double kRepeatWindowS = 0.5;
+
+// Async-signal-safe: only clock_gettime(2), write(2) and _exit(2).
 extern "C" void on_terminate(int sig) {
   if (g_signal) {
+    timespec now{};
+    clock_gettime(CLOCK_MONOTONIC, &now);
+    const double since = static_cast<double>(now.tv_sec - g_first.tv_sec) + (now.tv_nsec - g_first.tv_nsec) * 1e-9;
+    if (sig == g_signal && since < kRepeatWindowS) return;
     static const char msg[] = "\nsecond signal: aborting without saving\n";
     ssize_t ignored = ::write(2, msg, sizeof msg - 1);
     (void)ignored;
     ::_exit(128 + sig);
   }
+  clock_gettime(CLOCK_MONOTONIC, &g_first);
   g_signal = sig;
   static const char msg[] = "\nstopping: finishing this iteration and saving (send it again to abort)\n";
   ssize_t ignored = ::write(2, msg, sizeof msg - 1);

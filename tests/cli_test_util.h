@@ -41,7 +41,7 @@ inline CliResult run_cli(const std::string& args) {
 // exit status (-1 unless it exited) with everything it printed (plus a note
 // when no line matched).
 inline CliResult run_cli_interrupted_when(const std::string& args, const std::function<bool(const std::string&)>& when,
-                                          int sig = SIGINT) {
+                                          int sig = SIGINT, int times = 1) {
   const char* bin = std::getenv("AG2GS_BINARY");
   const std::string cmd = "exec " + std::string(bin ? bin : "./ag2gs") + " " + args + " 2>&1";
   int fd[2];
@@ -66,7 +66,12 @@ inline CliResult run_cli_interrupted_when(const std::string& args, const std::fu
       continue;
     }
     if (!sent && when(line)) {
-      ::kill(pid, sig);
+      // times > 1: 20 ms apart, as `timeout` signals the process, then its
+      // group (back to back, the kernel may merge them into one).
+      for (int k = 0; k < times; ++k) {
+        if (k > 0) ::usleep(20000);
+        ::kill(pid, sig);
+      }
       sent = true;
     }
     line.clear();

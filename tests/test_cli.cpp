@@ -88,6 +88,24 @@ TEST(Cli, BadInputGivesAClearErrorAndNonZeroExit) {
   r = run("render --ply " + scene + "/gaussians.ply --scene " + scene + " -o " + (dir / "o").string() + " --bg 1,x,1");
   EXPECT_NE(r.code, 0);
   EXPECT_NE(r.output.find("--bg"), std::string::npos) << r.output;
+  // Colours outside [0,1], NaN or a fourth number (issue 42: accepted).
+  for (const char* bg : {"2,2,2", "nan,0,0", "1,1,1,1", "-0.5,0,0"}) {
+    r = run("render --ply " + scene + "/gaussians.ply --scene " + scene + " -o " + (dir / "o").string() + " --bg " +
+            bg);
+    EXPECT_EQ(r.code, 1) << bg;
+    EXPECT_NE(r.output.find("--bg '" + std::string(bg) + "'"), std::string::npos) << r.output;
+    EXPECT_FALSE(fs::exists(dir / "o")) << bg;
+  }
+  // A mistyped command names the nearest (issue 42: "A subcommand is required").
+  r = run("trian " + scene + " -o " + (dir / "o").string());
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.output.find("unknown command 'trian'; did you mean 'train'?"), std::string::npos) << r.output;
+  r = run("--device 0 rendr");
+  EXPECT_NE(r.output.find("did you mean 'render'?"), std::string::npos) << r.output;
+  r = run("xyzzyplugh");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_EQ(r.output.find("did you mean"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("The commands: "), std::string::npos) << r.output;
 
   r = run("--device 99 devices");
   EXPECT_NE(r.code, 0);

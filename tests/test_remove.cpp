@@ -207,8 +207,14 @@ TEST(Remove, SkyIsCopiedAndShownBehind) {
 TEST(Remove, TrailingSlashAndNoPartialFolderLeft) {
   const fs::path out = fresh("slash"), sel = fixture().root / "selection_slash.json";
   write_selection(sel, {2, 9});
+  // What a kill -9 of an earlier run into the same folder left (issue 42):
+  // pid 4194000 is past this machine's processes; the next run removes it.
+  const fs::path leftover = fixture().root / "slash.partial.4194000";
+  fs::create_directories(leftover / "frames");
+  std::ofstream(leftover / "model.ag2gs") << "half";
   const auto r = test::run_cli(remove_cmd(out.string() + "/", "--selection " + sel.string()));
   ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_FALSE(fs::exists(leftover)) << r.output;
   EXPECT_TRUE(fs::exists(out / "model.ag2gs"));
   for (const auto& e : fs::directory_iterator(fixture().root))
     EXPECT_EQ(e.path().filename().string().find(".partial."), std::string::npos) << e.path();

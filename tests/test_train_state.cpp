@@ -265,14 +265,29 @@ TEST(TrainState, ResumeRefusesAnotherConfigOrScene) {
 
 // test::run_cli_interrupted_when, once a progress line of iteration >=
 // `after` has appeared ("info: it      7/120  loss ...").
-test::CliResult run_cli_interrupted(const std::string& args, int after, int sig = SIGINT) {
+test::CliResult run_cli_interrupted(const std::string& args, int after, int sig = SIGINT, int times = 1) {
   return test::run_cli_interrupted_when(
       args,
       [after](const std::string& line) {
         const size_t at = line.find(" it ");
         return at != std::string::npos && std::atoi(line.c_str() + at + 4) >= after;
       },
-      sig);
+      sig, times);
+}
+
+// `timeout T ag2gs train` signals the process and its group, so one SIGTERM
+// can arrive twice back to back: it is one request (saved, exit 143), not
+// "second signal: aborting without saving" (issue 42, 3 runs in 20).
+TEST(TrainState, ASigtermDeliveredTwiceAtOnceStillSaves) {
+  test::ScratchDir dir("train_sigterm_twice");
+  const test::CliResult cut = run_cli_interrupted("train " + sample_scene() +
+                                                      " -r 2 --iters 200 --stages 1 --seed 5 --log-every 1 -o " +
+                                                      dir.file("cut"),
+                                                  5, SIGTERM, 2);
+  ASSERT_EQ(cut.code, 143) << cut.output;
+  EXPECT_EQ(cut.output.find("aborting without saving"), std::string::npos) << cut.output;
+  EXPECT_NE(cut.output.find("--resume"), std::string::npos) << cut.output;
+  EXPECT_TRUE(std::filesystem::exists(dir.file("cut/checkpoint.ag2gs")));
 }
 
 TEST(TrainState, CtrlCSavesACheckpointThatResumesToTheSameBytes) {

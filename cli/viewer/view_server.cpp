@@ -112,7 +112,8 @@ nlohmann::json parse_body(const httplib::Request& req) {
   try {
     j = req.body.empty() ? nlohmann::json::object() : parse_json_input(req.body, "the request body");
   } catch (const std::runtime_error& e) {
-    throw std::invalid_argument(e.what());
+    throw std::invalid_argument(std::string("the request body is not JSON (or nests past ") +
+                                std::to_string(kJsonMaxDepth) + " levels): " + e.what());
   }
   if (!j.is_object()) throw std::invalid_argument("the request body must be a JSON object");
   return j;
