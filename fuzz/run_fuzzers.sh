@@ -28,7 +28,8 @@ BUILD="$ROOT/build_fuzz"
 OUT="$ROOT/fuzz_out"
 cmake -S "$ROOT" -B "$BUILD" -DCMAKE_BUILD_TYPE=Debug -DCMAKE_CXX_COMPILER="$CXX_FUZZ" -DCMAKE_C_COMPILER="$CC_FUZZ" \
   -DAG2GS_BUILD_FUZZ=ON -DAG2GS_BUILD_TESTS=OFF -DAG2GS_BUILD_BENCH=OFF >/dev/null
-cmake --build "$BUILD" --target "${TARGETS[@]}" -j "${JOBS:-2}"
+# A failed build is a failure (exit 1), not CTest's "skipped" (make exits 2).
+cmake --build "$BUILD" --target "${TARGETS[@]}" -j "${JOBS:-2}" || { echo "run_fuzzers: the build failed" >&2; exit 1; }
 python3 "$ROOT/fuzz/make_seeds.py" "$OUT/seeds"
 
 # The targets write each input to files (and fuzz_npy fsyncs a copy): in
