@@ -453,7 +453,8 @@ void register_query(CLI::App& app, GlobalOptions& global) {
                 "Also write masks for: train, test (every 8th image in name order), all, or comma-separated names");
   q->add_option("--sparse", a->sparse,
                 "COLMAP model folder inside the scene (default: sparse/0/, else sparse/ when it holds the model)");
-  q->add_option("-r,--resolution", a->resolution, "Divide the cameras by R (default: the model's training -r)");
+  q->add_option("-r,--resolution", a->resolution, "Divide the cameras by R (default: the model's training -r)")
+      ->check(CLI::Range(1, 64));
   add_query_config_options(q, a->config);
   set_action(q, [&global, a] { cmd_query(global, *a); });
 }

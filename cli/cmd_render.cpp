@@ -287,7 +287,8 @@ void register_render(CLI::App& app, GlobalOptions& global) {
                      "else 0,0,0)");
   render->add_option("-r,--resolution", ra->resolution,
                      "Divide the camera resolution by R (default: the model's training -r, from model.ag2gs or "
-                     "metrics.json; 1 for a .ply with neither beside it)");
+                     "metrics.json; 1 for a .ply with neither beside it)")
+      ->check(CLI::Range(1, 64));
   render->add_option("--sparse", ra->sparse,
                      "COLMAP model folder inside the scene (default sparse/0/, else sparse/ when it holds the model)");
   render->add_flag("--extras", ra->extras, "Same as adding depth,alpha to --outputs");

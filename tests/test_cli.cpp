@@ -96,6 +96,11 @@ TEST(Cli, BadInputGivesAClearErrorAndNonZeroExit) {
     EXPECT_NE(r.output.find("--bg '" + std::string(bg) + "'"), std::string::npos) << r.output;
     EXPECT_FALSE(fs::exists(dir / "o")) << bg;
   }
+  // -r 0 meant "the default" in render, query and view (issue 42): refused.
+  r = run("render --ply " + scene + "/gaussians.ply --scene " + scene + " -o " + (dir / "o").string() + " -r 0");
+  EXPECT_NE(r.code, 0);
+  EXPECT_NE(r.output.find("--resolution: Value 0 not in range 1 to 64"), std::string::npos) << r.output;
+  EXPECT_FALSE(fs::exists(dir / "o"));
   // A mistyped command names the nearest (issue 42: "A subcommand is required").
   r = run("trian " + scene + " -o " + (dir / "o").string());
   EXPECT_EQ(r.code, 2);

@@ -282,7 +282,8 @@ void register_view(CLI::App& app, GlobalOptions& global) {
   v->add_option("--sparse", a->options.sparse,
                 "COLMAP model folder inside the scene (default sparse/0/, else sparse/ when it holds the model)");
   v->add_option("-r,--resolution", a->options.resolution,
-                "Divide the training views' cameras by R (default: the model's training -r)");
+                "Divide the training views' cameras by R (default: the model's training -r)")
+      ->check(CLI::Range(1, 64));
   set_action(v, [&global, a] { cmd_view(global, *a); });
 }
 
