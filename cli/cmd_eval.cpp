@@ -148,7 +148,7 @@ void register_eval(CLI::App& app, GlobalOptions& global) {
       ->required();
   e->add_option("--vocab", a->vocab, "Text vocabulary JSON {\"category\": [D floats], ...}")->required();
   e->add_option("--clicks", a->clicks, "Click list JSON [{\"frame\", \"x\", \"y\", \"category\"}, ...]");
-  e->add_option("-o,--out", a->out, "Report JSON to write")->required();
+  e->add_option("-o,--out", a->out, "Report JSON to write")->check(output_path())->required();
   e->add_flag("--no-grow", a->no_grow,
               "Ablation: select by plain feature similarity to the seeds instead of region growing over the graph");
   add_query_config_options(e, a->config);

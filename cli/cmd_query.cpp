@@ -447,7 +447,9 @@ void register_query(CLI::App& app, GlobalOptions& global) {
   auto* q = app.add_subcommand("query", "Select an object by a click or by text; write its Gaussians and masks");
   q->add_option("model", a->model, "Model folder written by `ag2gs train` (MODEL_DIR/model.ag2gs)")->required();
   q->add_option("--scene", a->scene, "Scene directory (images/, sparse/0/) the model was trained on")->required();
-  q->add_option("-o,--out", a->out, "Output folder: selection.ply, remainder.ply, selection.json, masks/")->required();
+  q->add_option("-o,--out", a->out, "Output folder: selection.ply, remainder.ply, selection.json, masks/")
+      ->check(output_path())
+      ->required();
   add_query_request_options(q, a->request);
   q->add_option("--views", a->views,
                 "Also write masks for: train, test (every 8th image in name order), all, or comma-separated names");

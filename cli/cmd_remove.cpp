@@ -476,6 +476,7 @@ void register_remove(CLI::App& app, GlobalOptions& global) {
   r->add_option("-o,--out", a->out,
                 "New folder for the model without the object: model.ag2gs, point_cloud.ply, holes/, targets/, "
                 "removal.json")
+      ->check(output_path())
       ->required();
   add_query_request_options(r, a->request);
   r->add_option("--selection", a->selection, "Remove the anchors of a selection.json written by `ag2gs query`");

@@ -277,6 +277,7 @@ void register_render(CLI::App& app, GlobalOptions& global) {
   render->add_option("--scene", ra->scene, "Scene directory holding the COLMAP model (sparse/0/, or sparse/ itself)")
       ->required();
   render->add_option("-o,--out", ra->out, "Output directory: OUT/<output>/<image stem>.png (+ .npy for floats)")
+      ->check(output_path())
       ->required();
   render->add_option("--views", ra->views,
                      "train, test (every 8th image, as --eval), all (default), or comma-separated names/stems");

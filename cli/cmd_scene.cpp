@@ -281,7 +281,9 @@ void register_scene_commands(CLI::App& app, GlobalOptions& global) {
   auto sa = std::make_shared<SfmArgs>();
   auto* sfm = app.add_subcommand("sfm", "Structure from motion with COLMAP: photos in, a trainable scene out");
   sfm->add_option("images", sa->input, "Folder of photos (jpg, png, ...)")->required();
-  sfm->add_option("-o,--out", sa->out, "Scene directory to create (images/ + sparse/0/)")->required();
+  sfm->add_option("-o,--out", sa->out, "Scene directory to create (images/ + sparse/0/)")
+      ->check(output_path())
+      ->required();
   sfm->add_option("--matcher", sa->matcher,
                   "auto (default: sequential for more than 40 photos whose names number an ordered sequence, as "
                   "video frames do; else exhaustive), exhaustive (every pair) or sequential (neighbours in name "
@@ -303,7 +305,7 @@ void register_scene_commands(CLI::App& app, GlobalOptions& global) {
   auto ua = std::make_shared<SfmArgs>();
   auto* und = app.add_subcommand("undistort", "Undistort a scene with a distorted COLMAP camera model");
   und->add_option("scene", ua->input, "Scene directory (images/ + sparse/0/, or sparse/ itself)")->required();
-  und->add_option("-o,--out", ua->out, "New scene directory with PINHOLE cameras")->required();
+  und->add_option("-o,--out", ua->out, "New scene directory with PINHOLE cameras")->check(output_path())->required();
   und->add_flag("--downscaled", ua->downscaled, "Also write images_2/4/8 for -r 2/4/8");
   und->add_flag("--force", ua->force, "Replace an existing output folder (only once complete)");
   und->add_option("--colmap", ua->colmap, "COLMAP program (default: colmap on PATH, or AG2GS_COLMAP)");

@@ -354,7 +354,9 @@ void register_simulate(CLI::App& app, GlobalOptions& global) {
                                "as it moves; writes frames, PLYs and simulation.json to a new folder");
   r->add_option("model", a->model, "Model folder written by `ag2gs train` (MODEL_DIR/model.ag2gs)")->required();
   r->add_option("--scene", a->scene, "Scene directory (images/, sparse/0/) the model was trained on")->required();
-  r->add_option("-o,--out", a->out, "New folder for frames/, ply/ and simulation.json")->required();
+  r->add_option("-o,--out", a->out, "New folder for frames/, ply/ and simulation.json")
+      ->check(output_path())
+      ->required();
   add_query_request_options(r, a->request);
   r->add_option("--selection", a->selection, "Simulate the anchors of a selection.json written by `ag2gs query`");
   r->add_option("--material", a->material, "The object's material: jelly (default), metal, sand or plasticine")

@@ -77,6 +77,14 @@ CLI::Validator finite_range(double lo, double hi) {
       range, "finite range");
 }
 
+CLI::Validator output_path() {
+  return CLI::Validator(
+      [](std::string& v) -> std::string {
+        return v.empty() ? "must name a file or folder; it is empty (a quoted '' or an unset shell variable?)" : "";
+      },
+      "PATH", "output path");
+}
+
 CLI::Validator seed_number() {
   return CLI::Validator(
       [](std::string& v) -> std::string {

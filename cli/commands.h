@@ -31,6 +31,8 @@ CLI::Validator finite_range(double lo, double hi);
 // A seed: a whole number from 0 to 2^64 - 1, written in digits (no sign,
 // fraction or exponent: "-1" and "1e23" would otherwise wrap silently).
 CLI::Validator seed_number();
+// An output path: not empty (`-o ''` wrote into the current folder).
+CLI::Validator output_path();
 
 // Adds every subcommand; each stores its action for run_selected().
 void register_commands(CLI::App& app, GlobalOptions& global);

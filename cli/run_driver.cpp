@@ -18,7 +18,7 @@ namespace ag2gs::cli {
 
 void add_scene_options(CLI::App* sub, RunArgs& a) {
   sub->add_option("scene_dir", a.scene, "Scene directory (images/, sparse/0/)")->required();
-  sub->add_option("-o,--out", a.out, "Model directory to write (created)")->required();
+  sub->add_option("-o,--out", a.out, "Model directory to write (created)")->check(output_path())->required();
   sub->add_option("--sparse", a.sparse,
                   "COLMAP model folder inside the scene (default: sparse/0/, else sparse/ when it holds the model)");
   sub->add_option("-r,--resolution", a.resolution, "Divide the camera resolution by R (default 1)")

@@ -101,6 +101,10 @@ TEST(Cli, BadInputGivesAClearErrorAndNonZeroExit) {
   EXPECT_NE(r.code, 0);
   EXPECT_NE(r.output.find("--resolution: Value 0 not in range 1 to 64"), std::string::npos) << r.output;
   EXPECT_FALSE(fs::exists(dir / "o"));
+  // -o '' wrote into the current folder (issue 42): refused, naming the flag.
+  r = run("render --ply " + scene + "/gaussians.ply --scene " + scene + " -o ''");
+  EXPECT_NE(r.code, 0);
+  EXPECT_NE(r.output.find("--out: must name a file or folder"), std::string::npos) << r.output;
   // A mistyped command names the nearest (issue 42: "A subcommand is required").
   r = run("trian " + scene + " -o " + (dir / "o").string());
   EXPECT_EQ(r.code, 2);
