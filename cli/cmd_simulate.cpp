@@ -400,7 +400,8 @@ void register_simulate(CLI::App& app, GlobalOptions& global) {
   r->add_option("--up", a->up, "Up direction X,Y,Z in the world (default: the cameras' mean up)");
   r->add_option("--ground", a->ground,
                 "Height of the ground plane along up, world units (default: the surface the SfM points show under "
-                "the object)");
+                "the object)")
+      ->check(finite_range(-1e9, 1e9));
   r->add_option("--friction", a->friction,
                 "Coulomb friction of the ground plane (default 0.5; 0: things slide on it freely)")
       ->check(non_negative_number());

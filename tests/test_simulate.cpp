@@ -246,6 +246,8 @@ TEST(Simulate, BadInputIsRefusedBeforeAnythingIsWritten) {
       {"--damping -1", "--damping"},
       {"--frames 0", "--frames"},
       {"--gravity 0,0", "--gravity 0,0: give three numbers"},
+      {"--ground inf", "--ground: must be a number"},  // wrote null into simulation.json (issue 42)
+      {"--ground nan", "--ground: must be a number"},  // "the object does not fit the simulation box"
   };
   for (const auto& [extra, message] : cases) {
     const auto r = test::run_cli(simulate_cmd(out, extra));
