@@ -203,19 +203,18 @@ void cmd_simulate(const GlobalOptions& global, SimulateArgs a) {
   spdlog::info("selected {} of {} anchors ({} Gaussians) to simulate as {}", sel.count, tm.model.size(),
                sel.count * static_cast<size_t>(K), a.material);
   Simulation sim(rt, gaussians, selected, cameras, scene->points(), ss);
+  const double dt_rest = sim.describe()["max_stable_dt_at_rest"].get<double>();
   spdlog::info(
       "simulation: {} particles ({} of the object's Gaussians, {} filling its solid, {}), grid {}^3, up ({:.3f}, "
       "{:.3f}, {:.3f}), ground at {:.4g}; stable substep at rest {:.3g} s",
       sim.particles(), sim.object_gaussians(), sim.fill_particles(),
       a.background ? fmt::format("{} background Gaussians", sim.background_gaussians())
                    : std::string("the rest of the scene still"),
-      a.grid, sim.frame().up(0), sim.frame().up(1), sim.frame().up(2), sim.frame().ground_world,
-      sim.describe()["max_stable_dt_at_rest"].get<double>());
+      a.grid, sim.frame().up(0), sim.frame().up(1), sim.frame().up(2), sim.frame().ground_world, dt_rest);
 
   // The substeps the run needs at least (the stable substep only shrinks as
   // things move): refuse up front what would run for hours or days.
   {
-    const double dt_rest = sim.describe()["max_stable_dt_at_rest"].get<double>();
     const double step = sim.dt() > 0 ? sim.dt() : dt_rest;
     const double least = a.frames / a.fps / step;
     if (!(least <= a.max_substeps))

@@ -20,15 +20,11 @@ namespace ag2gs::cli {
 fs::path check_new_output_folder(const std::string& out_arg, const std::string& model_arg) {
   fs::path out = fs::absolute(out_arg).lexically_normal();
   if (!out.has_filename()) out = out.parent_path();
-  const fs::path model_dir = fs::weakly_canonical(fs::absolute(model_arg));
-  const fs::path out_real = fs::weakly_canonical(out);
-  for (fs::path p = out_real; !p.empty(); p = p.parent_path()) {
-    if (p == model_dir)
-      throw std::invalid_argument("-o " + out_arg +
-                                  (p == out_real ? " is the model folder itself" : " lies inside the model folder") +
-                                  "; write the result to a new folder outside it");
-    if (p == p.parent_path()) break;
-  }
+  if (path_is_within(out.string(), model_arg))
+    throw std::invalid_argument(
+        "-o " + out_arg +
+        (path_is_within(model_arg, out.string()) ? " is the model folder itself" : " lies inside the model folder") +
+        "; write the result to a new folder outside it");
   if (fs::exists(out) && !(fs::is_directory(out) && fs::is_empty(out)))
     throw std::invalid_argument("-o " + out_arg + " exists and is not empty; give a new folder (nothing was written)");
   return out;

@@ -119,17 +119,18 @@ void refuse_output_over_inputs(const std::string& out, const std::vector<std::st
   }
 }
 
+bool path_is_within(const std::string& path, const std::string& dir) {
+  const fs::path p = resolved(path), d = resolved(dir);
+  return std::mismatch(d.begin(), d.end(), p.begin(), p.end()).first == d.end();
+}
+
 void refuse_output_in_inputs(const std::string& out, const std::string& scene,
                              const std::vector<std::string>& input_dirs, const std::string& flag) {
   const fs::path o = resolved(out);
-  if (!scene.empty()) {
-    const fs::path s = resolved(scene);
-    const auto [end_s, end_o] = std::mismatch(s.begin(), s.end(), o.begin(), o.end());
-    if (end_s == s.end())
-      throw std::runtime_error(flag + " " + out + " lies inside the scene folder " + scene +
-                               "; writing there could replace its images, masks or poses. Nothing was changed: "
-                               "choose a folder outside the scene");
-  }
+  if (!scene.empty() && path_is_within(out, scene))
+    throw std::runtime_error(flag + " " + out + " lies inside the scene folder " + scene +
+                             "; writing there could replace its images, masks or poses. Nothing was changed: "
+                             "choose a folder outside the scene");
   for (const std::string& d : input_dirs)
     if (!d.empty() && o == resolved(d))
       throw std::runtime_error(flag + " " + out + " is the input folder " + d +

@@ -55,6 +55,9 @@ void refuse_nonempty_dir(const std::string& dir, bool force, const std::string& 
 // the symbolic links of the parts that exist.
 void refuse_output_over_inputs(const std::string& out, const std::vector<std::string>& inputs,
                                const std::string& flag);
+// `path` is `dir` or lies inside it, compared after resolving `.`, `..` and
+// the symbolic links of the parts that exist.
+bool path_is_within(const std::string& path, const std::string& dir);
 // Refuses an output (folder or file) that lies inside the scene folder, a
 // dataset whose images, masks and poses it could replace, or that is one of
 // the input folders (a model folder: writing beside its files is fine,
