@@ -13,6 +13,7 @@
 #include <map>
 #include <memory>
 #include <optional>
+#include <set>
 #include <sstream>
 
 #include "cli/commands.h"
@@ -21,9 +22,10 @@
 #include "host/device/cl_runtime.h"
 #include "host/io/colmap_reader.h"
 #include "host/io/image_io.h"
+#include "host/io/json_input.h"
 #include "host/io/model_io.h"
-#include "host/io/npy_io.h"
 #include "host/io/model_ply.h"
+#include "host/io/npy_io.h"
 #include "host/io/ply_io.h"
 #include "host/render/renderer.h"
 #include "host/render/sky.h"
@@ -32,7 +34,6 @@
 #include "stages/clustering.h"
 #include "stages/instance_map.h"
 #include "stages/train_common.h"
-#include "host/io/json_input.h"
 
 namespace fs = std::filesystem;
 
@@ -45,7 +46,45 @@ struct RenderArgs {
   int resolution = 0;  // 0 = the resolution the model was trained at (1 for a bare .ply)
   bool extras = false;
   bool drop_invalid = false;  // --drop-invalid: leave out Gaussians with invalid numbers
+  bool force = false;         // --force: replace the renders already in OUT
 };
+
+// The file-name stem of each view's outputs: the image's stem, or, where two
+// images share one (a/1.jpg, b/1.jpg), the image's path without its
+// extension with '/' as '_' (a_1, b_1), so no view overwrites another.
+std::vector<std::string> output_stems(const std::vector<Camera>& cams) {
+  std::map<std::string, int> uses;
+  for (const Camera& c : cams) ++uses[fs::path(c.name).stem().string()];
+  std::vector<std::string> stems;
+  std::set<std::string> taken;
+  for (const Camera& c : cams) {
+    std::string stem = fs::path(c.name).stem().string();
+    if (uses[stem] > 1) {
+      stem = (fs::path(c.name).parent_path() / fs::path(c.name).stem()).generic_string();
+      std::replace(stem.begin(), stem.end(), '/', '_');
+    }
+    if (!taken.insert(stem).second)
+      throw std::runtime_error("views '" + c.name + "' and another one would write the same files '" + stem +
+                               ".*'; rename one of the images or pick views with --views");
+    stems.push_back(stem);
+  }
+  return stems;
+}
+
+// Refuses, without --force, to replace renders that OUT already holds: the
+// files this run would write (OUT/<output>/<stem>.png or .npy).
+void refuse_existing_renders(const fs::path& out_dir, const std::vector<std::string>& outputs,
+                             const std::vector<std::string>& stems, const std::string& out_arg) {
+  std::vector<std::string> found;
+  for (const std::string& o : outputs)
+    for (const std::string& s : stems)
+      for (const char* ext : {".png", ".npy"})
+        if (fs::exists(out_dir / o / (s + ext))) found.push_back((fs::path(o) / (s + ext)).generic_string());
+  if (found.empty()) return;
+  throw std::runtime_error("-o " + out_arg + " already holds renders this run would replace (" + found.front() +
+                           (found.size() > 1 ? " and " + std::to_string(found.size() - 1) + " more" : "") +
+                           "): give another -o, or --force to replace them");
+}
 
 std::array<float, 3> parse_rgb(const std::string& s) {
   std::array<float, 3> v{};
@@ -223,6 +262,8 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
   InstanceMapper mapper(rt);
   if (wants("instance")) mapper.set_clusters(anchor_cluster, children);
   fs::path out_dir(a.out);
+  const std::vector<std::string> stems = output_stems(cams);
+  if (!a.force) refuse_existing_renders(out_dir, outputs, stems, a.out);
   for (const std::string& o : outputs) fs::create_directories(out_dir / o);
   auto t0 = std::chrono::steady_clock::now();
   for (size_t i = 0; i < cams.size(); ++i) {
@@ -230,7 +271,7 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
     renderer.forward(dg, cam, settings);
     RenderOutput out = renderer.download_output();
     if (sky.enabled() && wants("rgb")) composite_sky(renderer, sky, cam, out);
-    const std::string stem = fs::path(cam.name).stem().string();
+    const std::string& stem = stems[i];
     const int w = out.width, h = out.height;
     auto file = [&](const char* o, const char* ext) { return (out_dir / o / (stem + ext)).string(); };
     if (wants("rgb")) write_rgb_png(file("rgb", ".png"), out.rgb, w, h);
@@ -293,6 +334,9 @@ void register_render(CLI::App& app, GlobalOptions& global) {
   render->add_option("--sparse", ra->sparse,
                      "COLMAP model folder inside the scene (default sparse/0/, else sparse/ when it holds the model)");
   render->add_flag("--extras", ra->extras, "Same as adding depth,alpha to --outputs");
+  render->add_flag("--force", ra->force,
+                   "Replace the renders OUT already holds (default: refused, so a rerun with other settings does not "
+                   "overwrite earlier results)");
   render->add_flag("--drop-invalid", ra->drop_invalid,
                    "Leave out Gaussians with non-finite numbers, zero rotations, scales <= 0 or opacities outside "
                    "[0, 1] (default: such a .ply is refused)");

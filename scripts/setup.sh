@@ -15,10 +15,10 @@ else
 fi
 build/ag2gs devices
 build/ag2gs info data_samples/synth_small --eval
-# --force: a second run of this script replaces the demo model it wrote before.
+# --force: a second run of this script replaces the demo model and renders it wrote before.
 build/ag2gs train data_samples/synth_small -o out/synth_small --force --eval --iters 2000 --seed 1
 build/ag2gs render out/synth_small --scene data_samples/synth_small --views test --outputs rgb,depth,alpha \
-  -o out/synth_small/test_renders
+  -o out/synth_small/test_renders --force
 # Text and click queries on the held-out views against the scene's labels.
 build/ag2gs eval out/synth_small --scene data_samples/synth_small --labels data_samples/synth_small/label \
   --vocab data_samples/synth_small/vocab.json --clicks data_samples/synth_small/clicks.json -o out/synth_small/eval.json

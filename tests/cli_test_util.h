@@ -10,7 +10,9 @@
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
+#include <fstream>
 #include <functional>
+#include <iterator>
 #include <string>
 
 #include "synth/synth_scene.h"
@@ -23,6 +25,12 @@ struct CliResult {
 };
 
 // Runs `$AG2GS_BINARY args` (default ./ag2gs) through the shell.
+// The bytes of a file ("" when it cannot be read).
+inline std::string read_file(const std::filesystem::path& p) {
+  std::ifstream f(p, std::ios::binary);
+  return std::string(std::istreambuf_iterator<char>(f), {});
+}
+
 inline CliResult run_cli(const std::string& args) {
   const char* bin = std::getenv("AG2GS_BINARY");
   const std::string cmd = std::string(bin ? bin : "./ag2gs") + " " + args + " 2>&1";

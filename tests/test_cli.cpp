@@ -63,6 +63,18 @@ TEST(Cli, RenderWritesOnePngPerViewAtTheCameraResolution) {
   EXPECT_FALSE(fs::exists(out2 / "rgb" / "view_000.png"));
   EXPECT_TRUE(fs::exists(out2 / "depth" / "view_003.png"));
   EXPECT_TRUE(fs::exists(out2 / "alpha" / "view_003.png"));
+  // A rerun with other settings into the same folder is refused and leaves
+  // the earlier renders as they were; --force replaces them.
+  const std::string before = ag2gs::test::read_file((out2 / "rgb" / "view_001.png").string());
+  r = run("render --ply " + scene + "/gaussians.ply --scene " + scene + " -o " + out2.string() + " --views view_001");
+  EXPECT_NE(r.code, 0) << r.output;
+  EXPECT_NE(r.output.find("rgb/view_001.png"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("--force"), std::string::npos) << r.output;
+  EXPECT_EQ(ag2gs::test::read_file((out2 / "rgb" / "view_001.png").string()), before);
+  r = run("render --ply " + scene + "/gaussians.ply --scene " + scene + " -o " + out2.string() +
+          " --views view_001 --force");
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_NE(ag2gs::test::read_file((out2 / "rgb" / "view_001.png").string()), before) << "-r 1 and a black background now";
   fs::remove_all(out);
   fs::remove_all(out2);
 }

@@ -56,11 +56,6 @@ fs::path fresh(const std::string& name) {
   return p;
 }
 
-std::string read_file(const fs::path& p) {
-  std::ifstream f(p, std::ios::binary);
-  return std::string(std::istreambuf_iterator<char>(f), {});
-}
-
 void write_selection(const fs::path& path, const std::vector<int>& anchors) {
   std::ofstream(path) << json{{"anchors", anchors}}.dump();
 }
@@ -277,7 +272,7 @@ TEST(Remove, FineTuneTouchesOnlyAnchorsNearTheHoleAndIsDeterministic) {
     r = test::run_cli(remove_cmd(out.string(), "--selection " + sel.string() + " --iters 12"));
     unsetenv("POCL_MAX_PTHREAD_COUNT");
     ASSERT_EQ(r.code, 0) << r.output;
-    bytes[threads - 1] = read_file(out / "model.ag2gs");
+    bytes[threads - 1] = test::read_file(out / "model.ag2gs");
   }
   EXPECT_EQ(bytes[0], bytes[1]) << "1 thread vs 2 threads";
   const fs::path out = fixture().root / "tuned_2";
@@ -318,7 +313,7 @@ TEST(Remove, FineTuneTouchesOnlyAnchorsNearTheHoleAndIsDeterministic) {
   r = test::run_cli(remove_cmd(own.string(), "--selection " + sel.string() + " --iters 6 --tune-targets fill"));
   ASSERT_EQ(r.code, 0) << r.output;
   EXPECT_EQ(json::parse(std::ifstream(own / "removal.json"))["iterations"].get<int>(), 6);
-  EXPECT_NE(read_file(own / "model.ag2gs"), bytes[1]);
+  EXPECT_NE(test::read_file(own / "model.ag2gs"), bytes[1]);
 }
 
 TEST(Remove, BadInputIsRefusedBeforeAnythingIsWritten) {
@@ -355,7 +350,7 @@ TEST(Remove, BadInputIsRefusedBeforeAnythingIsWritten) {
   // something in it; the model folder's files keep their bytes.
   std::map<std::string, std::string> model_bytes;
   for (const auto& e : fs::directory_iterator(f.model))
-    if (e.is_regular_file()) model_bytes[e.path().filename().string()] = read_file(e.path());
+    if (e.is_regular_file()) model_bytes[e.path().filename().string()] = test::read_file(e.path());
   auto r = test::run_cli("remove " + f.model.string() + " --scene " + f.scene.string() + " -o " + f.model.string() +
                          "/ --selection " + sel.string() + " --quiet");
   EXPECT_NE(r.code, 0);
@@ -367,7 +362,7 @@ TEST(Remove, BadInputIsRefusedBeforeAnythingIsWritten) {
   r = test::run_cli(remove_cmd(out.string(), "--text \"  \" --vocab " + vocab));
   EXPECT_NE(r.code, 0);
   EXPECT_NE(r.output.find("--text: the phrase is empty"), std::string::npos) << r.output;
-  for (const auto& [name, bytes] : model_bytes) EXPECT_EQ(read_file(f.model / name), bytes) << name;
+  for (const auto& [name, bytes] : model_bytes) EXPECT_EQ(test::read_file(f.model / name), bytes) << name;
   EXPECT_FALSE(fs::exists(f.model / "removed"));
   fs::create_directories(out);
   std::ofstream(out / "keep.txt") << "mine";
@@ -437,7 +432,7 @@ TEST(Remove, HostileFilesAreRefusedWithoutACrash) {
   // files (masks/ among them) keep their bytes.
   std::map<std::string, std::string> scene_files;
   for (const auto& e : fs::recursive_directory_iterator(f.scene))
-    if (e.is_regular_file()) scene_files[e.path().string()] = read_file(e.path());
+    if (e.is_regular_file()) scene_files[e.path().string()] = test::read_file(e.path());
   for (const fs::path& o : {f.scene, f.scene / "sel"}) {
     r = test::run_cli("query " + f.model.string() + " --scene " + f.scene.string() + " -o " + o.string() +
                       " --view view_001 --click 32,30 --views all --quiet");
@@ -445,7 +440,7 @@ TEST(Remove, HostileFilesAreRefusedWithoutACrash) {
     EXPECT_NE(r.output.find("lies inside the scene folder"), std::string::npos) << r.output;
   }
   EXPECT_FALSE(fs::exists(f.scene / "sel"));
-  for (const auto& [path, bytes] : scene_files) EXPECT_EQ(read_file(path), bytes) << path;
+  for (const auto& [path, bytes] : scene_files) EXPECT_EQ(test::read_file(path), bytes) << path;
 }
 
 }  // namespace

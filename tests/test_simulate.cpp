@@ -63,11 +63,6 @@ fs::path fresh(const std::string& name) {
   return p;
 }
 
-std::string read_file(const fs::path& p) {
-  std::ifstream f(p, std::ios::binary);
-  return std::string(std::istreambuf_iterator<char>(f), {});
-}
-
 // A click on a stage-1 model: `--click-by auto` (the default) takes what
 // stands on the scene's main plane (the generated floor, z = 0) and says so
 // in selection.json; `features` grows over the untrained features; a bad
@@ -191,8 +186,8 @@ TEST(Simulate, WithoutForcesTheSceneStaysAsTrained) {
   const fs::path out = fresh("rest");
   const auto r = test::run_cli(simulate_cmd(out, "--frames 2 --push 0 --gravity 0,0,0 --ply-every 1 --keep-hidden"));
   ASSERT_EQ(r.code, 0) << r.output;
-  EXPECT_EQ(read_file(out / "frames/view_001/0002.png"), read_file(out / "frames/view_001/0000.png"));
-  EXPECT_EQ(read_file(out / "ply/frame_0002.ply"), read_file(out / "ply/frame_0000.ply"));
+  EXPECT_EQ(test::read_file(out / "frames/view_001/0002.png"), test::read_file(out / "frames/view_001/0000.png"));
+  EXPECT_EQ(test::read_file(out / "ply/frame_0002.ply"), test::read_file(out / "ply/frame_0000.ply"));
   const json j = json::parse(std::ifstream(out / "simulation.json"));
   EXPECT_EQ(j["per_frame"][2]["kinetic_energy"].get<double>(), 0.0);
   EXPECT_EQ(j["per_frame"][2]["max_strain"].get<double>(), 0.0);
@@ -207,7 +202,8 @@ TEST(Simulate, SameBitsWithOneAndTwoThreads) {
     const auto r = test::run_cli(simulate_cmd(out, "--frames 2 --ply-every 2"));
     unsetenv("POCL_MAX_PTHREAD_COUNT");
     ASSERT_EQ(r.code, 0) << r.output;
-    bytes[threads - 1] = read_file(out / "ply" / "frame_0002.ply") + read_file(out / "frames/view_001/0002.png");
+    bytes[threads - 1] =
+        test::read_file(out / "ply" / "frame_0002.ply") + test::read_file(out / "frames/view_001/0002.png");
     json j = json::parse(std::ifstream(out / "simulation.json"));
     for (json& f : j["per_frame"]) f.erase("wall_seconds");
     json_text[threads - 1] = j["per_frame"].dump();
