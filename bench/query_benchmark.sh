@@ -58,7 +58,7 @@ for run in full no_prop; do
     [ "$grow" = no_grow ] && g=(--no-grow)
     # shellcheck disable=SC2086
     "$bin" eval "$out/$run" --scene "$scene" --labels "$scene/label" --vocab "$scene/vocab.json" \
-      --clicks "$scene/clicks.json" -o "$out/eval_${run}_${grow}.json" "${g[@]}" $eval_flags | tee "$out/eval_${run}_${grow}.txt"
+      --clicks "$scene/clicks.json" -o "$out/eval_${run}_${grow}.json" --force "${g[@]}" $eval_flags | tee "$out/eval_${run}_${grow}.txt"
   done
 done
 python3 - "$out" <<'EOF'

@@ -35,6 +35,7 @@ struct EvalArgs {
   bool no_grow = false;
   std::string click_by = "features";
   QueryConfig config;
+  bool force = false;  // --force: replace an existing report
 };
 
 void cmd_eval(const GlobalOptions& global, EvalArgs a) {
@@ -51,6 +52,7 @@ void cmd_eval(const GlobalOptions& global, EvalArgs a) {
       inputs.push_back((fs::path(a.model) / f).string());
     refuse_output_over_inputs(a.out, inputs, "-o");
     refuse_output_in_inputs(a.out, a.scene, {a.model}, "-o");
+    refuse_existing_results("-o", a.out, {}, a.force);
   }
   if (!fs::exists(model_file))
     throw std::runtime_error(a.model + ": no model.ag2gs; give a model folder written by `ag2gs train`");
@@ -149,6 +151,7 @@ void register_eval(CLI::App& app, GlobalOptions& global) {
   e->add_option("--vocab", a->vocab, "Text vocabulary JSON {\"category\": [D floats], ...}")->required();
   e->add_option("--clicks", a->clicks, "Click list JSON [{\"frame\", \"x\", \"y\", \"category\"}, ...]");
   e->add_option("-o,--out", a->out, "Report JSON to write")->check(output_path())->required();
+  e->add_flag("--force", a->force, "Replace the report -o names when it exists (default: refused)");
   e->add_flag("--no-grow", a->no_grow,
               "Ablation: select by plain feature similarity to the seeds instead of region growing over the graph");
   add_query_config_options(e, a->config);

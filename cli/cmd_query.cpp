@@ -40,6 +40,7 @@ struct QueryArgs {
   std::string sparse;  // --sparse; empty = the scene-folder rule (host/scene/scene.h)
   int resolution = 0;  // 0 = the resolution the model was trained at
   QueryConfig config;
+  bool force = false;  // --force: replace the results of an earlier query in OUT
 };
 
 double ms_since(std::chrono::steady_clock::time_point t0) {
@@ -272,6 +273,14 @@ void cmd_query(const GlobalOptions& global, QueryArgs a) {
   so.sparse = a.sparse;
   std::unique_ptr<Scene> scene = Scene::open(a.scene, so);
   refuse_output_in_inputs(a.out, a.scene, {a.model}, "-o");
+  {
+    std::vector<std::string> files = {"selection.json", "selection.ply", "remainder.ply"};
+    std::error_code ec;
+    if (fs::is_directory(fs::path(a.out) / "masks", ec))
+      for (const auto& e : fs::directory_iterator(fs::path(a.out) / "masks", ec))
+        files.push_back("masks/" + e.path().filename().string());
+    refuse_existing_results("-o", a.out, files, a.force);
+  }
   int click_view = -1;
   if (by_click) click_view = scene->find_view(a.request.view);
   std::vector<int> views = pick_scene_views(*scene, a.views);
@@ -451,6 +460,9 @@ void register_query(CLI::App& app, GlobalOptions& global) {
       ->check(output_path())
       ->required();
   add_query_request_options(q, a->request);
+  q->add_flag("--force", a->force,
+              "Replace the results of an earlier query in OUT (default: refused, so a second query does not "
+              "overwrite the first)");
   q->add_option("--views", a->views,
                 "Also write masks for: train, test (every 8th image in name order), all, or comma-separated names");
   q->add_option("--sparse", a->sparse,

@@ -71,21 +71,6 @@ std::vector<std::string> output_stems(const std::vector<Camera>& cams) {
   return stems;
 }
 
-// Refuses, without --force, to replace renders that OUT already holds: the
-// files this run would write (OUT/<output>/<stem>.png or .npy).
-void refuse_existing_renders(const fs::path& out_dir, const std::vector<std::string>& outputs,
-                             const std::vector<std::string>& stems, const std::string& out_arg) {
-  std::vector<std::string> found;
-  for (const std::string& o : outputs)
-    for (const std::string& s : stems)
-      for (const char* ext : {".png", ".npy"})
-        if (fs::exists(out_dir / o / (s + ext))) found.push_back((fs::path(o) / (s + ext)).generic_string());
-  if (found.empty()) return;
-  throw std::runtime_error("-o " + out_arg + " already holds renders this run would replace (" + found.front() +
-                           (found.size() > 1 ? " and " + std::to_string(found.size() - 1) + " more" : "") +
-                           "): give another -o, or --force to replace them");
-}
-
 std::array<float, 3> parse_rgb(const std::string& s) {
   std::array<float, 3> v{};
   std::stringstream ss(s);
@@ -263,7 +248,11 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
   if (wants("instance")) mapper.set_clusters(anchor_cluster, children);
   fs::path out_dir(a.out);
   const std::vector<std::string> stems = output_stems(cams);
-  if (!a.force) refuse_existing_renders(out_dir, outputs, stems, a.out);
+  std::vector<std::string> files;  // what this run writes, inside OUT
+  for (const std::string& o : outputs)
+    for (const std::string& stem : stems)
+      for (const char* ext : {".png", ".npy"}) files.push_back(o + "/" + stem + ext);
+  refuse_existing_results("-o", a.out, files, a.force);
   for (const std::string& o : outputs) fs::create_directories(out_dir / o);
   auto t0 = std::chrono::steady_clock::now();
   for (size_t i = 0; i < cams.size(); ++i) {

@@ -108,6 +108,22 @@ void refuse_nonempty_dir(const std::string& dir, bool force, const std::string& 
                            ". Nothing was changed: choose a new folder, or give --force to write over it");
 }
 
+void refuse_existing_results(const std::string& flag, const std::string& out, const std::vector<std::string>& rel,
+                             bool force) {
+  if (force) return;
+  std::error_code ec;
+  std::vector<std::string> found;
+  if (rel.empty() && fs::exists(out, ec)) found.push_back(out);
+  for (const std::string& r : rel)
+    if (fs::exists(fs::path(out) / r, ec)) found.push_back(r);
+  if (found.empty()) return;
+  const std::string which =
+      found.front() + (found.size() > 1 ? " and " + std::to_string(found.size() - 1) + " more" : std::string());
+  throw std::runtime_error(
+      flag + " " + out + (rel.empty() ? " exists" : " already holds results this run would replace (" + which + ")") +
+      "; nothing was changed. Give another " + flag + ", or --force to replace " + (found.size() > 1 ? "them" : "it"));
+}
+
 void refuse_output_over_inputs(const std::string& out, const std::vector<std::string>& inputs,
                                const std::string& flag) {
   const fs::path o = resolved(out);

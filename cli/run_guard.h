@@ -50,6 +50,13 @@ void refuse_model_overwrite(const std::string& dir, bool force, const std::strin
 // `force`; `what` says what would be replaced ("the scene's images").
 void refuse_nonempty_dir(const std::string& dir, bool force, const std::string& what);
 
+// Refuses, unless `force`, to replace the results of an earlier run: the
+// files this run would write, `rel` (paths inside the folder `out`), or
+// `out` itself when `rel` is empty. The message names the first one found,
+// how many more there are, and `flag` (e.g. "-o").
+void refuse_existing_results(const std::string& flag, const std::string& out, const std::vector<std::string>& rel,
+                             bool force);
+
 // Refuses an output path that names one of the input files (`flag` names
 // the option, e.g. "-o"). Paths are compared after resolving `.`, `..` and
 // the symbolic links of the parts that exist.

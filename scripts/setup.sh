@@ -21,6 +21,6 @@ build/ag2gs render out/synth_small --scene data_samples/synth_small --views test
   -o out/synth_small/test_renders --force
 # Text and click queries on the held-out views against the scene's labels.
 build/ag2gs eval out/synth_small --scene data_samples/synth_small --labels data_samples/synth_small/label \
-  --vocab data_samples/synth_small/vocab.json --clicks data_samples/synth_small/clicks.json -o out/synth_small/eval.json
+  --vocab data_samples/synth_small/vocab.json --clicks data_samples/synth_small/clicks.json -o out/synth_small/eval.json --force
 echo "setup: done. Model in out/synth_small/ (point_cloud.ply, model.ag2gs, metrics.json);"
 echo "       renders of the held-out views in out/synth_small/test_renders/; query scores in out/synth_small/eval.json"

@@ -747,6 +747,18 @@ TEST(QueryCli, TextByVocabularyAndByEmbedding) {
   j = nlohmann::json::parse(std::ifstream(w.dir.file("t2/selection.json")));
   EXPECT_EQ(json_ids(j["anchors"]), w.built.anchors[1]);
   EXPECT_TRUE(fs::exists(w.dir.file("t2/masks/view_000.png")));
+  // A second query into t2 is refused and leaves the first one's files;
+  // --force replaces them.
+  const std::string first = test::read_file(w.dir.file("t2/selection.json"));
+  r = test::run_cli(w.base("stage3", "t2") + "--text \"red cube\" --vocab " + w.dir.file("vocab.json"));
+  EXPECT_EQ(r.code, 1) << r.output;
+  EXPECT_NE(r.output.find("selection.json and 3 more"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("--force"), std::string::npos) << r.output;
+  EXPECT_EQ(test::read_file(w.dir.file("t2/selection.json")), first);
+  r = test::run_cli(w.base("stage3", "t2") + "--text \"red cube\" --vocab " + w.dir.file("vocab.json") + " --force");
+  ASSERT_EQ(r.code, 0) << r.output;
+  j = nlohmann::json::parse(std::ifstream(w.dir.file("t2/selection.json")));
+  EXPECT_EQ(json_ids(j["anchors"]), w.built.anchors[0]);
 }
 
 TEST(QueryCli, Errors) {
@@ -919,6 +931,14 @@ TEST(QueryEval, CliScoresTextAndClickQueriesAgainstTheLabels) {
   EXPECT_NE(r.output.find("view_000"), std::string::npos) << r.output;
   EXPECT_NE(r.output.find("mean"), std::string::npos) << r.output;
   const nlohmann::json j = nlohmann::json::parse(std::ifstream(w.dir.file("report.json")));
+  // The same report again: refused (the first one stays), then --force.
+  const std::string first = test::read_file(w.dir.file("report.json"));
+  const auto again = test::run_cli(w.eval("report.json") + "--no-grow");
+  EXPECT_EQ(again.code, 1) << again.output;
+  EXPECT_NE(again.output.find("exists"), std::string::npos) << again.output;
+  EXPECT_NE(again.output.find("--force"), std::string::npos) << again.output;
+  EXPECT_EQ(test::read_file(w.dir.file("report.json")), first);
+  EXPECT_EQ(test::run_cli(w.eval("report.json") + "--clicks " + w.dir.file("clicks.json") + " --force").code, 0);
   ASSERT_EQ(j["text"]["items"].size(), 2u);
   ASSERT_EQ(j["click"]["items"].size(), 3u);
   EXPECT_EQ(j["unscored_clicks"].get<int>(), 1);
