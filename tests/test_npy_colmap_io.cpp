@@ -661,6 +661,35 @@ TEST(ColmapWriter, TextRoundTripWithColmapHeaders) {
   }
   EXPECT_EQ(image_lines, 5);
 
+  // A dropped line of 2D points (issue 42: the next image's header was read
+  // as the points and that view silently lost) and a broken triple are errors
+  // naming the file, its line and the image; points that are triples are read.
+  {
+    std::string one_less, with_points;
+    std::istringstream in(images);
+    bool dropped = false;
+    for (std::string l; std::getline(in, l);) {
+      if (!dropped && l.empty()) {
+        dropped = true;
+        with_points += "10.5 20.25 7 11 12 -1\n";
+        continue;
+      }
+      one_less += l + "\n";
+      with_points += l + "\n";
+    }
+    const std::string path = dir.file("images.txt");
+    write_bytes(path, one_less);
+    expect_error_with<std::runtime_error>([&] { read_colmap_model(dir.path().string()); },
+                                          {"images.txt:6", "2D points of image '" + s.cameras[0].name + "'",
+                                           "two lines"});
+    write_bytes(path, with_points);
+    expect_same_model(read_colmap_model(dir.path().string()), s, 1e-12);
+    write_bytes(path, with_points.replace(with_points.find(" -1\n"), 4, "\n"));
+    expect_error_with<std::runtime_error>([&] { read_colmap_model(dir.path().string()); },
+                                          {"images.txt:6", "hold 5 numbers"});
+    write_bytes(path, images);
+  }
+
   // No colours: grey. No cameras or points at all: valid, empty files.
   s.colors.clear();
   write_colmap_model(dir.path().string(), s.cameras, s.points, s.colors, false);
@@ -697,6 +726,23 @@ TEST(ColmapWriter, RejectsBadInputBeforeWriting) {
   bad = s;
   bad.cameras[1].fx = 0;
   expect_error_with<std::invalid_argument>([&] { write(bad); }, {bad.cameras[1].name, "fx"});
+  // Finite but absurd numbers (issue 42: fx 1e300 and 1e-300, a translation
+  // of 1e300 were accepted and overflowed later).
+  for (double fx : {1e300, 1e-300}) {
+    bad = s;
+    bad.cameras[1].fx = fx;
+    expect_error_with<std::invalid_argument>([&] { write(bad); }, {bad.cameras[1].name, "not those of a camera"});
+  }
+  bad = s;
+  bad.cameras[1].cy = -1e300;
+  expect_error_with<std::invalid_argument>([&] { write(bad); }, {bad.cameras[1].name, "principal point"});
+  bad = s;
+  bad.cameras[0].t.y() = 1e300;
+  expect_error_with<std::invalid_argument>([&] { write(bad); }, {bad.cameras[0].name, "implausibly large"});
+  bad = s;
+  bad.cameras[0].t.y() = 6e6;  // a UTM northing is fine
+  write(bad);
+  fs::remove_all(sparse);
   bad = s;
   bad.cameras[2].R(0, 0) += 0.1;
   expect_error_with<std::invalid_argument>([&] { write(bad); }, {"not a rotation"});

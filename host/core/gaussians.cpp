@@ -80,7 +80,28 @@ void Camera::validate() const {
     msg << "principal point (" << cx << ", " << cy << ") must be finite";
     fail(msg.str());
   }
+  // Finite but absurd numbers (a corrupt file: fx 1e300, t 1e300) would
+  // overflow later, far from their cause. The bounds admit any real lens
+  // (a focal length of 1e-4 to 1e6 image sizes) and geo-referenced poses.
+  const double size = std::max(width, height);
+  if (!(fx >= 1e-4 * size && fx <= 1e6 * size) || !(fy >= 1e-4 * size && fy <= 1e6 * size)) {
+    std::ostringstream msg;
+    msg << "focal lengths fx = " << fx << ", fy = " << fy << " are not those of a camera with a " << width << "x"
+        << height << " image (expected 1e-4 to 1e6 times its size)";
+    fail(msg.str());
+  }
+  if (!(std::abs(cx) <= 1e6 * size) || !(std::abs(cy) <= 1e6 * size)) {
+    std::ostringstream msg;
+    msg << "principal point (" << cx << ", " << cy << ") lies implausibly far outside the " << width << "x" << height
+        << " image";
+    fail(msg.str());
+  }
   if (!R.allFinite() || !t.allFinite()) fail("pose (R, t) contains a non-finite value");
+  if (!(t.cwiseAbs().maxCoeff() <= 1e9)) {
+    std::ostringstream msg;
+    msg << "translation (" << t.transpose() << ") is implausibly large (beyond 1e9 scene units)";
+    fail(msg.str());
+  }
   // A rotation: orthonormal with determinant +1. The tolerance admits doubles
   // built from a normalised quaternion, not a scaled or reflected matrix.
   const double ortho_err = (R.transpose() * R - Eigen::Matrix3d::Identity()).cwiseAbs().maxCoeff();

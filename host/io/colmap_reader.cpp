@@ -300,7 +300,24 @@ std::vector<RawImage> read_images_txt(const std::string& path) {
     im.name = tok[9];
     for (size_t i = 10; i < tok.size(); ++i) im.name += " " + tok[i];
     images.push_back(im);
-    in.next_line(&points_line);  // the 2D points: not needed
+    // The 2D points (not needed) as X Y POINT3D_ID triples, possibly none. A
+    // dropped points line would otherwise swallow the next image's header.
+    if (in.next_line(&points_line)) {
+      std::istringstream ss(points_line);
+      std::string t;
+      size_t n = 0;
+      while (ss >> t) {
+        char* end = nullptr;
+        std::strtod(t.c_str(), &end);
+        if (*end != '\0')
+          in.bad("expected the 2D points of image '" + im.name + "' (X Y POINT3D_ID ..., or an empty line), found '" +
+                 points_line.substr(0, 80) + "': every image takes two lines, its header and its points");
+        ++n;
+      }
+      if (n % 3 != 0)
+        in.bad("the 2D points of image '" + im.name + "' hold " + std::to_string(n) +
+               " numbers, not X Y POINT3D_ID triples: every image takes two lines, its header and its points");
+    }
   }
   return images;
 }
