@@ -87,12 +87,13 @@ void apply_preset(const CLI::App& sub, TrainArgs& a) {
   unless_given("--lr-offset", c.offset_lr_init, 1e-2);
   unless_given("--lr-scaling", c.scaling_lr, 0.01);
   unless_given("--grow-min-seen", c.grow_min_seen, 0.1);
+  unless_given("--grow-split", c.grow_split, 4.0);
   spdlog::info(
       "preset {}: --scale-cap {} --children {} --init-layers {} --{} --grow-budget {} --grow-min-seen {} "
-      "--recycle-opacity {} --final-prune-opacity {} --lr-offset {} --lr-scaling {}",
+      "--grow-split {} --recycle-opacity {} --final-prune-opacity {} --lr-offset {} --lr-scaling {}",
       a.preset, c.anchors.scale_cap, c.anchors.children, c.anchors.init_layers,
       c.anchors.init_children_at_points ? "init-children-at-points" : "init-children-random", c.grow_budget,
-      c.grow_min_seen, c.recycle_opacity, c.final_prune_opacity, c.offset_lr_init, c.scaling_lr);
+      c.grow_min_seen, c.grow_split, c.recycle_opacity, c.final_prune_opacity, c.offset_lr_init, c.scaling_lr);
 }
 
 bool has_stage(const TrainArgs& a, int s) {
@@ -260,9 +261,14 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
     const GrowthConfig g = c.growth_config(scene->train_views().size());
     spdlog::info(
         "anchor growing{} every {} iterations from {} to {} (threshold {:.3g}, for children seen in at least {:.0f}% "
-        "of a round's views); pruning: opacity < {:.3g}{}, unseen {}{}",
+        "of a round's views; {}); pruning: opacity < {:.3g}{}, unseen {}{}",
         c.anchors.layers > 1 ? "" : " (one layer: pruning only)", c.grow_every, c.grow_from, c.effective_grow_until(),
-        c.grow_threshold, 100 * c.grow_min_seen, c.prune_opacity, c.prune_opacity > 0 ? "" : " (off)",
+        c.grow_threshold, 100 * c.grow_min_seen,
+        c.grow_split > 0 ? fmt::format("split: children {:g} finer voxels wide also ask at +-1 sigma, and their "
+                                       "anchors start at their scale / 1.6",
+                                       c.grow_split)
+                         : std::string("no split: one finer anchor at a child's mean, grown children start small"),
+        c.prune_opacity, c.prune_opacity > 0 ? "" : " (off)",
         g.prune_unseen ? "in the last " + std::to_string(g.unseen_window) + " views" : std::string("off"),
         c.final_prune_opacity > 0
             ? fmt::format("; after iteration {}: mean opacity < {:.3g}", c.iterations, c.final_prune_opacity)
@@ -452,11 +458,13 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                   "-1)")
       ->check(CLI::Range(-2, 3));
   sub->add_option("--lr-sky", c.sky_lr, "Learning rate of the sky's coefficients (default 0.01)")
-      ->check(CLI::NonNegativeNumber);
+      ->check(finite_range(0, 100));
   sub->add_option("--lambda-ssim", c.lambda_ssim, "Weight of 1 - SSIM in L_rgb (default 0.2)")
       ->check(finite_range(0.0, 1.0));
-  sub->add_option("--w-offset", c.w_offset, "Weight of the offset regulariser L_in (default 0.5)");
-  sub->add_option("--w-dist", c.w_distortion, "Weight of the depth distortion L_d (default 50)");
+  sub->add_option("--w-offset", c.w_offset, "Weight of the offset regulariser L_in (default 0.5)")
+      ->check(finite_range(0, 1e+06));
+  sub->add_option("--w-dist", c.w_distortion, "Weight of the depth distortion L_d (default 50)")
+      ->check(finite_range(0, 1e+06));
   sub->add_option("--dist-from", c.distortion_from, "First iteration with the distortion term (default 0)");
   sub->add_option("--downscales", c.downscales,
                   "Coarse-to-fine: start at the images divided by 2^N, doubling the resolution every --res-schedule "
@@ -473,9 +481,9 @@ void register_train(CLI::App& app, GlobalOptions& global) {
       ->check(finite_range(1e-6, 1.0));
   sub->add_option("--w-is", c.w_is,
                   "Weight of the mask-internal loss L_is on the rendered features (default 0.1; scenes with masks)")
-      ->check(non_negative_number());
+      ->check(finite_range(0, 1e+06));
   sub->add_option("--w-ic", c.w_ic, "Weight of the mask-contrast loss L_ic (default 0.1)")
-      ->check(non_negative_number());
+      ->check(finite_range(0, 1e+06));
   sub->add_option("--mask-from", c.mask_from,
                   "First iteration with the mask losses (default -1 = iters / 6, the official 5k of 30k)")
       ->check(CLI::Range(-1, std::numeric_limits<int>::max()));
@@ -499,18 +507,25 @@ void register_train(CLI::App& app, GlobalOptions& global) {
   sub->add_flag("!--no-feature-ball", c.feature_ball,
                 "Let the semantic features grow without bound (default: projected into the unit ball after each "
                 "step, so the graph stages' absolute thresholds keep their meaning)");
-  sub->add_option("--lr-feature", c.feature_lr, "Semantic feature learning rate (default 0.05)");
+  sub->add_option("--lr-feature", c.feature_lr, "Semantic feature learning rate (default 0.05)")
+      ->check(finite_range(0, 100));
   sub->add_option("--lr-offset", c.offset_lr_init,
-                  "Offset learning rate at the start (default 1e-2; --preset paper 1e-3; voxel units)");
-  sub->add_option("--lr-offset-final", c.offset_lr_final, "Offset learning rate at the end (default 1e-4)");
+                  "Offset learning rate at the start (default 1e-2; --preset paper 1e-3; voxel units)")
+      ->check(finite_range(0, 100));
+  sub->add_option("--lr-offset-final", c.offset_lr_final, "Offset learning rate at the end (default 1e-4)")
+      ->check(finite_range(0, 100));
   sub->add_flag("--lr-offset-extent,!--no-lr-offset-extent", c.offset_lr_extent,
                 "Multiply the offset rates by the camera radius (default on, as the official code; "
                 "--no-lr-offset-extent for voxel units alone)");
-  sub->add_option("--lr-sh", c.sh_dc_lr, "SH DC learning rate (default 0.0025)");
-  sub->add_option("--lr-sh-rest", c.sh_rest_lr, "Higher SH learning rate (default 0.0025 / 20)");
-  sub->add_option("--lr-opacity", c.opacity_lr, "Opacity logit learning rate (default 0.05)");
-  sub->add_option("--lr-scaling", c.scaling_lr, "Scale logit learning rate (default 0.01; --preset paper 0.005)");
-  sub->add_option("--lr-rotation", c.rotation_lr, "Rotation learning rate (default 0.001)");
+  sub->add_option("--lr-sh", c.sh_dc_lr, "SH DC learning rate (default 0.0025)")->check(finite_range(0, 100));
+  sub->add_option("--lr-sh-rest", c.sh_rest_lr, "Higher SH learning rate (default 0.0025 / 20)")
+      ->check(finite_range(0, 100));
+  sub->add_option("--lr-opacity", c.opacity_lr, "Opacity logit learning rate (default 0.05)")
+      ->check(finite_range(0, 100));
+  sub->add_option("--lr-scaling", c.scaling_lr, "Scale logit learning rate (default 0.01; --preset paper 0.005)")
+      ->check(finite_range(0, 100));
+  sub->add_option("--lr-rotation", c.rotation_lr, "Rotation learning rate (default 0.001)")
+      ->check(finite_range(0, 100));
   sub->add_option("--top-cells", c.anchors.top_cells,
                   "Top-layer voxels along the longest robust extent of the SfM points (default: the voxel is "
                   "chosen from the scene, a finest-layer voxel of about a pixel at the points' median depth; "
@@ -569,12 +584,20 @@ void register_train(CLI::App& app, GlobalOptions& global) {
       ->check(non_negative_number());
   sub->add_option("--grow-threshold", c.grow_threshold,
                   "Mean screen-space gradient (NDC units) above which a child grows a finer anchor (default 1.5e-4, "
-                  "x2 per layer)");
+                  "x2 per layer)")
+      ->check(finite_range(1e-12, 1000));
   sub->add_option("--grow-min-seen", c.grow_min_seen,
                   "Fraction of a round's iterations a child must be visible in to grow (default 0.1, so the far "
                   "background that a circling capture sees in a few views grows too; --preset paper and the "
                   "official code 0.4)")
       ->check(finite_range(0.0, 1.0));
+  sub->add_option("--grow-split", c.grow_split,
+                  "Split growth, as 3DGS splits a large Gaussian: a growing child at least this many voxels of the "
+                  "layer it grows into wide along one of its two longest axes also asks for anchors at +-1 "
+                  "standard deviation along it, and the anchors it grows start at its scale / 1.6 "
+                  "(default 4; 0 = off: one anchor at the child's mean whose children start at --init-scale, "
+                  "--preset paper and the official code)")
+      ->check(finite_range(0.0, 1e6));
   sub->add_option("--prune-opacity", c.prune_opacity,
                   "In growing rounds, remove anchors whose children's mean opacity is below this (default 0.01; 0 = "
                   "off)")
@@ -613,9 +636,9 @@ void register_train(CLI::App& app, GlobalOptions& global) {
   sub->add_option("--w-prop", c.w_prop,
                   "Weight of the propagation loss L_prop (a mean over edges) in stage 2 (default 10; the paper's 0.01 "
                   "is on a sum)")
-      ->check(non_negative_number());
+      ->check(finite_range(0, 1e+06));
   sub->add_option("--prop-tau", c.prop_tau, "Bilateral bandwidth tau of L_prop (default 0.05)")
-      ->check(positive_number());
+      ->check(finite_range(1e-09, 1e+06));
   Stage3Config& s3 = a->stage3;
   sub->add_option("--cluster-distance", s3.cluster.max_distance,
                   "Stage 3: join graph neighbours whose feature distance is below this (default 0.01)")
@@ -633,7 +656,8 @@ void register_train(CLI::App& app, GlobalOptions& global) {
       ->check(finite_range(0.5, 0.999));
   sub->add_option("--preset", a->preset,
                   "default (= appearance: --scale-cap 64 --children 2 --init-layers 2 --init-children-at-points "
-                  "--grow-budget 0.1 --grow-min-seen 0.1 --recycle-opacity 0.02 --lr-offset 1e-2 --lr-scaling 0.01, "
+                  "--grow-budget 0.1 --grow-min-seen 0.1 --grow-split 4 --recycle-opacity 0.02 --lr-offset 1e-2 "
+                  "--lr-scaling 0.01, "
                   "the voxel from the "
                   "scene) or paper (the method as published: --top-cells 200, 5 children inside their voxels, "
                   "--scale-cap 1, one seeded layer, no growth budget); flags given explicitly win")

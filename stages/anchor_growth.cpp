@@ -2,6 +2,7 @@
 
 #include <spdlog/spdlog.h>
 
+#include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
 #include <limits>
@@ -22,6 +23,26 @@ constexpr int kWorkGroup = 64;
 
 double sigmoid(double x) {
   return 1.0 / (1.0 + std::exp(-x));
+}
+
+// The split requests of child g (GrowthConfig::split_voxels): its standard
+// deviation times its axis, in world units, for each of its two longest axes
+// whose standard deviation is at least `least` (ties: the lower axis first).
+std::vector<Eigen::Vector3d> split_axes(const AnchorModel& model, size_t g, double least) {
+  const size_t a = g / static_cast<size_t>(model.children());
+  const double extent = double(model.config().cap(model.layer()[a])) * model.voxel()[a];
+  const float* q = &model.quat()[4 * g];
+  Eigen::Quaterniond rotation(q[0], q[1], q[2], q[3]);
+  std::vector<Eigen::Vector3d> axes;
+  if (!(rotation.norm() > 0) || !std::isfinite(rotation.norm())) return axes;
+  const Eigen::Matrix3d R = rotation.normalized().toRotationMatrix();
+  double sigma[3];
+  for (int k = 0; k < 3; ++k) sigma[k] = sigmoid(model.scale_logit()[3 * g + k]) * extent;
+  int order[3] = {0, 1, 2};
+  std::stable_sort(order, order + 3, [&](int x, int y) { return sigma[x] > sigma[y]; });
+  for (int j = 0; j < 2; ++j)
+    if (sigma[order[j]] >= least) axes.push_back(sigma[order[j]] * R.col(order[j]));
+  return axes;
 }
 
 constexpr double kRecycleJitter = 0.1;  // voxel units, each axis +-
@@ -49,6 +70,7 @@ void GrowthConfig::validate() const {
   if (!(recycle_opacity >= 0 && recycle_opacity < 1)) bad("recycle_opacity must be in [0, 1)");
   if (!(round_growth >= 0) || !std::isfinite(round_growth)) bad("round_growth must be finite and >= 0 (0 = no limit)");
   if (min_round_anchors < 0) bad("min_round_anchors must be >= 0");
+  if (!(split_voxels >= 0) || !std::isfinite(split_voxels)) bad("split_voxels must be finite and >= 0 (0 = off)");
 }
 
 GrowthConfig GrowthConfig::scale_to(int iterations, int reference, int min_every) const {
@@ -190,6 +212,7 @@ GrowthResult AnchorGrowth::step(AnchorModel& model, uint64_t seed) {
     int layer;
     Eigen::Vector3i cell;
     double score;  // mean gradient / threshold of the child's layer, x its seen share (below)
+    bool large;    // the child splits (GrowthConfig::split_voxels)
   };
   // Under the budget, a child seen in fewer than 40% of the round's steps
   // (the official rule's bar) ranks by its mean gradient scaled by the
@@ -214,18 +237,26 @@ GrowthResult AnchorGrowth::step(AnchorModel& model, uint64_t seed) {
     Eigen::Vector3d mean;
     for (int k = 0; k < 3; ++k) mean[k] = double(model.pos()[3 * a + k]) + double(model.offset()[3 * g + k]) * l;
     if (!mean.allFinite()) continue;
-    auto request = [&](int to_layer) {
-      const Eigen::Vector3i cell = grid.cell_of(to_layer, mean);
+    const int split_to = std::min(layer + 1, layers - 1);
+    const std::vector<Eigen::Vector3d> axes = config_.split_voxels > 0
+                                                  ? split_axes(model, g, config_.split_voxels * grid.voxel(split_to))
+                                                  : std::vector<Eigen::Vector3d>();
+    auto request = [&](int to_layer, const Eigen::Vector3d& at) {
+      const Eigen::Vector3i cell = grid.cell_of(to_layer, at);
       if ((cell.array() < -kMaxAnchorCell).any() || (cell.array() >= kMaxAnchorCell).any()) return;
       const double share = std::min(1.0, static_cast<double>(st.count[g]) / full_seen);
       const double seen = share * share;
-      requests.push_back(
-          {anchor_voxel_key(to_layer, cell), static_cast<int64_t>(g), to_layer, cell, mean_grad / threshold * seen});
+      requests.push_back({anchor_voxel_key(to_layer, cell), static_cast<int64_t>(g), to_layer, cell,
+                          mean_grad / threshold * seen, !axes.empty()});
     };
-    if (layer + 1 < layers) request(layer + 1);
+    if (layer + 1 < layers) request(layer + 1, mean);
     if (config_.same_layer) {
       const Eigen::Vector3d centre(model.pos()[3 * a], model.pos()[3 * a + 1], model.pos()[3 * a + 2]);
-      if (grid.cell_of(layer, mean) != grid.cell_of(layer, centre)) request(layer);
+      if (grid.cell_of(layer, mean) != grid.cell_of(layer, centre)) request(layer, mean);
+    }
+    for (const Eigen::Vector3d& axis : axes) {
+      request(split_to, mean + axis);
+      request(split_to, mean - axis);
     }
   }
   r.requests = static_cast<int>(requests.size());
@@ -244,8 +275,9 @@ GrowthResult AnchorGrowth::step(AnchorModel& model, uint64_t seed) {
     fresh.resize(allowed);
     std::sort(fresh.begin(), fresh.end(), [](const Request& x, const Request& y) { return x.key < y.key; });
   }
+  // A split child's anchors start at its scale / 1.6; the others as published.
   for (const Request& q : fresh)
-    if (model.add_anchor(q.layer, q.cell, q.child, seed) >= 0) ++r.added;
+    if (model.add_anchor(q.layer, q.cell, q.child, seed, q.large ? kSplitShrink : 0.0) >= 0) ++r.added;
 
   // 2. Prune the anchors that existed before this step.
   const size_t A1 = model.size();

@@ -88,6 +88,9 @@
 
 namespace ag2gs {
 
+// 3DGS's split divides a Gaussian's scale by 1.6 (0.8 x 2).
+inline constexpr double kSplitShrink = 1.6;
+
 struct GrowthConfig {
   float grad_threshold = 1.5e-4f;  // mean gradient norm (NDC units when ndc) to grow, layer 0
   float layer_factor = 2.f;        // the threshold on layer L is grad_threshold * layer_factor^L
@@ -113,6 +116,17 @@ struct GrowthConfig {
   // transparent child costs as much to render as an opaque one; this puts it
   // where its anchor has something to show. 0 = off.
   float recycle_opacity = 0.f;
+  // Split growth, 3DGS's split carried over to anchors; 0 = off (the
+  // published rule). A growing child whose standard deviation along one of
+  // its two longest axes spans at least split_voxels voxels of the layer it
+  // grows into is split: it also asks at its mean +- one standard deviation
+  // along each such axis, and the anchors it wins give their children its
+  // scale / kSplitShrink instead of init_scale (other children grow as
+  // published). Without it a large child (a wall or a far background
+  // smeared by one Gaussian) asks for one fine anchor at its mean, once, and
+  // the new children start a pixel wide in the middle of it
+  // (docs/benchmarks.md, "Cluttered rooms: split growth").
+  float split_voxels = 0.f;
   // Budgets. A round adds at most max(min_round_anchors, ceil(round_growth *
   // anchors before it)) anchors (0 = no per-round limit) and never takes the
   // model past max_gaussians children (0 = no limit). When more voxels ask,

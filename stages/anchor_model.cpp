@@ -231,18 +231,31 @@ AnchorInitStats AnchorModel::initialise_from_points(const std::vector<Eigen::Vec
 }
 
 void AnchorModel::append_anchor(int layer, const Eigen::Vector3i& cell, uint64_t seed, const Eigen::Vector3d& colour,
-                                int64_t parent_child) {
+                                int64_t parent_child, double parent_scale_divisor) {
   const int K = config_.children;
   const uint64_t key = anchor_voxel_key(layer, cell);
   // Copy the parent's values first: the vectors below may reallocate.
   float parent_feature[3] = {0, 0, 0}, parent_quat[4] = {1, 0, 0, 0}, parent_opacity = 0;
   float parent_sh[kAnchorShCoeffs * 3] = {};
+  const float init_logit = static_cast<float>(logit(double(config_.init_scale) / config_.cap(layer)));
+  float scale_logit[3] = {init_logit, init_logit, init_logit};
   if (parent_child >= 0) {
     const size_t pa = static_cast<size_t>(parent_child) / K, pc = static_cast<size_t>(parent_child);
     std::copy_n(&feature_[pa * 3], 3, parent_feature);
     std::copy_n(&quat_[pc * 4], 4, parent_quat);
     parent_opacity = opacity_logit_[pc];
     std::copy_n(&sh_[pc * kAnchorShCoeffs * 3], kAnchorShCoeffs * 3, parent_sh);
+    if (parent_scale_divisor > 0) {
+      // The parent's world scale over the divisor, in the new voxel's units.
+      const double parent_extent = double(config_.cap(layer_[pa])) * voxel_[pa];
+      const double extent = double(config_.cap(layer)) * grid_.voxel(layer);
+      for (int k = 0; k < 3; ++k) {
+        const double world = sigmoid(scale_logit_[pc * 3 + k]) * parent_extent / parent_scale_divisor;
+        const double least = double(config_.init_scale) / config_.cap(layer);
+        const double u = std::clamp(world / extent, least, std::max(least, 0.9));
+        scale_logit[k] = static_cast<float>(logit(u));
+      }
+    }
   }
 
   index_.emplace(key, static_cast<int>(size()));
@@ -258,12 +271,11 @@ void AnchorModel::append_anchor(int layer, const Eigen::Vector3i& cell, uint64_t
   layer_.push_back(layer);
   voxel_.push_back(static_cast<float>(grid_.voxel(layer)));
 
-  const float scale_logit = static_cast<float>(logit(double(config_.init_scale) / config_.cap(layer)));
   const float opacity_logit = static_cast<float>(logit(config_.init_opacity));
   for (int i = 0; i < K; ++i) {
     for (int k = 0; k < 3; ++k) {
       offset_.push_back(static_cast<float>(anchor_uniform01(seed, key, i, kOffsetX + k) - 0.5));
-      scale_logit_.push_back(scale_logit);
+      scale_logit_.push_back(scale_logit[k]);
     }
     if (parent_child >= 0) {
       quat_.insert(quat_.end(), parent_quat, parent_quat + 4);
@@ -281,7 +293,8 @@ void AnchorModel::append_anchor(int layer, const Eigen::Vector3i& cell, uint64_t
   }
 }
 
-int AnchorModel::add_anchor(int layer, const Eigen::Vector3i& cell, int64_t parent_child, uint64_t seed) {
+int AnchorModel::add_anchor(int layer, const Eigen::Vector3i& cell, int64_t parent_child, uint64_t seed,
+                            double parent_scale_divisor) {
   if (layer < 0 || layer >= config_.layers)
     throw std::out_of_range("add_anchor: layer " + std::to_string(layer) + " is outside 0.." +
                             std::to_string(config_.layers - 1));
@@ -289,7 +302,7 @@ int AnchorModel::add_anchor(int layer, const Eigen::Vector3i& cell, int64_t pare
     throw std::out_of_range("add_anchor: parent child " + std::to_string(parent_child) + " is outside -1.." +
                             std::to_string(static_cast<int64_t>(gaussians()) - 1));
   if (!cell_in_range(cell) || find(layer, cell) >= 0) return -1;
-  append_anchor(layer, cell, seed, Eigen::Vector3d::Constant(0.5), parent_child);
+  append_anchor(layer, cell, seed, Eigen::Vector3d::Constant(0.5), parent_child, parent_scale_divisor);
   return static_cast<int>(size()) - 1;
 }
 

@@ -141,9 +141,14 @@ class AnchorModel {
   // (five full copies of an opaque parent would stack up where it already
   // covers the surface): the growing step's "a finer anchor where this child
   // needs detail". parent_child = -1 gives
-  // grey children with init_opacity and a random feature. Throws
-  // std::out_of_range for a bad layer or parent_child.
-  int add_anchor(int layer, const Eigen::Vector3i& cell, int64_t parent_child, uint64_t seed);
+  // grey children with init_opacity and a random feature. With
+  // parent_scale_divisor > 0 (and a parent), every new child takes the parent
+  // child's world scale per axis divided by it instead of init_scale * l,
+  // kept between init_scale * l and 0.9 x its cap (the split of section 3.3
+  // in docs/design.md). Throws std::out_of_range for a bad layer or
+  // parent_child.
+  int add_anchor(int layer, const Eigen::Vector3i& cell, int64_t parent_child, uint64_t seed,
+                 double parent_scale_divisor = 0);
 
   // Keeps the anchors with keep[a] != 0 (keep: [size()]) in their order and
   // drops the rest with their children. Returns the old id of every kept
@@ -199,7 +204,7 @@ class AnchorModel {
 
  private:
   void append_anchor(int layer, const Eigen::Vector3i& cell, uint64_t seed, const Eigen::Vector3d& dc_colour,
-                     int64_t parent_child);
+                     int64_t parent_child, double parent_scale_divisor = 0);
   void rebuild_index();
 
   struct KeyHash {

@@ -44,6 +44,7 @@ void TrainConfig::validate() const {
   if (!(coarse_lowpass > 0 && coarse_lowpass <= 1)) bad("coarse_lowpass must be in (0, 1]");
   if (grow_every < 0 || grow_from < 0 || grow_until < 0 || !(grow_min_seen >= 0 && grow_min_seen <= 1))
     bad("grow_every, grow_from and grow_until must be >= 0 and grow_min_seen in [0, 1]");
+  if (!(grow_split >= 0) || !std::isfinite(grow_split)) bad("grow_split must be finite and >= 0 (0 = off)");
   if (!(grow_threshold > 0) || !std::isfinite(grow_threshold)) bad("grow_threshold must be finite and > 0");
   if (prune_unseen_window < -1)
     bad("prune_unseen_window is " + std::to_string(prune_unseen_window) +
@@ -87,6 +88,7 @@ GrowthConfig TrainConfig::growth_config(size_t train_views) const {
   g.same_layer = grow_same_layer;
   g.recycle_opacity = static_cast<float>(recycle_opacity);
   g.round_growth = static_cast<float>(grow_budget);
+  g.split_voxels = static_cast<float>(grow_split);
   return g;
 }
 
@@ -158,7 +160,8 @@ nlohmann::json TrainConfig::to_json() const {
             {"until", effective_grow_until()},
             {"every", grow_every},
             {"threshold", grow_threshold},
-            {"min_seen", grow_min_seen}}},
+            {"min_seen", grow_min_seen},
+            {"split", grow_split}}},
           {"prune_opacity", prune_opacity},
           {"prune_unseen_window", prune_unseen_window},
           {"opacity_reset_every", opacity_reset_every},
@@ -231,6 +234,7 @@ TrainConfig TrainConfig::from_json(const nlohmann::json& j) {
     c.grow_every = g.at("every").get<int>();
     c.grow_threshold = g.at("threshold").get<double>();
     c.grow_min_seen = g.at("min_seen").get<double>();
+    c.grow_split = g.value("split", 0.0);  // written before split growth: off
     c.prune_opacity = j.at("prune_opacity").get<double>();
     c.prune_unseen_window = j.at("prune_unseen_window").get<int>();
     c.opacity_reset_every = j.at("opacity_reset_every").get<int>();

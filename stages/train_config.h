@@ -116,6 +116,11 @@ struct TrainConfig {
   // A child grows only when visible in at least this fraction of the
   // iterations since the last round (official: 0.4 = 40 of 100).
   double grow_min_seen = 0.4;
+  // Split growth (GrowthConfig::split_voxels): a growing child this many
+  // voxels of the layer it grows into wide also asks at +- one standard
+  // deviation, and grown children start at the asking child's scale / 1.6;
+  // 0 = off (the published rule).
+  double grow_split = 0;
   // In the same rounds: remove anchors whose children's mean opacity is
   // below this; 0 = no pruning.
   double prune_opacity = 0.01;

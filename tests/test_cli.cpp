@@ -74,7 +74,8 @@ TEST(Cli, RenderWritesOnePngPerViewAtTheCameraResolution) {
   r = run("render --ply " + scene + "/gaussians.ply --scene " + scene + " -o " + out2.string() +
           " --views view_001 --force");
   ASSERT_EQ(r.code, 0) << r.output;
-  EXPECT_NE(ag2gs::test::read_file((out2 / "rgb" / "view_001.png").string()), before) << "-r 1 and a black background now";
+  EXPECT_NE(ag2gs::test::read_file((out2 / "rgb" / "view_001.png").string()), before)
+      << "-r 1 and a black background now";
   fs::remove_all(out);
   fs::remove_all(out2);
 }
@@ -123,6 +124,17 @@ TEST(Cli, BadInputGivesAClearErrorAndNonZeroExit) {
   EXPECT_NE(r.output.find("unknown command 'trian'; did you mean 'train'?"), std::string::npos) << r.output;
   r = run("--device 0 rendr");
   EXPECT_NE(r.output.find("did you mean 'render'?"), std::string::npos) << r.output;
+  // Learning rates and loss weights out of range are refused naming the flag
+  // (issue 42: --w-dist 1e30 wrote Inf into Adam's state; --lr-sh -1 named
+  // an internal field).
+  for (const std::string& flag : {"--w-dist 1e30", "--w-prop 1e30", "--w-is 1e7", "--lr-sh -1", "--lr-offset nan",
+                                  "--grow-threshold 0"}) {
+    r = run("train " + src() + "/data_samples/synth_small -o " + (dir / "t").string() + " --iters 1 " + flag);
+    EXPECT_NE(r.code, 0) << flag;
+    EXPECT_NE(r.output.find(flag.substr(0, flag.find(' ')) + ": must be a number in"), std::string::npos)
+        << flag << ": " << r.output;
+    EXPECT_FALSE(fs::exists(dir / "t")) << flag;
+  }
   r = run("xyzzyplugh");
   EXPECT_EQ(r.code, 2);
   EXPECT_EQ(r.output.find("did you mean"), std::string::npos) << r.output;
@@ -219,9 +231,10 @@ TEST(Cli, TrainPresetsDefaultAppearanceAndPaperExplicitFlagsWin) {
 
   Result app = run(common + (dir / "app").string() + " --preset appearance --children 4");
   ASSERT_EQ(app.code, 0) << app.output;
-  EXPECT_NE(app.output.find("preset appearance: --scale-cap 64 --children 4 --init-layers 2 "
-                            "--init-children-at-points --grow-budget 0.1 --grow-min-seen 0.1 --recycle-opacity 0.02 "
-                            "--final-prune-opacity 0.015 --lr-offset 0.01 --lr-scaling 0.01"),
+  EXPECT_NE(app.output.find(
+                "preset appearance: --scale-cap 64 --children 4 --init-layers 2 "
+                "--init-children-at-points --grow-budget 0.1 --grow-min-seen 0.1 --grow-split 4 --recycle-opacity 0.02 "
+                "--final-prune-opacity 0.015 --lr-offset 0.01 --lr-scaling 0.01"),
             std::string::npos)
       << app.output;
   const auto c = config_of(dir / "app");

@@ -369,6 +369,73 @@ TEST(GrowthDecision, SameLayerGrowthFollowsChildrenOutOfTheirVoxel) {
   m.check();
 }
 
+// Split growth (split_voxels): one large child, 0.9 x 0.6 x 0.1 world units
+// (3.6 x 2.4 x 0.4 voxels of layer 1), turned 90 degrees about z so its
+// longest axis points along world y. Besides the anchor at its mean it asks
+// at +-1 sigma along each of its two longest axes that spans split_voxels
+// finer voxels; the children of its anchors take its scale / 1.6, at least
+// init_scale voxels. A small child of another anchor (0.2 world units, 0.8
+// finer voxels) grows as published: one anchor, init_scale.
+TEST(GrowthDecision, SplitGrowthCoversALargeChildAndHandsDownItsScale) {
+  AnchorConfig c;
+  c.children = 2;
+  c.scale_cap = 64;
+  auto grow = [&](float split_voxels) {
+    AnchorModel m;
+    m.reset(unit_grid(c), c);
+    EXPECT_EQ(m.add_anchor(0, {2, 2, 2}, -1, 3), 0);
+    EXPECT_EQ(m.add_anchor(0, {6, 2, 2}, -1, 3), 1);
+    std::fill(m.offset().begin(), m.offset().end(), 0.f);
+    const double sigma[3] = {0.9, 0.6, 0.1};
+    for (int k = 0; k < 3; ++k) m.scale_logit()[k] = static_cast<float>(std::log(sigma[k] / (64 - sigma[k])));
+    for (int k = 0; k < 3; ++k) m.scale_logit()[3 * 2 + k] = static_cast<float>(std::log(0.2 / (64 - 0.2)));
+    const float h = static_cast<float>(std::sqrt(0.5));
+    const float quarter_turn_z[4] = {h, 0, 0, h};
+    std::copy_n(quarter_turn_z, 4, &m.quat()[0]);
+    GrowthConfig g;
+    g.split_voxels = split_voxels;
+    AnchorGrowth growth(runtime(), g);
+    growth.reset(m.gaussians());
+    std::vector<float> v_px(2 * m.gaussians(), 0.f);
+    v_px[0] = v_px[2 * 2] = 1e-3f / (0.5f * kW);  // children 0 and 2 ask, 1 and 3 do not
+    feed(growth, v_px, std::vector<int>(m.gaussians(), 4), 10, kW, kH);
+    growth.step(m, 5);
+    m.check();
+    return m;
+  };
+  const AnchorModel off = grow(0), on = grow(2), long_only = grow(3);
+  ASSERT_EQ(off.size(), 4u);
+  EXPECT_GE(off.find(1, {10, 10, 10}), 2);
+  EXPECT_GE(off.find(1, {26, 10, 10}), 2);  // the small child's, at (6.5, 2.5, 2.5)
+  ASSERT_EQ(on.size(), 8u);
+  const int small = on.find(1, {26, 10, 10});
+  ASSERT_GE(small, 2);
+  for (const Eigen::Vector3i& cell :
+       {Eigen::Vector3i(10, 10, 10), Eigen::Vector3i(10, 13, 10), Eigen::Vector3i(10, 6, 10),
+        Eigen::Vector3i(7, 10, 10), Eigen::Vector3i(12, 10, 10)})
+    EXPECT_GE(on.find(1, cell), 2) << cell.transpose();
+  ASSERT_EQ(long_only.size(), 6u);  // 2.4 voxels < 3: the second axis asks for nothing
+  EXPECT_EQ(long_only.find(1, {7, 10, 10}), -1);
+  EXPECT_GE(long_only.find(1, {10, 13, 10}), 2);
+
+  // Grown children: the parent's scale / 1.6 per axis (z held at 0.5 voxel
+  // of 0.25), its rotation; without split, init_scale voxels.
+  const double expect_on[3] = {0.9 / 1.6, 0.6 / 1.6, 0.5 * 0.25};
+  auto world_scale = [](const AnchorModel& m, size_t g, int k) {
+    return 64 * 0.25 / (1 + std::exp(-double(m.scale_logit()[3 * g + k])));
+  };
+  for (size_t a = 2; a < on.size(); ++a)
+    for (size_t g = 2 * a; g < 2 * a + 2; ++g) {
+      for (int k = 0; k < 3; ++k)
+        EXPECT_NEAR(world_scale(on, g, k), static_cast<int>(a) == small ? 0.125 : expect_on[k], 1e-6)
+            << "anchor " << a << " child " << g << " axis " << k;
+      if (static_cast<int>(a) != small)
+        for (int k = 0; k < 4; ++k) EXPECT_EQ(on.quat()[4 * g + k], on.quat()[k]);
+    }
+  for (size_t g = 4; g < off.gaussians(); ++g)
+    for (int k = 0; k < 3; ++k) EXPECT_NEAR(world_scale(off, g, k), 0.125, 1e-6);
+}
+
 TEST(GrowthDecision, PrunesLowOpacityAndUnseenButNotNewAnchors) {
   const Ran x = run_scenario();
   EXPECT_EQ(x.r.pruned, 2);

@@ -196,7 +196,8 @@ TEST(TrainState, ResumedRunGivesTheBytesOfTheStraightRun) {
 
 // The same with the switches against the gap to free Gaussians: recycling in
 // the growing rounds, a scale cap on the top layer, children on the SfM points,
-// and the final prune after the last iteration (in the resumed half).
+// the final prune after the last iteration (in the resumed half), and split
+// growth.
 TEST(TrainState, ResumeIsBitExactWithRecyclingAndAScaleCap) {
   TrainConfig cfg = split_config();
   cfg.recycle_opacity = 0.05;
@@ -204,7 +205,13 @@ TEST(TrainState, ResumeIsBitExactWithRecyclingAndAScaleCap) {
   cfg.anchors.scale_cap = 8.f;
   cfg.anchors.scale_cap_layers = 1;
   cfg.anchors.init_children_at_points = true;
+  cfg.grow_split = 2;
   EXPECT_GT(expect_resume_gives_straight_bytes(cfg, "train_resume_switches"), 0);
+  // Split growth goes through the checkpoint; files from before it mean off.
+  EXPECT_EQ(TrainConfig::from_json(cfg.to_json()).grow_split, 2.0);
+  nlohmann::json old = cfg.to_json();
+  old["grow"].erase("split");
+  EXPECT_EQ(TrainConfig::from_json(old).grow_split, 0.0);
 }
 
 // The same with a sky (forced: the sample's open share is below the rule's
