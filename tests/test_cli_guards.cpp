@@ -111,6 +111,25 @@ TEST(CliGuards, EvalRefusesAReportOverItsInputs) {
   expect_unchanged(before, dir.path() / "m", "eval -o over the model");
 }
 
+// A corrupt mask file stops train and baseline before the first iteration
+// (issue 42: masks were read when a view's mask step came, so 7 corrupt
+// files passed `train --iters 20` and failed at iteration 120).
+TEST(CliGuards, CorruptMasksAreFoundBeforeTrainingStarts) {
+  test::ScratchDir dir("guard_masks");
+  const fs::path scene = dir.path() / "scene";
+  fs::create_directories(scene);
+  for (const char* sub : {"images", "sparse", "language_features"})
+    fs::copy(fs::path(sample_scene()) / sub, scene / sub, fs::copy_options::recursive);
+  test::write_bytes((scene / "language_features" / "view_015_s.npy").string(), "not an npy file");
+  for (const std::string cmd : {"train", "baseline"}) {
+    const test::CliResult r = test::run_cli(cmd + " " + scene.string() + " -o " + dir.file(cmd) +
+                                            " -r 4 --iters 2 --log-every 1" + (cmd == "train" ? " --stages 1" : ""));
+    EXPECT_EQ(r.code, 1) << cmd << ": " << r.output;
+    EXPECT_NE(r.output.find("view_015_s.npy"), std::string::npos) << cmd << ": " << r.output;
+    EXPECT_EQ(r.output.find("it      1/"), std::string::npos) << cmd << ": training started: " << r.output;
+  }
+}
+
 TEST(CliGuards, SeedsAndRangesAreCheckedWithReadableBounds) {
   for (const std::string cmd : {"train x -o y", "baseline x -o y", "synth y"})
     for (const std::string seed : {"-1", "1e23", "1.5", "18446744073709551616"}) {
