@@ -127,6 +127,11 @@ void stage3_only(const GlobalOptions& global, TrainArgs& a) {
   const Stage3Summary s = run_stage3_on_model(rt, *scene, a.out, scene->train_views(), a.stage3);
   log_stage3(s, a.stage3);
   spdlog::info("stage 3: {:.1f} s; wrote {}", s.total_ms / 1000, path);
+  if (InterruptGuard::interrupted()) {
+    spdlog::warn("{} during stage 3: it finished and {} is complete; exiting with status {}",
+                 InterruptGuard::signal_name(), path, InterruptGuard::exit_code());
+    InterruptGuard::exit_after_saving();
+  }
 }
 
 // The settings outside TrainConfig that shape a run's files: the stages and
@@ -189,6 +194,11 @@ void adopt_checkpoint_config(TrainArgs& a) {
 }
 
 void cmd_train(const GlobalOptions& global, TrainArgs& a) {
+  // Ctrl-C, SIGTERM and SIGHUP from here on: before training nothing is
+  // written and the run stops there; during training the iteration finishes
+  // and a checkpoint is saved; during stage 3 it finishes (its model file is
+  // replaced whole) and the run exits with the signal's status.
+  InterruptGuard interrupts;
   std::sort(a.stages.begin(), a.stages.end());
   a.stages.erase(std::unique(a.stages.begin(), a.stages.end()), a.stages.end());
   if (a.stages.empty()) throw std::invalid_argument("--stages needs at least one of 1, 2, 3");
@@ -295,8 +305,11 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   if (a.resume) run.metrics()["resumed_at"] = trainer.iteration();
   const int it_start = trainer.iteration();
   trainer.set_run_record(run_record(a));
-  // Ctrl-C, SIGTERM and SIGHUP finish the iteration and save a checkpoint.
-  InterruptGuard interrupts;
+  if (InterruptGuard::interrupted()) {
+    spdlog::warn("{} before training started: stopped before writing anything to {}", InterruptGuard::signal_name(),
+                 a.out);
+    InterruptGuard::exit_after_saving();
+  }
   run.start(it_start);
   int skipped = 0;
   double psnr0 = NAN;
@@ -432,6 +445,11 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   }
   run.metrics()["stages"] = stages;
   run.write_metrics();
+  if (InterruptGuard::interrupted()) {
+    spdlog::warn("{} during the last stage: it finished and its files are complete; exiting with status {}",
+                 InterruptGuard::signal_name(), InterruptGuard::exit_code());
+    InterruptGuard::exit_after_saving();
+  }
 }
 
 }  // namespace

@@ -297,6 +297,29 @@ TEST(TrainState, ASigtermDeliveredTwiceAtOnceStillSaves) {
   EXPECT_TRUE(std::filesystem::exists(dir.file("cut/checkpoint.ag2gs")));
 }
 
+// A signal before the first iteration stops the run with nothing written; one
+// during stage 3 lets it finish (its model file is written whole) and the run
+// exits with the signal's status (issue 42: stage 3 exited 0, and a signal in
+// the first moments met the default handler).
+TEST(TrainState, SignalsBeforeTrainingAndInStageThreeExitWithTheirStatus) {
+  test::ScratchDir dir("train_signal_edges");
+  const auto early = test::run_cli_interrupted_when(
+      "train " + sample_scene() + " -r 4 --iters 20 --seed 5 -o " + dir.file("early"),
+      [](const std::string& line) { return line.find("checked the") != std::string::npos; }, SIGTERM);
+  EXPECT_EQ(early.code, 143) << early.output;
+  EXPECT_NE(early.output.find("before training started"), std::string::npos) << early.output;
+  EXPECT_FALSE(std::filesystem::exists(dir.file("early/model.ag2gs"))) << early.output;
+  EXPECT_FALSE(std::filesystem::exists(dir.file("early/checkpoint.ag2gs"))) << early.output;
+
+  const auto late = test::run_cli_interrupted_when(
+      "train " + sample_scene() + " -r 4 --iters 20 --prop-iters 4 --seed 5 -o " + dir.file("late"),
+      [](const std::string& line) { return line.find("point_cloud.ply (") != std::string::npos; }, SIGTERM);
+  EXPECT_EQ(late.code, 143) << late.output;
+  EXPECT_NE(late.output.find("during the last stage"), std::string::npos) << late.output;
+  const ModelArchive m = read_model_archive(dir.file("late/model.ag2gs"));
+  EXPECT_TRUE(m.meta.contains("clusters")) << "stage 3 finished before the exit";
+}
+
 TEST(TrainState, CtrlCSavesACheckpointThatResumesToTheSameBytes) {
   test::ScratchDir dir("train_sigint");
   const std::string scene = sample_scene();
