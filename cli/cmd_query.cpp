@@ -234,8 +234,8 @@ TrainedModel load_trained_model(const std::string& model_dir, bool with_language
   t.archive = read_model_archive(t.file);
   t.model = AnchorModel::from_archive(t.archive);
   const nlohmann::json train = t.archive.meta.value("train", nlohmann::json::object());
-  t.sh_degree = std::min(train.value("active_sh_degree", t.model.config().sh_degree), t.model.config().sh_degree);
-  t.resolution = train.value("resolution", 1);
+  t.sh_degree = recorded_sh_degree(train, t.model.config().sh_degree, t.file);
+  t.resolution = recorded_resolution(train, t.file);
   t.eval_split = train.value("eval_split", true);
   // Stage 3's cluster ids, checked whenever present (remove copies them).
   if (t.archive.meta.contains("clusters") && t.archive.has("clusters/anchor_cluster"))

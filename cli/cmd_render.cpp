@@ -125,26 +125,30 @@ std::vector<Camera> pick_views(const std::vector<Camera>& all, const std::string
 std::pair<int, std::string> render_resolution(int given, const std::string& model_dir) {
   if (given > 0) return {given, "-r " + std::to_string(given) + " given"};
   const fs::path mf = fs::path(model_dir) / "model.ag2gs", metrics = fs::path(model_dir) / "metrics.json";
+  // A recorded -r out of range is an error (recorded_resolution); a file that
+  // cannot be read at all only loses the record.
   if (!model_dir.empty() && fs::exists(mf)) {
+    nlohmann::json train;
     try {
-      const nlohmann::json train = read_model_meta(mf.string()).value("train", nlohmann::json::object());
-      if (train.contains("resolution")) {
-        const int r = train.at("resolution").get<int>();
-        return {r, "the model was trained at -r " + std::to_string(r) + " (" + mf.string() + "); -r overrides"};
-      }
+      train = read_model_meta(mf.string()).value("train", nlohmann::json::object());
     } catch (const std::exception& e) {
       spdlog::warn("{}; its training -r is unknown", e.what());
     }
+    if (train.contains("resolution")) {
+      const int r = recorded_resolution(train, mf.string());
+      return {r, "the model was trained at -r " + std::to_string(r) + " (" + mf.string() + "); -r overrides"};
+    }
   }
   if (!model_dir.empty() && fs::exists(metrics)) {
+    nlohmann::json j;
     try {
-      const nlohmann::json j = read_json_file(metrics.string());
-      if (j.contains("resolution")) {
-        const int r = j.at("resolution").get<int>();
-        return {r, "the model was trained at -r " + std::to_string(r) + " (" + metrics.string() + "); -r overrides"};
-      }
+      j = read_json_file(metrics.string());
     } catch (const std::exception& e) {
       spdlog::warn("{}: not readable ({}); rendering at full resolution", metrics.string(), e.what());
+    }
+    if (j.is_object() && j.contains("resolution")) {
+      const int r = recorded_resolution(j, metrics.string());
+      return {r, "the model was trained at -r " + std::to_string(r) + " (" + metrics.string() + "); -r overrides"};
     }
   }
   return {1, "no record of the training -r beside the Gaussians (-r R divides the cameras by R)"};
@@ -208,7 +212,7 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
                                "(`ag2gs train SCENE_DIR -o MODEL_DIR --stages 3`)");
     const AnchorModel am = AnchorModel::from_archive(archive);
     const nlohmann::json tr = archive.meta.value("train", nlohmann::json::object());
-    const int sh = std::min(tr.value("active_sh_degree", am.config().sh_degree), am.config().sh_degree);
+    const int sh = recorded_sh_degree(tr, am.config().sh_degree, mf);
     set = expand_reference(am, sh);
     anchor_cluster = clustering_from_archive(archive, am.size()).anchor_cluster;
     children = am.config().children;

@@ -118,7 +118,7 @@ void stage3_only(const GlobalOptions& global, TrainArgs& a) {
   const ModelArchive archive = read_model_archive(path);
   const nlohmann::json tr = archive.meta.value("train", nlohmann::json::object());
   SceneOptions so;
-  so.resolution = a.resolution != 1 ? a.resolution : tr.value("resolution", 1);
+  so.resolution = a.resolution != 1 ? a.resolution : recorded_resolution(tr, path);
   so.eval = a.eval || tr.value("eval_split", false);
   so.test_images = a.test_images;
   so.sparse = a.sparse;

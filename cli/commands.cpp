@@ -66,6 +66,24 @@ CLI::Validator non_negative_number() {
       ">= 0", "non-negative");
 }
 
+int recorded_resolution(const nlohmann::json& record, const std::string& file) {
+  if (!record.contains("resolution")) return 1;
+  const nlohmann::json& r = record.at("resolution");
+  if (!r.is_number_integer() || r.get<int64_t>() < 1 || r.get<int64_t>() > 64)
+    throw std::runtime_error(file + " records a training resolution of " + r.dump() +
+                             ", which is not a whole number from 1 to 64: the file is damaged; give -r R");
+  return r.get<int>();
+}
+
+int recorded_sh_degree(const nlohmann::json& train, int model_degree, const std::string& file) {
+  if (!train.contains("active_sh_degree")) return model_degree;
+  const nlohmann::json& d = train.at("active_sh_degree");
+  if (!d.is_number_integer() || d.get<int64_t>() < 0 || d.get<int64_t>() > 3)
+    throw std::runtime_error(file + " records an active SH degree of " + d.dump() +
+                             ", which is not 0 to 3: the file is damaged; train the model again");
+  return std::min(d.get<int>(), model_degree);
+}
+
 CLI::Validator finite_range(double lo, double hi) {
   const std::string range = fmt::format("[{} - {}]", lo, hi);
   return CLI::Validator(

@@ -427,6 +427,23 @@ TEST(Remove, HostileFilesAreRefusedWithoutACrash) {
       EXPECT_FALSE(fs::exists(out)) << cmd;
     }
   }
+  // Training records out of range (issue 42: resolution 0 or -3 and
+  // sh_degree 9 were taken as given).
+  for (const auto& [key, value] : std::vector<std::pair<std::string, nlohmann::json>>{
+           {"resolution", 0}, {"resolution", -3}, {"resolution", "2"}, {"active_sh_degree", 9}}) {
+    ModelArchive a = good;
+    a.meta["train"][key] = value;
+    const fs::path dir = write_model("hostile_meta", a);
+    for (const std::string& cmd : {"remove " + dir.string() + " --scene " + f.scene.string() + " -o " + out.string() +
+                                       " --view view_001 --click 32,30 --quiet",
+                                   "query " + dir.string() + " --scene " + f.scene.string() + " -o " + out.string() +
+                                       " --view view_001 --click 32,30 --quiet"}) {
+      r = test::run_cli(cmd);
+      EXPECT_EQ(r.code, 1) << cmd << "\n" << r.output;
+      EXPECT_NE(r.output.find("the file is damaged"), std::string::npos) << key << " " << value << "\n" << r.output;
+      EXPECT_FALSE(fs::exists(out)) << cmd;
+    }
+  }
 
   // query -o into the scene (or the scene itself) is refused; the scene's
   // files (masks/ among them) keep their bytes.
