@@ -310,6 +310,20 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
                  a.out);
     InterruptGuard::exit_after_saving();
   }
+  // A save before the end replaces the model files; a metrics.json already in
+  // MODEL_DIR then describes a model that is gone (a run started with
+  // --force, or one resumed past its end), so it goes with the first save.
+  bool stale_metrics_checked = false;
+  auto save_mid_run = [&] {
+    trainer.save(a.out);
+    if (stale_metrics_checked) return;
+    stale_metrics_checked = true;
+    const fs::path metrics = fs::path(a.out) / "metrics.json";
+    std::error_code ec;
+    if (fs::remove(metrics, ec))
+      spdlog::info("removed {}: it described the model these files replace (a new one is written at the end)",
+                   metrics.string());
+  };
   run.start(it_start);
   int skipped = 0;
   double psnr0 = NAN;
@@ -399,7 +413,7 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
       count = count_masks = count_prop = 0;
     }
     if (InterruptGuard::interrupted() && st.iteration != it_end) {
-      trainer.save(a.out);
+      save_mid_run();
       // The checkpoint holds every setting (stages included): the command
       // needs only what locates the scene and the device.
       spdlog::warn("{}: checkpoint at iteration {} of {} in {}; continue with\n  ag2gs {}train {} -o {}{} --resume",
@@ -409,7 +423,7 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
       InterruptGuard::exit_after_saving();
     }
     if (a.save_every > 0 && st.iteration % a.save_every == 0 && st.iteration != it_end) {
-      trainer.save(a.out);
+      save_mid_run();
       spdlog::info("checkpoint at iteration {} in {}", st.iteration, a.out);
     }
   }

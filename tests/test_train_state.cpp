@@ -320,6 +320,22 @@ TEST(TrainState, SignalsBeforeTrainingAndInStageThreeExitWithTheirStatus) {
   EXPECT_TRUE(m.meta.contains("clusters")) << "stage 3 finished before the exit";
 }
 
+// train --force over a trained model, stopped after its first checkpoint:
+// the old metrics.json does not stay beside the new model files (issue 42).
+TEST(TrainState, ForcedRunStoppedMidwayLeavesNoStaleMetrics) {
+  test::ScratchDir dir("train_force_metrics");
+  const std::string run = "train " + sample_scene() + " -r 4 --stages 1 --seed 5 --log-every 1 -o " + dir.file("m");
+  ASSERT_EQ(test::run_cli(run + " --iters 4").code, 0);
+  ASSERT_TRUE(std::filesystem::exists(dir.file("m/metrics.json")));
+  const test::CliResult cut = run_cli_interrupted(run + " --iters 200 --force --save-every 3", 5, SIGTERM);
+  ASSERT_EQ(cut.code, 143) << cut.output;
+  EXPECT_TRUE(std::filesystem::exists(dir.file("m/checkpoint.ag2gs")));
+  EXPECT_FALSE(std::filesystem::exists(dir.file("m/metrics.json"))) << cut.output;
+  // Finished, the run writes its own.
+  ASSERT_EQ(test::run_cli(run + " --resume").code, 0);
+  EXPECT_TRUE(std::filesystem::exists(dir.file("m/metrics.json")));
+}
+
 TEST(TrainState, CtrlCSavesACheckpointThatResumesToTheSameBytes) {
   test::ScratchDir dir("train_sigint");
   const std::string scene = sample_scene();
