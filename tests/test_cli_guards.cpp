@@ -10,6 +10,8 @@
 #include <filesystem>
 #include <map>
 #include <string>
+#include <utility>
+#include <vector>
 
 #include "cli_test_util.h"
 #include "host/io/atomic_file.h"
@@ -127,6 +129,29 @@ TEST(CliGuards, CorruptMasksAreFoundBeforeTrainingStarts) {
     EXPECT_EQ(r.code, 1) << cmd << ": " << r.output;
     EXPECT_NE(r.output.find("view_015_s.npy"), std::string::npos) << cmd << ": " << r.output;
     EXPECT_EQ(r.output.find("it      1/"), std::string::npos) << cmd << ": training started: " << r.output;
+  }
+}
+
+// A folder where a file belongs gets a message that says so (issue 42:
+// std::bad_alloc for a cameras.bin folder, "read error in the header").
+TEST(CliGuards, AFolderWhereAFileBelongsIsNamed) {
+  test::ScratchDir dir("guard_folders");
+  const fs::path scene = dir.path() / "scene";
+  fs::create_directories(scene);
+  fs::copy(fs::path(sample_scene()) / "images", scene / "images", fs::copy_options::recursive);
+  fs::copy(fs::path(sample_scene()) / "sparse", scene / "sparse", fs::copy_options::recursive);
+  fs::remove(scene / "sparse" / "0" / "cameras.bin");
+  fs::create_directories(scene / "sparse" / "0" / "cameras.bin");
+  fs::create_directories(dir.path() / "m" / "model.ag2gs");
+  const std::vector<std::pair<std::string, std::string>> cases = {
+      {"train " + scene.string() + " -o " + dir.file("o") + " --iters 1", "cameras.bin: is a folder"},
+      {"info " + dir.file("m"), "model.ag2gs: is a folder, not a model file"},
+      {"render --ply " + dir.file("m") + " --scene " + sample_scene() + " -o " + dir.file("r"),
+       "is a folder, not a .ply file"}};
+  for (const auto& [cmd, message] : cases) {
+    const test::CliResult r = test::run_cli(cmd);
+    EXPECT_EQ(r.code, 1) << cmd << "\n" << r.output;
+    EXPECT_NE(r.output.find(message), std::string::npos) << cmd << "\n" << r.output;
   }
 }
 

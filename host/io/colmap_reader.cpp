@@ -346,8 +346,13 @@ std::vector<RawPoint> read_points_txt(const std::string& path) {
 std::string pick_file(const std::string& dir, const std::string& stem) {
   const fs::path bin = fs::path(dir) / (stem + ".bin");
   const fs::path txt = fs::path(dir) / (stem + ".txt");
-  if (fs::exists(bin)) return bin.string();
-  if (fs::exists(txt)) return txt.string();
+  for (const fs::path& p : {bin, txt}) {
+    if (!fs::exists(p)) continue;
+    if (!fs::is_regular_file(p))
+      fail(p.string(), "is a folder (or another kind of entry), not a file: the COLMAP model needs " + stem +
+                           ".bin or " + stem + ".txt here");
+    return p.string();
+  }
   std::string hint = "pass the COLMAP model folder, e.g. scene/sparse/0";
   if (fs::is_directory(fs::path(dir) / "sparse" / "0")) {
     hint = "did you mean '" + (fs::path(dir) / "sparse" / "0").string() + "'?";

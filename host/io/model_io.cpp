@@ -238,6 +238,8 @@ namespace {
 // the header text; `in` is left at the end of the header, `size` and
 // `header_len` describe the file.
 std::string read_header_text(const std::string& path, std::ifstream& in, uint64_t* size_out, uint64_t* header_len_out) {
+  if (std::filesystem::is_directory(path))
+    fail(path, "is a folder, not a model file; give the folder that holds model.ag2gs");
   in.open(path, std::ios::binary);
   if (!in) fail(path, std::string("cannot open: ") + std::strerror(errno));
   in.seekg(0, std::ios::end);

@@ -9,6 +9,7 @@
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
+#include <filesystem>
 #include <fstream>
 #include <set>
 #include <sstream>
@@ -508,6 +509,7 @@ namespace {
 
 // The file as it is, numbers unchecked.
 GaussianSet read_ply_unchecked(const std::string& path, PlyValues values) {
+  if (std::filesystem::is_directory(path)) fail(path, std::string("is a folder, not a .ply file; ") + kExpected);
   std::ifstream in(path, std::ios::binary);
   if (!in) fail(path, std::string("cannot open: ") + std::strerror(errno));
   in.seekg(0, std::ios::end);
