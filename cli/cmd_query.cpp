@@ -15,6 +15,7 @@
 #include <string>
 
 #include "cli/commands.h"
+#include "cli/object_selection.h"
 #include "cli/run_guard.h"
 #include "host/device/cl_runtime.h"
 #include "host/io/atomic_file.h"
@@ -302,6 +303,7 @@ void cmd_query(const GlobalOptions& global, QueryArgs a) {
       engine.prepare_ms());
 
   j["model"] = model_file;
+  j["anchor_fingerprint"] = anchor_fingerprint(model);
   j["scene"] = a.scene;
   j["resolution"] = a.resolution;
   j["thresholds"] = {{"min_weight", a.config.min_weight},

@@ -5,6 +5,7 @@
 
 #include <cerrno>
 #include <csignal>
+#include <cstdio>
 #include <cstdlib>
 #include <fstream>
 #include <stdexcept>
@@ -12,6 +13,7 @@
 
 #include "cli/run_guard.h"
 #include "host/io/json_input.h"
+#include "stages/anchor_graph.h"
 
 namespace fs = std::filesystem;
 
@@ -87,12 +89,26 @@ void StagedFolder::commit() {
   committed_ = true;
 }
 
-std::vector<int32_t> read_selection_file(const std::string& path, size_t anchors) {
+std::string anchor_fingerprint(const AnchorModel& model) {
+  const uint64_t h = AnchorGraph::anchor_fingerprint(model);  // the graph's own tie to its anchors
+  char hex[17];
+  std::snprintf(hex, sizeof hex, "%016llx", static_cast<unsigned long long>(h));
+  return hex;
+}
+
+std::vector<int32_t> read_selection_file(const std::string& path, const AnchorModel& model) {
+  const size_t anchors = model.size();
   if (!std::ifstream(path))
     throw std::runtime_error(path + ": cannot be read (give the selection.json that `ag2gs query` wrote)");
   const nlohmann::json j = read_json_file(path);
-  if (!j.contains("anchors") || !j["anchors"].is_array())
+  if (!j.is_object() || !j.contains("anchors") || !j["anchors"].is_array())
     throw std::runtime_error(path + ": no \"anchors\" list; give the selection.json that `ag2gs query` wrote");
+  if (j.contains("anchor_fingerprint")) {
+    const std::string mine = anchor_fingerprint(model);
+    if (!j["anchor_fingerprint"].is_string() || j["anchor_fingerprint"].get<std::string>() != mine)
+      throw std::runtime_error(path + ": made on another model (anchor fingerprint " + j["anchor_fingerprint"].dump() +
+                               ", this model's \"" + mine + "\"); query this model again");
+  }
   std::vector<int32_t> out;
   for (const auto& v : j["anchors"]) {
     if (!v.is_number_integer() || v.get<int64_t>() < 0 || v.get<int64_t>() >= static_cast<int64_t>(anchors))
@@ -120,7 +136,7 @@ SelectedObject select_object(Runtime& rt, const TrainedModel& tm, const Scene& s
   std::vector<int32_t> selected;
   SelectedObject out;
   if (!selection_file.empty()) {
-    selected = read_selection_file(selection_file, model.size());
+    selected = read_selection_file(selection_file, model);
     report["query"] = {{"type", "selection"}, {"file", selection_file}};
   } else {
     QueryEngine engine(rt, model, config);

@@ -44,9 +44,15 @@ class StagedFolder {
   bool committed_ = false;
 };
 
+// What ties a selection to the model it was made on: the hash of the anchors'
+// layers and cells in order that the anchor graph keeps (16 hex digits). `query` writes it into
+// selection.json as "anchor_fingerprint".
+std::string anchor_fingerprint(const AnchorModel& model);
+
 // The anchors listed in a `query` selection.json; throws naming the file
-// when it cannot be read or lists an id outside the model's `anchors`.
-std::vector<int32_t> read_selection_file(const std::string& path, size_t anchors);
+// when it cannot be read, lists an id outside the model's anchors, or
+// carries the fingerprint of another model (files without one are read).
+std::vector<int32_t> read_selection_file(const std::string& path, const AnchorModel& model);
 
 // Either --selection FILE or a click / text query, with nothing of the
 // other kind; throws std::invalid_argument naming the flags.

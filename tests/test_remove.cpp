@@ -389,6 +389,15 @@ TEST(Remove, HostileFilesAreRefusedWithoutACrash) {
   EXPECT_EQ(r.code, 1) << r.output;
   EXPECT_NE(r.output.find("nested deeper than 64"), std::string::npos) << r.output;
 
+  // A selection made on another model (its fingerprint differs) is refused;
+  // query's own selections carry this model's (test_simulate uses one).
+  const fs::path foreign = f.root / "foreign_sel.json";
+  std::ofstream(foreign) << json{{"anchors", {1, 2, 3}}, {"anchor_fingerprint", "00000000000000ff"}}.dump();
+  r = test::run_cli(remove_cmd(out.string(), "--selection " + foreign.string()));
+  EXPECT_EQ(r.code, 1) << r.output;
+  EXPECT_NE(r.output.find("made on another model"), std::string::npos) << r.output;
+  EXPECT_FALSE(fs::exists(out));
+
   const ModelArchive good = read_model_archive((f.model / "model.ag2gs").string());
   const size_t anchors = good.get<float>("anchors/pos").size() / 3;
   auto write_model = [&](const std::string& name, const ModelArchive& a) {
