@@ -17,6 +17,7 @@
 #include "cli/commands.h"
 #include "cli/object_selection.h"
 #include "cli/run_guard.h"
+#include "host/core/timing.h"
 #include "host/device/cl_runtime.h"
 #include "host/io/atomic_file.h"
 #include "host/io/model_io.h"
@@ -43,10 +44,6 @@ struct QueryArgs {
   QueryConfig config;
   bool force = false;  // --force: replace the results of an earlier query in OUT
 };
-
-double ms_since(std::chrono::steady_clock::time_point t0) {
-  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
-}
 
 }  // namespace
 

@@ -12,14 +12,11 @@
 #include <unordered_map>
 
 #include "host/core/quantile.h"
+#include "host/core/timing.h"
 
 namespace ag2gs {
 
 namespace {
-
-double ms_since(std::chrono::steady_clock::time_point t0) {
-  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
-}
 
 }  // namespace
 

@@ -8,14 +8,12 @@
 #include <opencv2/imgproc.hpp>
 #include <stdexcept>
 
+#include "host/core/timing.h"
+
 namespace fs = std::filesystem;
 
 namespace ag2gs {
 namespace {
-
-double ms_since(std::chrono::steady_clock::time_point t0) {
-  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
-}
 
 // The view's full-size camera rescaled to width x height (the label frame's size).
 Camera camera_at(const Camera& full, int width, int height) {

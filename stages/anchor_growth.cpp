@@ -11,6 +11,8 @@
 #include <string>
 #include <tuple>
 
+#include "host/core/scalar_math.h"
+
 namespace ag2gs {
 
 namespace {
@@ -19,10 +21,6 @@ constexpr int kWorkGroup = 64;
 
 [[noreturn]] void bad(const std::string& what) {
   throw std::invalid_argument("growth config: " + what);
-}
-
-double sigmoid(double x) {
-  return 1.0 / (1.0 + std::exp(-x));
 }
 
 // The split requests of child g (GrowthConfig::split_voxels): its standard

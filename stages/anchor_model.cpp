@@ -9,6 +9,7 @@
 
 #include "host/core/counter_rng.h"
 #include "host/core/gaussians.h"
+#include "host/core/scalar_math.h"
 
 namespace ag2gs {
 
@@ -20,13 +21,6 @@ constexpr double kQuatPerturbation = 1e-2;  // half-width of the initial xyz per
 
 // Random-number streams of one (anchor, child) counter.
 enum Stream { kOffsetX = 0, kQuatX = 3, kFeatureX = 6 };
-
-double logit(double p) {
-  return std::log(p / (1.0 - p));
-}
-double sigmoid(double x) {
-  return 1.0 / (1.0 + std::exp(-x));
-}
 
 bool cell_in_range(const Eigen::Vector3i& c) {
   return (c.array() >= -kMaxAnchorCell).all() && (c.array() < kMaxAnchorCell).all();

@@ -12,6 +12,7 @@
 
 #include "host/core/counter_rng.h"
 #include "host/core/gaussians.h"
+#include "host/core/scalar_math.h"
 #include "host/io/ply_io.h"
 
 namespace fs = std::filesystem;
@@ -27,14 +28,6 @@ constexpr double kSplitScaleDivisor = 1.6;  // 3DGS: 0.8 x the number of samples
 // A uniform double in (0, 1) from 53 bits of a hash.
 double unit_open(uint64_t h) {
   return (static_cast<double>(h >> 11) + 0.5) * (1.0 / 9007199254740992.0);
-}
-
-double logit(double p) {
-  return std::log(p / (1 - p));
-}
-
-float sigmoid(float x) {
-  return 1.f / (1.f + std::exp(-x));
 }
 
 }  // namespace
@@ -232,7 +225,7 @@ DensifyPlan plan_densification(const FreeGaussians& g, const DensifyStats& stats
   // A row's fate under the prune: opacity (the same for a row and its
   // copies), and when prune_big the radius (0 for new rows) and world size.
   auto pruned = [&](size_t i, bool is_new, double log_divisor) {
-    if (sigmoid(g.opacity_logit[i]) < config.prune_opacity) return true;
+    if (sigmoidf(g.opacity_logit[i]) < config.prune_opacity) return true;
     if (screen && !is_new && stats.max_radius[i] > config.max_screen_size) return true;
     if (world && max_scale(i, log_divisor) > world_limit) return true;
     return false;

@@ -9,6 +9,7 @@
 #include <stdexcept>
 #include <string>
 
+#include "host/core/timing.h"
 #include "host/render/mask_loss.h"  // kMaskAlphaMin
 #include "host/render/renderer.h"
 #include "stages/expander.h"
@@ -20,10 +21,6 @@ namespace {
 [[noreturn]] void fail_archive(const ModelArchive& archive, const std::string& what) {
   throw std::runtime_error("model " + (archive.source.empty() ? std::string("(in memory)") : archive.source) + ": " +
                            what);
-}
-
-double ms_since(std::chrono::steady_clock::time_point t0) {
-  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
 }
 
 // Running sums of G over a pixel set.

@@ -11,15 +11,12 @@
 #include "host/core/counter_rng.h"
 #include "host/core/gaussians.h"
 #include "host/core/quantile.h"
+#include "host/core/scalar_math.h"
 #include "stages/train_common.h"
 
 namespace ag2gs {
 namespace {
 
-
-double logit(double p) {
-  return std::log(p / (1.0 - p));
-}
 
 }  // namespace
 

@@ -13,6 +13,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "cli/render_colours.h"
+#include "host/core/timing.h"
 #include "host/io/ply_io.h"
 #include "host/io/semantic_io.h"
 #include "stages/train_common.h"
@@ -21,10 +22,6 @@ namespace fs = std::filesystem;
 
 namespace ag2gs::cli {
 namespace {
-
-double ms_since(std::chrono::steady_clock::time_point t0) {
-  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
-}
 
 // The selection's highlight: an orange tint inside, a solid outline.
 constexpr float kTint[3] = {1.0f, 0.55f, 0.1f};
