@@ -10,6 +10,7 @@
 #include <filesystem>
 
 #include "cli/commands.h"
+#include "cli/run_guard.h"
 #include "host/core/quantile.h"
 #include "stages/checkpoint.h"
 
@@ -55,8 +56,17 @@ std::unique_ptr<Scene> open_run_scene(RunArgs& a) {
   scene->require_points();
   // Every image and mask decoded once now (they stay in the cache): a corrupt
   // file stops the run before it starts, not at the iteration that needs it.
+  // A signal here (train's guard is up) stops the run at once, not after the
+  // last photo of a large capture.
   const auto t0 = std::chrono::steady_clock::now();
-  scene->check_all();
+  for (const SceneView& v : scene->views()) {
+    if (InterruptGuard::interrupted()) {
+      spdlog::warn("{} while checking the images: stopped before writing anything", InterruptGuard::signal_name());
+      InterruptGuard::exit_after_saving();
+    }
+    scene->image(v.index);
+    scene->masks(v.index);
+  }
   spdlog::info("checked the {} views' images{} ({:.1f} s)", scene->views().size(),
                scene->semantics() != SemanticsKind::none ? " and masks" : "",
                std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
