@@ -12,6 +12,7 @@
 #include "cli/commands.h"
 #include "cli/run_guard.h"
 #include "host/core/quantile.h"
+#include "host/core/timing.h"
 #include "stages/checkpoint.h"
 
 namespace fs = std::filesystem;
@@ -59,17 +60,13 @@ std::unique_ptr<Scene> open_run_scene(RunArgs& a) {
   // A signal here (train's guard is up) stops the run at once, not after the
   // last photo of a large capture.
   const auto t0 = std::chrono::steady_clock::now();
-  for (const SceneView& v : scene->views()) {
-    if (InterruptGuard::interrupted()) {
-      spdlog::warn("{} while checking the images: stopped before writing anything", InterruptGuard::signal_name());
-      InterruptGuard::exit_after_saving();
-    }
-    scene->image(v.index);
-    scene->masks(v.index);
-  }
+  scene->check_all([] {
+    if (!InterruptGuard::interrupted()) return;
+    spdlog::warn("{} while checking the images: stopped before writing anything", InterruptGuard::signal_name());
+    InterruptGuard::exit_after_saving();
+  });
   spdlog::info("checked the {} views' images{} ({:.1f} s)", scene->views().size(),
-               scene->semantics() != SemanticsKind::none ? " and masks" : "",
-               std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
+               scene->semantics() != SemanticsKind::none ? " and masks" : "", ms_since(t0) / 1000);
   return scene;
 }
 

@@ -433,8 +433,9 @@ std::shared_ptr<const ViewMasks> Scene::masks(int view) {
   return m;
 }
 
-void Scene::check_all() {
+void Scene::check_all(const std::function<void()>& before_each) {
   for (const SceneView& v : views_) {
+    if (before_each) before_each();
     image(v.index);
     masks(v.index);
   }

@@ -11,6 +11,7 @@
 #include <Eigen/Core>
 #include <cstddef>
 #include <cstdint>
+#include <functional>
 #include <list>
 #include <map>
 #include <memory>
@@ -119,8 +120,9 @@ class Scene {
   // SAM masks of a view (null when the scene has no semantics).
   std::shared_ptr<const ViewMasks> masks(int view);
   // Loads every image and mask once (not kept beyond the cache bound) so bad
-  // files are reported before a long job starts.
-  void check_all();
+  // files are reported before a long job starts. `before_each` (if given)
+  // runs before each view: a caller may stop there (a signal, say).
+  void check_all(const std::function<void()>& before_each = {});
 
   SemanticsKind semantics() const { return semantics_; }
   // CLIP feature dimension (0 without language_features/); known after the
