@@ -99,6 +99,10 @@ void register_synth(CLI::App& app, GlobalOptions& /*global*/) {
       "--no-backdrop", [a] { a->options.backdrop = false; },
       "No textured backdrop (wall, floor ring, ceiling): rays that miss the objects and the ground see an "
       "untextured sky");
+  sub->add_flag_callback(
+      "--no-wall-points", [a] { a->options.wall_points = false; },
+      "No SfM points on the backdrop's textured wall, as the far walls of real rooms often have none (what "
+      "train's far shell is for)");
   set_action(sub, [a] { cmd_synth(*a); });
 }
 

@@ -88,12 +88,14 @@ void apply_preset(const CLI::App& sub, TrainArgs& a) {
   unless_given("--lr-scaling", c.scaling_lr, 0.01);
   unless_given("--grow-min-seen", c.grow_min_seen, 0.1);
   unless_given("--grow-split", c.grow_split, 4.0);
+  unless_given("--far-shell", c.far_shell, true);
   spdlog::info(
       "preset {}: --scale-cap {} --children {} --init-layers {} --{} --grow-budget {} --grow-min-seen {} "
-      "--grow-split {} --recycle-opacity {} --final-prune-opacity {} --lr-offset {} --lr-scaling {}",
+      "--grow-split {} --far-shell {} --recycle-opacity {} --final-prune-opacity {} --lr-offset {} --lr-scaling {}",
       a.preset, c.anchors.scale_cap, c.anchors.children, c.anchors.init_layers,
       c.anchors.init_children_at_points ? "init-children-at-points" : "init-children-random", c.grow_budget,
-      c.grow_min_seen, c.grow_split, c.recycle_opacity, c.final_prune_opacity, c.offset_lr_init, c.scaling_lr);
+      c.grow_min_seen, c.grow_split, c.far_shell, c.recycle_opacity, c.final_prune_opacity, c.offset_lr_init,
+      c.scaling_lr);
 }
 
 bool has_stage(const TrainArgs& a, int s) {
@@ -489,6 +491,10 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                   "-2 = from the scene: 3 when at least 5% of the training pixels have no SfM point near them, else "
                   "-1)")
       ->check(CLI::Range(-2, 3));
+  sub->add_option("--far-shell", c.far_shell,
+                  "Where the pixels without SfM points show surfaces rather than an open sky (a degree-3 sky fits "
+                  "them with an RMS error above 0.04, as a room's far walls), seed anchors from them on a sphere "
+                  "around the cameras (default true; false: --preset paper and the official code)");
   sub->add_option("--lr-sky", c.sky_lr, "Learning rate of the sky's coefficients (default 0.01)")
       ->check(finite_range(0, 100));
   sub->add_option("--lambda-ssim", c.lambda_ssim, "Weight of 1 - SSIM in L_rgb (default 0.2)")
@@ -688,7 +694,8 @@ void register_train(CLI::App& app, GlobalOptions& global) {
       ->check(finite_range(0.5, 0.999));
   sub->add_option("--preset", a->preset,
                   "default (= appearance: --scale-cap 64 --children 2 --init-layers 2 --init-children-at-points "
-                  "--grow-budget 0.1 --grow-min-seen 0.1 --grow-split 4 --recycle-opacity 0.02 --lr-offset 1e-2 "
+                  "--grow-budget 0.1 --grow-min-seen 0.1 --grow-split 4 --far-shell true --recycle-opacity 0.02 "
+                  "--lr-offset 1e-2 "
                   "--lr-scaling 0.01, "
                   "the voxel from the "
                   "scene) or paper (the method as published: --top-cells 200, 5 children inside their voxels, "

@@ -168,7 +168,8 @@ void AnchorModel::reset(const VoxelGrid& grid, const AnchorConfig& config) {
 
 AnchorInitStats AnchorModel::initialise_from_points(const std::vector<Eigen::Vector3d>& points,
                                                     const std::vector<Eigen::Vector3<uint8_t>>& colors,
-                                                    const VoxelGrid& grid, const AnchorConfig& config, uint64_t seed) {
+                                                    const VoxelGrid& grid, const AnchorConfig& config, uint64_t seed,
+                                                    size_t first_layer_only_from) {
   if (!colors.empty() && colors.size() != points.size())
     throw std::invalid_argument("initialise_from_points: " + std::to_string(colors.size()) + " colours for " +
                                 std::to_string(points.size()) + " points");
@@ -184,7 +185,8 @@ AnchorInitStats AnchorModel::initialise_from_points(const std::vector<Eigen::Vec
     // tuples and ties keep the point order, so colour sums run in a fixed order.
     std::vector<std::pair<uint64_t, uint32_t>> keyed;
     keyed.reserve(points.size());
-    for (size_t i = 0; i < points.size(); ++i) {
+    const size_t count = layer == first ? points.size() : std::min(points.size(), first_layer_only_from);
+    for (size_t i = 0; i < count; ++i) {
       const Eigen::Vector3i c = grid.cell_of(layer, points[i]);
       if (!points[i].allFinite() || !cell_in_range(c)) {
         skipped[i] = 1;

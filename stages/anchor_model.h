@@ -125,9 +125,12 @@ class AnchorModel {
   // opacity = init_opacity. Random numbers come from a counter-based hash of
   // (seed, layer, cell, child, stream): the result depends on the point set
   // and the seed only, not on the point order.
+  // Points from index `first_layer_only_from` on seed the first of those
+  // layers only (the far shell's points: Trainer, docs/design.md 5.7).
   AnchorInitStats initialise_from_points(const std::vector<Eigen::Vector3d>& points,
                                          const std::vector<Eigen::Vector3<uint8_t>>& colors, const VoxelGrid& grid,
-                                         const AnchorConfig& config, uint64_t seed);
+                                         const AnchorConfig& config, uint64_t seed,
+                                         size_t first_layer_only_from = static_cast<size_t>(-1));
   // An empty model with this grid and config (anchors then come from add_anchor).
   void reset(const VoxelGrid& grid, const AnchorConfig& config);
 

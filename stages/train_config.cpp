@@ -155,6 +155,7 @@ nlohmann::json TrainConfig::to_json() const {
           {"white_background", white_background},
           {"sky_degree", sky_degree},
           {"sky_lr", sky_lr},
+          {"far_shell", far_shell},
           {"grow",
            {{"from", grow_from},
             {"until", effective_grow_until()},
@@ -228,6 +229,7 @@ TrainConfig TrainConfig::from_json(const nlohmann::json& j) {
     c.white_background = j.at("white_background").get<bool>();
     c.sky_degree = j.value("sky_degree", -1);  // written before the sky existed
     c.sky_lr = j.value("sky_lr", 0.01);
+    c.far_shell = j.value("far_shell", false);  // written before the far shell: none
     const nlohmann::json& g = j.at("grow");
     c.grow_from = g.at("from").get<int>();
     c.grow_until = g.at("until").get<int>();

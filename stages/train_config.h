@@ -90,7 +90,17 @@ struct TrainConfig {
   // its config() and checkpoints hold the choice.
   static constexpr int kSkyAuto = -2;
   static constexpr double kSkyMinOpenShare = 0.05;
+  // A degree-3 sky fitted to the open pixels with an RMS error above this
+  // says they show surfaces without SfM points (a room's far walls), not
+  // an open sky (generated open skies fit within 0.012, rooms 0.07-0.23).
+  static constexpr double kSkyMaxFitError = 0.04;
   int sky_degree = kSkyAuto;
+  // The far shell: where the open pixels show surfaces without SfM points
+  // (above), their rays seed anchors on the top layer where they leave a
+  // sphere around the cameras holding 98% of the SfM points, so the room
+  // behind the objects gets Gaussians to grow from; false = off (the
+  // published rule; the program's default preset turns it on).
+  bool far_shell = false;
   double sky_lr = 0.01;
 
   // Growing. grow_every = 0 turns it off; grow_until = 0 means 2/3 of the

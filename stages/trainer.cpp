@@ -56,35 +56,22 @@ Trainer::Trainer(Runtime& rt, Scene& scene, const TrainConfig& config)
   if (config_.res_schedule == 0)
     config_.res_schedule = TrainConfig::auto_res_schedule(config_.iterations, config_.downscales);
   const VoxelGrid grid = VoxelGrid::from_bounds(scene_.bounds(), config_.anchors, voxel_choice_.top_voxel);
-  init_stats_ = model_.initialise_from_points(scene_.points(), scene_.colors(), grid, config_.anchors, config_.seed);
+  reg_value_.bind(&rt_);
+  for (DeviceBuffer* b : {&target_dev_, &grad_rgb_dev_, &grad_dist_dev_, &grad_feat_dev_, &grad_alpha_dev_,
+                          &sky_grad_alpha_, &sky_weight_dev_})
+    b->bind(&rt_);
+  std::vector<Eigen::Vector3d> seed_points = scene_.points();
+  std::vector<Eigen::Vector3<uint8_t>> seed_colors = scene_.colors();
+  choose_background(seed_points, seed_colors);
+  init_stats_ = model_.initialise_from_points(seed_points, seed_colors, grid, config_.anchors, config_.seed,
+                                              scene_.points().size());
   if (model_.size() == 0)
     throw std::runtime_error("scene " + scene_.dir() + ": no anchor could be placed from " +
                              std::to_string(scene_.points().size()) + " SfM points (all non-finite or out of range)");
   extent_ = scene_.bounds().camera_radius > 0 ? scene_.bounds().camera_radius : scene_.bounds().longest_extent();
   anchors_.upload(model_);
-  if (config_.sky_degree != -1) find_open_pixels();
-  if (config_.sky_degree == TrainConfig::kSkyAuto) {
-    // The rule uses the open share alone. The start fit's error (logged by
-    // init_sky) tells an open sky (0.007-0.012 on generated ones) from a
-    // room without SfM points (0.08-0.23), but on real rooms the sky helps
-    // some (the cup, the fox) and hurts others (kumamon):
-    // docs/benchmarks.md, "Cluttered rooms".
-    const bool on = sky_open_fraction_ >= TrainConfig::kSkyMinOpenShare;
-    config_.sky_degree = on ? 3 : -1;
-    spdlog::info("sky: {} ({:.1f}% of the training pixels have no SfM point within {} px; the rule: a sky of SH degree 3 "
-                 "from {:.0f}%); --sky-degree D sets it",
-                 on ? "on" : "off, a fixed background", 100.0 * sky_open_fraction_, sky_radius_,
-                 100.0 * TrainConfig::kSkyMinOpenShare);
-    if (!on) sky_open_.clear();
-  }
   const size_t n = model_.gaussians();
   groups_ = std::make_unique<ParamGroups>(rt_, group_specs(), n, model_.size());
-  reg_value_.bind(&rt_);
-  for (DeviceBuffer* b :
-       {&target_dev_, &grad_rgb_dev_, &grad_dist_dev_, &grad_feat_dev_, &grad_alpha_dev_, &sky_grad_alpha_,
-        &sky_weight_dev_})
-    b->bind(&rt_);
-  if (config_.sky_degree >= 0) init_sky();
   if (scene_.semantics() == SemanticsKind::none) {
     spdlog::info("scene {} has no SAM masks (language_features/ or masks/): training appearance only", scene_.dir());
   } else if (config_.w_is <= 0 && config_.w_ic <= 0) {
@@ -110,6 +97,63 @@ Trainer::Trainer(Runtime& rt, Scene& scene, const TrainConfig& config)
 
 Trainer::~Trainer() = default;
 
+void Trainer::choose_background(std::vector<Eigen::Vector3d>& points, std::vector<Eigen::Vector3<uint8_t>>& colors) {
+  // What lies where no SfM point does (docs/design.md 5.7): an open sky (a
+  // sky fits the open pixels closely), surfaces without SfM points (it does
+  // not: a room's far walls and furniture), or too little to matter.
+  const int asked = config_.sky_degree;  // kSkyAuto, -1 or a degree
+  if (asked == -1 && !config_.far_shell) return;
+  find_open_pixels();
+  const bool open = sky_open_fraction_ >= TrainConfig::kSkyMinOpenShare;
+  double fit_error = -1;  // of a degree-3 sky, which tells the two apart
+  if (open) {
+    config_.sky_degree = 3;
+    fit_error = init_sky();
+  }
+  const bool room = open && fit_error > TrainConfig::kSkyMaxFitError;
+  // In a room the sky stays too: it fills what the shell's Gaussians
+  // leave open while they grow (the cup: 29.03 dB with both, 28.65 with
+  // the shell alone).
+  int degree = asked;
+  if (asked == TrainConfig::kSkyAuto) degree = open ? 3 : -1;
+  const std::string what =
+      !open  ? fmt::format("too few for a sky or a far shell (both start at {:.0f}%)",
+                           100.0 * TrainConfig::kSkyMinOpenShare)
+      : room ? fmt::format(
+                   "a sky fits them with an RMS error of {:.3f}, above {:.2f}: surfaces without SfM points, as "
+                   "a room's far walls",
+                   fit_error, TrainConfig::kSkyMaxFitError)
+             : fmt::format("a sky fits them within {:.3f} (at most {:.2f}): an open sky", fit_error,
+                           TrainConfig::kSkyMaxFitError);
+  spdlog::info("background: {:.1f}% of the training pixels have no SfM point within {} px; {}",
+               100.0 * sky_open_fraction_, sky_radius_, what);
+  if (room && config_.far_shell) {
+    const SceneBounds& b = scene_.bounds();
+    const double radius = far_shell_radius(scene_.points(), b.camera_center, b.camera_radius);
+    const size_t before = points.size();
+    if (colors.size() != points.size()) colors.assign(points.size(), {128, 128, 128});  // a model without colours
+    // Every second open radius: kumamon 30.95 / 30.62 / 30.30 dB with
+    // 89k / 58k / 53k Gaussians at 1 / 2 / 3 radii (without: 30.08, 49k).
+    const int stride = 2 * std::max(1, sky_radius_);
+    for (int v : train_views_)
+      far_shell_points(scene_.views()[v].camera, sky_open_[v], scene_.image(v)->rgb, b.camera_center, radius, stride,
+                       points, colors);
+    spdlog::info(
+        "far shell: {} points where the rays of open pixels (every {} px) leave a sphere of radius {:.4g} "
+        "around the cameras seed anchors on the top layer; --far-shell false turns it off",
+        points.size() - before, stride, radius);
+  }
+  config_.sky_degree = degree;
+  if (degree < 0) {
+    sky_.clear();
+    sky_open_.clear();
+  } else if (!open || degree != 3) {
+    init_sky();  // the degree the flag asks for
+  }
+  spdlog::info("sky: {}{}", degree >= 0 ? fmt::format("SH degree {}", degree) : std::string("off, a fixed background"),
+               asked == TrainConfig::kSkyAuto ? " (from the scene; --sky-degree D sets it)" : " (--sky-degree)");
+}
+
 void Trainer::find_open_pixels() {
   // Only open pixels (no SfM point projects near them) teach the sky: where
   // a point shows a surface, the Gaussians are to explain the colour.
@@ -125,7 +169,7 @@ void Trainer::find_open_pixels() {
   sky_open_fraction_ = total ? static_cast<double>(open) / static_cast<double>(total) : 0.0;
 }
 
-void Trainer::init_sky() {
+double Trainer::init_sky() {
   // The sky starts as the least-squares fit to the open pixels of the
   // training photos; directions no open pixel saw stay at the fixed
   // background.
@@ -148,11 +192,12 @@ void Trainer::init_sky() {
   // pixels cannot bend the whole sky.
   const std::vector<float> fitted = Sky::solve_fit(gram, rhs, start, 0.01 * static_cast<double>(largest));
   sky_.set(config_.sky_degree, fitted);
+  const double error = Sky::fit_residual_rms(gram, rhs, squares, fitted);
   spdlog::info(
-      "sky: SH degree {}, fitted to the {:.1f}% of the training pixels with no SfM point within {} px "
-      "(RMS error of the fit {:.3f}; an open sky fits within about 0.01, a room without SfM points does not)",
-      config_.sky_degree, 100.0 * sky_open_fraction_, sky_radius_,
-      Sky::fit_residual_rms(gram, rhs, squares, fitted));
+      "sky start: SH degree {} fitted to the {:.1f}% of the training pixels with no SfM point within {} px "
+      "(RMS error {:.3f})",
+      config_.sky_degree, 100.0 * sky_open_fraction_, sky_radius_, error);
+  return error;
 }
 
 int Trainer::active_sh_degree() const {

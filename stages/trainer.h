@@ -217,7 +217,10 @@ class Trainer {
   // The open pixels of every training view (sky_open_, their share and
   // radius), and the sky's start (config.sky_degree >= 0).
   void find_open_pixels();
-  void init_sky();
+  double init_sky();
+  // Finds the open pixels and decides the sky (config.sky_degree) and the
+  // far shell, whose points it appends to the seeding points.
+  void choose_background(std::vector<Eigen::Vector3d>& points, std::vector<Eigen::Vector3<uint8_t>>& colors);
 
   Runtime& rt_;
   Scene& scene_;

@@ -1401,8 +1401,11 @@ void write_synth_scene(const std::string& out_dir, const SynthOptions& opt) {
       Ray r = camera_ray(cams[view], u, v);
       Hit h = scene.trace(r);
       if (h.object < 0) continue;  // sky (never with the backdrop)
+      const Vec3 p = r.o + h.t * r.d;
+      if (opt.backdrop && !opt.wall_points && std::hypot(p.x(), p.y()) > kBackdropRadius - 1e-3 && p.z() > 1e-6)
+        continue;  // on the wall
       Vec3 c = radiance(scene, r, h);
-      points.push_back(r.o + h.t * r.d);
+      points.push_back(p);
       colors.emplace_back(static_cast<uint8_t>(std::lround(c.x() * 255.0)),
                           static_cast<uint8_t>(std::lround(c.y() * 255.0)),
                           static_cast<uint8_t>(std::lround(c.z() * 255.0)));

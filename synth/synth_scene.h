@@ -56,6 +56,10 @@ struct SynthOptions {
   // ceiling closing the wall, so no camera ray sees the (untextured, point-
   // less) sky. Off: rays that miss the objects and the ground see the sky.
   bool backdrop = true;
+  // SfM-like points on the backdrop's wall. Off: the sparse points miss the
+  // wall (each one hitting it is drawn again elsewhere), as the far walls of
+  // real rooms often have none; what the trainer's far shell is for.
+  bool wall_points = true;
   // SAM-like masks on the background too (floor quarters cut differently in
   // each view, the floor ring, wall halves, the ceiling), as SAM's automatic
   // mode gives them on real photos. Off: no masks on the background.

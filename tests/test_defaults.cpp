@@ -200,7 +200,9 @@ TEST(Defaults, TrainWithoutFlagsReachesThePsnrBound) {
   EXPECT_NE(r.output.find("at the points' median depth"), std::string::npos) << r.output;
   EXPECT_NE(r.output.find("growth budget"), std::string::npos) << r.output;
   // 3.2% of the sample's training pixels are open: below the sky rule's 5%.
-  EXPECT_NE(r.output.find("sky: off, a fixed background (3.2%"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("background: 3.2% of the training pixels"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("sky: off, a fixed background (from the scene"), std::string::npos) << r.output;
+  EXPECT_EQ(r.output.find("far shell:"), std::string::npos) << r.output;
   EXPECT_EQ(r.output.find("is below its start"), std::string::npos) << r.output;
   std::ifstream f(dir.file("m/metrics.json"));
   const nlohmann::json m = nlohmann::json::parse(f);

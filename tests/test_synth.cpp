@@ -941,6 +941,7 @@ TEST(Synth, CommittedSamplesAreReproducible) {
     o.hard = opt["hard"];
     o.text_model = opt["text_model"];
     o.backdrop = opt.value("backdrop", false);  // samples from before the backdrop have the sky
+    o.wall_points = opt.value("wall_points", true);
     fs::path d = temp_dir(std::string("sample_") + name);
     ag2gs::write_synth_scene(d.string(), o);
     for (const auto& f : j["files"]) {

@@ -22,6 +22,7 @@
 #include "io_test_util.h"
 #include "stages/anchor_model.h"
 #include "stages/trainer.h"
+#include "synth/synth_scene.h"
 #include "test_util.h"
 
 namespace fs = std::filesystem;
@@ -147,10 +148,11 @@ TrainConfig split_config() {
 
 // Trains cfg straight and split in two at iteration 40 (checkpoint, resume)
 // and expects the same model files; returns the children recycled.
-int expect_resume_gives_straight_bytes(const TrainConfig& cfg, const std::string& name) {
+int expect_resume_gives_straight_bytes(const TrainConfig& cfg, const std::string& name,
+                                       const std::string& scene_dir = sample_scene()) {
   SceneOptions so;
   so.resolution = 2;
-  auto scene = Scene::open(sample_scene(), so);
+  auto scene = Scene::open(scene_dir, so);
   test::ScratchDir dir(name);
   int grown = 0, resets = 0, recycled = 0;
   {
@@ -227,6 +229,35 @@ TEST(TrainState, ResumeIsBitExactWithASky) {
   EXPECT_EQ(t.config().sky_degree, 3);
   EXPECT_EQ(t.sky().size(), 48u);
   EXPECT_EQ(t.adam_group("sky").rows(), 16u);
+}
+
+// The same with the far shell, on a generated room whose wall has no SfM
+// points: the shell's anchors come from the scene again on resume.
+TEST(TrainState, ResumeIsBitExactWithTheFarShell) {
+  test::ScratchDir dir("train_resume_shell_scene");
+  SynthOptions o;
+  o.width = 64;
+  o.height = 48;
+  o.views = 12;
+  o.seed = 2;
+  o.feature_dim = 84;
+  o.wall_points = false;
+  write_synth_scene(dir.file("scene"), o);
+  TrainConfig cfg = split_config();
+  cfg.far_shell = true;
+  expect_resume_gives_straight_bytes(cfg, "train_resume_shell", dir.file("scene"));
+  SceneOptions so;
+  so.resolution = 2;
+  auto scene = Scene::open(dir.file("scene"), so);
+  Trainer with(test::runtime(), *scene, cfg);
+  cfg.far_shell = false;
+  Trainer without(test::runtime(), *scene, cfg);
+  EXPECT_GT(with.model().size(), without.model().size() + 20) << "the shell seeded anchors";
+  EXPECT_EQ(with.config().sky_degree, 3);
+  EXPECT_TRUE(TrainConfig::from_json(with.config().to_json()).far_shell);
+  nlohmann::json old = with.config().to_json();
+  old.erase("far_shell");
+  EXPECT_FALSE(TrainConfig::from_json(old).far_shell) << "files from before the shell mean none";
 }
 
 TEST(TrainState, ResumeRefusesAnotherConfigOrScene) {

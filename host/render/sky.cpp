@@ -233,6 +233,45 @@ int open_sky_radius(const Camera& cam) {
   return std::max(2, static_cast<int>(std::lround(0.03 * std::max(cam.width, cam.height))));
 }
 
+double far_shell_radius(const std::vector<Eigen::Vector3d>& points, const Eigen::Vector3d& centre, double least) {
+  std::vector<double> dist;
+  dist.reserve(points.size());
+  for (const Eigen::Vector3d& p : points)
+    if (p.allFinite()) dist.push_back((p - centre).norm());
+  if (dist.empty()) return least;
+  const size_t k = std::min(dist.size() - 1, static_cast<size_t>(0.98 * static_cast<double>(dist.size())));
+  std::nth_element(dist.begin(), dist.begin() + static_cast<std::ptrdiff_t>(k), dist.end());
+  return std::max(dist[k], least);
+}
+
+void far_shell_points(const Camera& cam, const std::vector<uint8_t>& open, const std::vector<float>& rgb,
+                      const Eigen::Vector3d& centre, double radius, int stride, std::vector<Eigen::Vector3d>& points,
+                      std::vector<Eigen::Vector3<uint8_t>>& colors) {
+  const size_t npix = static_cast<size_t>(cam.width) * cam.height;
+  if (open.size() != npix || rgb.size() != 3 * npix)
+    throw std::invalid_argument("far_shell_points: the open mask or the photo does not match the camera");
+  const int step = std::max(1, stride);
+  const Eigen::Vector3d o = cam.center(), oc = o - centre;
+  const Eigen::Matrix3d to_world = cam.R.transpose();
+  for (int y = step / 2; y < cam.height; y += step)
+    for (int x = step / 2; x < cam.width; x += step) {
+      const size_t p = static_cast<size_t>(y) * cam.width + x;
+      if (!open[p]) continue;
+      const Eigen::Vector3d d =
+          (to_world * Eigen::Vector3d((x + 0.5 - cam.cx) / cam.fx, (y + 0.5 - cam.cy) / cam.fy, 1.0)).normalized();
+      // |oc + t d| = radius, the larger root (the camera is inside).
+      const double b = oc.dot(d), disc = b * b - (oc.squaredNorm() - radius * radius);
+      if (!(disc >= 0)) continue;
+      const double t = -b + std::sqrt(disc);
+      if (!(t > 0)) continue;
+      points.push_back(o + t * d);
+      Eigen::Vector3<uint8_t> c;
+      for (int k = 0; k < 3; ++k)
+        c[k] = static_cast<uint8_t>(std::clamp(std::lround(255.0 * rgb[3 * p + k]), 0L, 255L));
+      colors.push_back(c);
+    }
+}
+
 void open_sky_weights(const std::vector<uint8_t>& open, int width, int height, int factor, std::vector<float>& out) {
   const int f = std::max(1, factor);
   const int w = std::max(1, width / f), h = std::max(1, height / f);

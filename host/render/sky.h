@@ -50,6 +50,19 @@ std::vector<uint8_t> open_sky_pixels(const Camera& camera, const std::vector<Eig
 int open_sky_radius(const Camera& camera);
 void open_sky_weights(const std::vector<uint8_t>& open, int width, int height, int factor, std::vector<float>& out);
 
+// The far shell: where open pixels show surfaces without SfM points (a
+// room's far walls and furniture), points for the anchors to start from.
+// far_shell_radius: the sphere around `centre` (the cameras' mean centre)
+// that holds 98% of the finite points, and at least `least` (beyond every
+// camera, so each ray leaves it once). far_shell_points appends, for every
+// `stride`-th pixel in x and y (from stride / 2) that is open, where its ray
+// leaves that sphere, with the photo's colour there (`rgb` [H, W, 3] in
+// [0, 1]).
+double far_shell_radius(const std::vector<Eigen::Vector3d>& points, const Eigen::Vector3d& centre, double least);
+void far_shell_points(const Camera& camera, const std::vector<uint8_t>& open, const std::vector<float>& rgb,
+                      const Eigen::Vector3d& centre, double radius, int stride, std::vector<Eigen::Vector3d>& points,
+                      std::vector<Eigen::Vector3<uint8_t>>& colors);
+
 // The archive entry "sky/sh" [K, 3] (model.ag2gs, checkpoints): absent for
 // a model without a sky. sky_from_archive throws std::runtime_error naming
 // the archive's file when the entry has a shape no degree gives.
@@ -64,6 +77,11 @@ class Sky {
   // for another degree or a size that does not match it).
   void set(int degree, const std::vector<float>& coefficients);
   bool enabled() const { return degree_ >= 0; }
+  // Back to no sky (the coefficients are dropped).
+  void clear() {
+    degree_ = -1;
+    values_ = 0;
+  }
   int degree() const { return degree_; }
   size_t values() const { return values_; }  // K * 3
   std::vector<float> download() const;
