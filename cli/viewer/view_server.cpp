@@ -3,8 +3,11 @@
 // of a ViewSession; the page (cli/viewer/page.html) is compiled into the
 // program, so it works offline. The API is documented in docs/formats.md.
 #include <spdlog/spdlog.h>
+#include <sys/socket.h>
 
+#include <algorithm>
 #include <atomic>
+#include <cctype>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -107,6 +110,53 @@ std::string json_string(const nlohmann::json& j, const char* key) {
   return j[key].get<std::string>();
 }
 
+constexpr size_t kWorkers = 32;
+
+// The Host values served: the loopback names and the address given with
+// --host, each with or without a port. Empty: any (a viewer opened to the
+// network with 0.0.0.0 or :: cannot know the names it is reached by).
+std::vector<std::string> allowed_hosts(const std::string& host) {
+  if (host == "0.0.0.0" || host == "::") return {};
+  std::vector<std::string> names = {"127.0.0.1", "localhost", "[::1]"};
+  names.push_back(host.find(':') != std::string::npos ? "[" + host + "]" : host);
+  return names;
+}
+
+bool host_allowed(const std::string& value, const std::vector<std::string>& names) {
+  if (names.empty() || value.empty()) return true;  // no Host header: not a browser
+  std::string name = value;
+  const size_t colon = name.rfind(':');
+  if (colon != std::string::npos && name.find(']', colon) == std::string::npos &&
+      (name[0] == '[' || name.find(':') == colon))
+    name = name.substr(0, colon);  // the port
+  std::transform(name.begin(), name.end(), name.begin(), [](unsigned char c) { return std::tolower(c); });
+  return std::find(names.begin(), names.end(), name) != names.end();
+}
+
+struct Refusal {
+  int status = 0;  // 0: served
+  std::string message;
+};
+
+// Before routing: a page on another site that a browser opens cannot reach
+// the viewer through a name that resolves to this machine (DNS rebinding:
+// the Host header is that name), nor change its state with a form or a
+// text/plain request (a JSON content type needs a CORS preflight, which
+// the viewer does not grant); a POST without a Content-Length is answered
+// at once instead of waiting for a body until the read timeout.
+Refusal refusal(const httplib::Request& req, const std::vector<std::string>& hosts) {
+  if (!host_allowed(req.get_header_value("Host"), hosts))
+    return {403, "Host '" + req.get_header_value("Host") +
+                     "' is not this viewer's address (open it as http://127.0.0.1:PORT/ or the --host given)"};
+  if (req.method != "POST") return {};
+  if (!req.has_header("Content-Length") && !req.has_header("Transfer-Encoding"))
+    return {411, "a POST needs a Content-Length (and a JSON body, {} for none)"};
+  const std::string type = req.get_header_value("Content-Type");
+  if (type.rfind("application/json", 0) != 0)
+    return {415, "a POST's body must be JSON, sent with Content-Type: application/json (got '" + type + "')"};
+  return {};
+}
+
 nlohmann::json parse_body(const httplib::Request& req) {
   nlohmann::json j;
   try {
@@ -157,6 +207,28 @@ void cmd_view(const GlobalOptions& global, const ViewArgs& a) {
   httplib::Server svr;
   svr.set_payload_max_length(kMaxBody);
   svr.set_read_timeout(10, 0);
+  // Answers go out at once: without TCP_NODELAY a kept-alive connection
+  // waits ~40 ms for the client's delayed ACK on every response.
+  svr.set_tcp_nodelay(true);
+  // SO_REUSEADDR only: cpp-httplib's default also sets SO_REUSEPORT, with
+  // which a second viewer on the same port silently shares the requests.
+  svr.set_socket_options([](socket_t sock) {
+    int yes = 1;
+    setsockopt(sock, SOL_SOCKET, SO_REUSEADDR, &yes, sizeof yes);
+  });
+  // Idle kept-alive connections hold a worker each: enough workers that a
+  // browser's connections (6 per page) from a few tabs never queue a
+  // request, and idle ones closed after 2 s.
+  svr.new_task_queue = [] { return new httplib::ThreadPool(kWorkers); };
+  svr.set_keep_alive_timeout(2);
+  svr.set_keep_alive_max_count(10000);
+  const std::vector<std::string> hosts = allowed_hosts(a.host);
+  svr.set_pre_routing_handler([hosts](const httplib::Request& req, httplib::Response& res) {
+    const Refusal r = refusal(req, hosts);
+    if (r.status == 0) return httplib::Server::HandlerResponse::Unhandled;
+    send_error(res, r.status, r.message);
+    return httplib::Server::HandlerResponse::Handled;
+  });
   svr.set_exception_handler([](const httplib::Request&, httplib::Response& res, std::exception_ptr ep) {
     try {
       std::rethrow_exception(ep);

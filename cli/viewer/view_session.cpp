@@ -1,5 +1,6 @@
 #include "cli/viewer/view_session.h"
 
+#include <spdlog/spdlog.h>
 #include <unistd.h>
 
 #include <algorithm>
@@ -16,6 +17,7 @@
 #include "host/core/timing.h"
 #include "host/io/ply_io.h"
 #include "host/io/semantic_io.h"
+#include "host/scene/scene_up.h"
 #include "stages/train_common.h"
 
 namespace fs = std::filesystem;
@@ -124,6 +126,20 @@ ViewSession::ViewSession(Runtime& rt, const ViewOptions& options)
   const size_t k = std::min(n - 1, n * 9 / 10);
   std::nth_element(d.begin(), d.begin() + k, d.end());
   radius_ = std::max(d[k], 1e-6);
+
+  // The scene's up, for an orbit that keeps the horizon level: the floor
+  // plane's normal or the cameras' mean up (host/scene/scene_up.h).
+  if (scene_ && !scene_->views().empty()) {
+    std::vector<Camera> cameras;
+    for (const SceneView& v : scene_->views()) cameras.push_back(v.camera);
+    std::vector<Eigen::Vector3d> points(n);
+    for (size_t a = 0; a < n; ++a) points[a] = Eigen::Vector3d(pos[3 * a], pos[3 * a + 1], pos[3 * a + 2]);
+    try {
+      up_ = scene_up(cameras, points).up;
+    } catch (const std::runtime_error& e) {
+      spdlog::info("view: no scene up ({}); orbiting about the first view's up", e.what());
+    }
+  }
 }
 
 nlohmann::json ViewSession::info() const {
@@ -144,6 +160,7 @@ nlohmann::json ViewSession::info() const {
   j["sky"] = sky_.enabled();
   j["centre"] = {centre_.x(), centre_.y(), centre_.z()};
   j["radius"] = radius_;
+  if (up_) j["up"] = {up_->x(), up_->y(), up_->z()};
   j["selection"] = {{"anchors", selected_.size()}, {"gaussians", selected_.size() * model.children()}};
   j["visibility"] = visibility_name(visibility_);
   j["modes"] = {"rgb", "depth", "feature", "instance", "selection"};
@@ -285,7 +302,9 @@ std::vector<uint8_t> ViewSession::render_jpeg(const Camera& camera, ViewMode mod
       break;
     }
   }
-  if (mode == ViewMode::selection && !selected_.empty()) {
+  // Hidden, the selection is not drawn, so the highlight would paint over
+  // what the removal preview shows in its place.
+  if (mode == ViewMode::selection && !selected_.empty() && visibility_ != Visibility::hide) {
     const std::vector<uint8_t> m = engine_->mask(camera, selected_);
     for (int y = 0; y < h; ++y)
       for (int x = 0; x < w; ++x) {

@@ -109,6 +109,7 @@ class ViewSession {
   std::unique_ptr<InstanceMapper> instances_;  // null without clusters
   Eigen::Vector3d centre_ = Eigen::Vector3d::Zero();
   double radius_ = 1;
+  std::optional<Eigen::Vector3d> up_;  // the scene's up (with --scene), else none
   std::vector<int32_t> selected_;  // ascending anchor ids
   std::vector<uint8_t> in_selection_;
   Visibility visibility_ = Visibility::show;

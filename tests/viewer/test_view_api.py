@@ -157,6 +157,13 @@ class ViewApi(unittest.TestCase):
             _, info = self.v.json("/api/info")
             self.assertEqual(info["visibility"], vis)
             pictures[vis] = self.v.request("/api/render?view=view_000&mode=rgb&quality=90")[2]
+            # The highlight mode shows the same preview when the selection
+            # is hidden (it painted the hidden object orange).
+            highlight = self.v.request("/api/render?view=view_000&mode=selection&quality=90")[2]
+            if vis == "hide":
+                self.assertEqual(highlight, pictures[vis])
+            else:
+                self.assertNotEqual(highlight, pictures[vis])
         self.assertNotEqual(pictures["hide"], pictures["show"])
         self.assertNotEqual(pictures["only"], pictures["show"])
         self.assertNotEqual(pictures["only"], pictures["hide"])
@@ -271,6 +278,80 @@ class ViewApi(unittest.TestCase):
         for t in threads:
             t.join()
         self.assertEqual(errors, [])
+
+
+    def test_kept_alive_connection_is_as_fast_as_a_fresh_one(self):
+        # Without TCP_NODELAY each answer on a kept-alive connection waited
+        # ~40 ms for the client's delayed ACK.
+        import http.client
+        c = http.client.HTTPConnection("127.0.0.1", self.v.port, timeout=30)
+        times = []
+        for _ in range(30):
+            t = time.perf_counter()
+            c.request("GET", "/api/info")
+            r = c.getresponse()
+            r.read()
+            self.assertEqual(r.status, 200)
+            times.append((time.perf_counter() - t) * 1000)
+        c.close()
+        median = sorted(times)[len(times) // 2]
+        print("kept-alive /api/info: median %.2f ms" % median)
+        self.assertLess(median, 15.0)
+
+    def test_foreign_host_and_cross_site_posts_are_refused(self):
+        import http.client
+
+        def ask(method, headers, body=None):
+            c = http.client.HTTPConnection("127.0.0.1", self.v.port, timeout=30)
+            c.request(method, "/api/clear" if method == "POST" else "/api/info", body=body, headers=headers)
+            r = c.getresponse()
+            data = r.read()
+            c.close()
+            return r.status, data
+
+        port = self.v.port
+        for host in ("127.0.0.1:%d" % port, "localhost:%d" % port, "LOCALHOST", "[::1]:%d" % port, "127.0.0.1"):
+            self.assertEqual(ask("GET", {"Host": host})[0], 200, host)
+        for host in ("evil.example", "evil.example:%d" % port, "127.0.0.1.evil.example", "[::2]:%d" % port):
+            status, data = ask("GET", {"Host": host})
+            self.assertEqual(status, 403, host)
+            self.assertIn(b"not this viewer's address", data)
+        # What a form or a text/plain fetch from another site can send.
+        for ctype in ("text/plain", "application/x-www-form-urlencoded", "multipart/form-data; boundary=x"):
+            status, data = ask("POST", {"Content-Type": ctype}, body="{}")
+            self.assertEqual(status, 415, ctype)
+            self.assertIn(b"application/json", data)
+        self.assertEqual(ask("POST", {"Content-Type": "application/json"}, body="{}")[0], 200)
+
+    def test_post_without_a_body_is_answered_at_once(self):
+        with socket.create_connection(("127.0.0.1", self.v.port), timeout=5) as s:
+            t = time.perf_counter()
+            s.sendall(b"POST /api/clear HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+            answer = s.recv(4096)
+            seconds = time.perf_counter() - t
+        self.assertTrue(answer.startswith(b"HTTP/1.1 411"), answer[:100])
+        self.assertIn(b"Content-Length", answer)
+        self.assertLess(seconds, 2.0)
+
+    def test_idle_connections_do_not_hold_up_others(self):
+        idle = [socket.create_connection(("127.0.0.1", self.v.port), timeout=5) for _ in range(16)]
+        try:
+            t = time.perf_counter()
+            self.assertEqual(self.v.json("/api/info")[0], 200)
+            self.assertLess(time.perf_counter() - t, 1.0)
+        finally:
+            for s in idle:
+                s.close()
+
+    def test_a_second_viewer_on_the_port_is_refused(self):
+        import subprocess
+        from viewer_util import binary
+        r = subprocess.run([binary(), "view", MODEL, "--port", str(self.v.port)], capture_output=True, text=True,
+                           timeout=60)
+        self.assertNotEqual(r.returncode, 0)
+        self.assertIn("--port", r.stdout + r.stderr)
+        self.assertIn(str(self.v.port), r.stdout + r.stderr)
+        self.assertEqual(self.v.json("/api/info")[0], 200)
 
 
 class ViewStartAndStop(unittest.TestCase):

@@ -10,6 +10,7 @@ kept at BUILD/test_view/viewer.png.
 
 Needs the models of tests/viewer/make_models.sh (the CTest fixture view_models).
 """
+import math
 import os
 import shutil
 import time
@@ -116,6 +117,42 @@ class ViewBrowser(unittest.TestCase):
         dx = (x + 0.5) * size["width"] / w - size["width"] / 2
         dy = (y + 0.5) * size["height"] / h - size["height"] / 2
         ActionChains(self.d).move_to_element_with_offset(frame, dx, dy).click().perform()
+
+    def test_orbit_keeps_the_horizon_level(self):
+        # The generated scene's up is +z; the page orbits about the up the
+        # server finds (the floor's normal), so the horizon does not roll,
+        # and yaw keeps the camera's height above the target.
+        d = self.d
+        d.get(self.v.base + "/")
+        self.wait_for("the first frame", lambda: self.state("frames") >= 1)
+        up = self.v.json("/api/info")[1]["up"]
+        self.assertGreater(up[2], 0.99, up)
+        dot = lambda a, b: sum(x * y for x, y in zip(a, b))
+
+        def roll_and_height():
+            R, C, target = self.state("R"), self.state("C"), self.state("target")
+            return (abs(math.degrees(math.asin(max(-1.0, min(1.0, dot(R[0:3], up)))))),
+                    dot([c - t for c, t in zip(C, target)], up))
+
+        _, height0 = roll_and_height()
+        body = d.find_element(By.TAG_NAME, "body")
+        for keys in ([Keys.ARROW_LEFT] * 39, [Keys.ARROW_UP] * 3, [Keys.ARROW_RIGHT] * 7, [Keys.ARROW_DOWN] * 5):
+            for k in keys:
+                body.send_keys(k)
+            roll, height = roll_and_height()
+            self.assertLess(roll, 0.5, "horizon roll after %d presses" % len(keys))
+        # 39 presses of the left arrow: the same height (the camera stays above the floor).
+        for k in [Keys.ARROW_LEFT] * 39:
+            body.send_keys(k)
+        frame = d.find_element(By.ID, "frame")
+        chain = ActionChains(d).move_to_element(frame).click_and_hold()
+        for _ in range(10):
+            chain.move_by_offset(15, 0)
+        chain.release().perform()
+        roll, height = roll_and_height()
+        self.assertLess(roll, 0.5)
+        print("orbit: horizon roll %.3f degrees, height above the target %.3f (first %.3f)" % (roll, height, height0))
+        self.assertGreater(height, 0.0)
 
     def test_the_page(self):
         d = self.d
