@@ -220,7 +220,8 @@ class Trainer {
   double init_sky();
   // Finds the open pixels and decides the sky (config.sky_degree) and the
   // far shell, whose points it appends to the seeding points.
-  void choose_background(std::vector<Eigen::Vector3d>& points, std::vector<Eigen::Vector3<uint8_t>>& colors);
+  void choose_background(const VoxelGrid& grid, std::vector<Eigen::Vector3d>& points,
+                         std::vector<Eigen::Vector3<uint8_t>>& colors);
 
   Runtime& rt_;
   Scene& scene_;

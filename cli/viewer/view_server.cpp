@@ -90,7 +90,12 @@ std::vector<double> number_list(const std::string& s, const char* name) {
 
 // The camera a render or click names: ?view=NAME, or ?pose=...&fx=..&w=..
 Camera camera_of(const ViewSession& session, const httplib::Request& req) {
-  if (req.has_param("view")) return session.view_camera(req.get_param_value("view"));
+  if (req.has_param("view")) {
+    // A training view, at its size or at w x h (the intrinsics scaled).
+    const Camera c = session.view_camera(req.get_param_value("view"));
+    if (!req.has_param("w") && !req.has_param("h")) return c;
+    return ViewSession::resized(c, int_param(req, "w", 0), int_param(req, "h", 0));
+  }
   if (!req.has_param("pose")) throw std::invalid_argument("give view=NAME or pose=R11,...,R33,t1,t2,t3 with fx, fy, cx, cy, w, h");
   return ViewSession::pose_camera(number_list(req.get_param_value("pose"), "pose"), number_param(req, "fx"),
                                   number_param(req, "fy"), number_param(req, "cx"), number_param(req, "cy"),
@@ -263,12 +268,16 @@ void cmd_view(const GlobalOptions& global, const ViewArgs& a) {
     const ViewMode mode = parse_view_mode(req.has_param("mode") ? req.get_param_value("mode") : "rgb");
     const int quality = int_param(req, "quality", 85);
     std::lock_guard<std::mutex> g(lock);
+    const std::string format = req.has_param("format") ? req.get_param_value("format") : "jpeg";
+    if (format != "jpeg" && format != "png")
+      throw std::invalid_argument("format '" + format + "': choose jpeg (the default) or png (a screenshot)");
     const Camera cam = camera_of(session, req);
     double ms = 0;
-    const std::vector<uint8_t> jpeg = session.render_jpeg(cam, mode, quality, &ms);
+    const std::vector<uint8_t> image = session.render_image(cam, mode, quality, format == "png", &ms);
     res.set_header("X-Render-Ms", std::to_string(ms));
     res.set_header("Cache-Control", "no-store");
-    res.set_content(reinterpret_cast<const char*>(jpeg.data()), jpeg.size(), "image/jpeg");
+    res.set_content(reinterpret_cast<const char*>(image.data()), image.size(),
+                    format == "png" ? "image/png" : "image/jpeg");
   });
   svr.Post("/api/query", [&](const httplib::Request& req, httplib::Response& res) {
     const nlohmann::json body = parse_body(req);
@@ -279,9 +288,8 @@ void cmd_view(const GlobalOptions& global, const ViewArgs& a) {
     send_json(res, r);
   });
   svr.Get("/api/mask", [&](const httplib::Request& req, httplib::Response& res) {
-    if (!req.has_param("view")) throw std::invalid_argument("give view=NAME");
     std::lock_guard<std::mutex> g(lock);
-    const std::vector<uint8_t> png = session.mask_png(req.get_param_value("view"));
+    const std::vector<uint8_t> png = session.mask_png(camera_of(session, req));
     res.set_header("Cache-Control", "no-store");
     res.set_content(reinterpret_cast<const char*>(png.data()), png.size(), "image/png");
   });

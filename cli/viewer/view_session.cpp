@@ -200,6 +200,30 @@ Camera ViewSession::view_camera(const std::string& name) const {
   }
 }
 
+namespace {
+void check_view_size(int width, int height) {
+  if (width < 1 || height < 1 || width > kMaxViewSide || height > kMaxViewSide)
+    throw std::invalid_argument("w, h: each from 1 to " + std::to_string(kMaxViewSide) + ", not " +
+                                std::to_string(width) + "x" + std::to_string(height));
+  if (static_cast<int64_t>(width) * height > kMaxViewPixels)
+    throw std::invalid_argument("w x h: at most " + std::to_string(kMaxViewPixels) + " pixels (3840x2160), not " +
+                                std::to_string(width) + "x" + std::to_string(height) + "; ask for a smaller picture");
+}
+}  // namespace
+
+Camera ViewSession::resized(const Camera& camera, int width, int height) {
+  check_view_size(width, height);
+  Camera c = camera;
+  const double sx = double(width) / camera.width, sy = double(height) / camera.height;
+  c.fx *= sx;
+  c.cx *= sx;
+  c.fy *= sy;
+  c.cy *= sy;
+  c.width = width;
+  c.height = height;
+  return c;
+}
+
 Camera ViewSession::pose_camera(const std::vector<double>& p, double fx, double fy, double cx, double cy, int width,
                                 int height) {
   if (p.size() != 12)
@@ -207,9 +231,7 @@ Camera ViewSession::pose_camera(const std::vector<double>& p, double fx, double 
                                 std::to_string(p.size()));
   for (double v : p)
     if (!std::isfinite(v)) throw std::invalid_argument("pose: every number must be finite");
-  if (width < 1 || height < 1 || width > kMaxViewSide || height > kMaxViewSide ||
-      static_cast<int64_t>(width) * height > kMaxViewPixels)
-    throw std::invalid_argument("w, h: each from 1 to " + std::to_string(kMaxViewSide));
+  check_view_size(width, height);
   if (!(std::isfinite(fx) && std::isfinite(fy) && fx > 0 && fy > 0 && std::isfinite(cx) && std::isfinite(cy)))
     throw std::invalid_argument("fx, fy must be finite and > 0, cx, cy finite");
   Camera c;
@@ -248,7 +270,7 @@ void ViewSession::upload_shown() {
   shown_dirty_ = false;
 }
 
-std::vector<uint8_t> ViewSession::render_jpeg(const Camera& camera, ViewMode mode, int quality, double* ms) {
+std::vector<uint8_t> ViewSession::render_image(const Camera& camera, ViewMode mode, int quality, bool png, double* ms) {
   if (quality < 1 || quality > 100) throw std::invalid_argument("quality: from 1 to 100");
   if (mode == ViewMode::instance && !instances_)
     throw std::invalid_argument(trained_.file + " has no clusters (stage 3), which mode=instance needs");
@@ -322,11 +344,11 @@ std::vector<uint8_t> ViewSession::render_jpeg(const Camera& camera, ViewMode mod
       const float v = rgb[3 * p + c];
       bgr.data[3 * p + 2 - c] = static_cast<uint8_t>(std::lround(std::clamp(std::isfinite(v) ? v : 0.f, 0.f, 1.f) * 255));
     }
-  std::vector<uint8_t> jpeg;
-  if (!cv::imencode(".jpg", bgr, jpeg, {cv::IMWRITE_JPEG_QUALITY, quality}))
-    throw std::runtime_error("could not encode the picture as JPEG");
+  std::vector<uint8_t> bytes;
+  if (png ? !cv::imencode(".png", bgr, bytes) : !cv::imencode(".jpg", bgr, bytes, {cv::IMWRITE_JPEG_QUALITY, quality}))
+    throw std::runtime_error(std::string("could not encode the picture as ") + (png ? "PNG" : "JPEG"));
   if (ms) *ms = ms_since(t0);
-  return jpeg;
+  return bytes;
 }
 
 nlohmann::json ViewSession::finish_query(std::vector<int32_t> selected, double ms, nlohmann::json detail) {
@@ -401,8 +423,7 @@ void ViewSession::set_visibility(Visibility v) {
   visibility_ = v;
 }
 
-std::vector<uint8_t> ViewSession::mask_png(const std::string& view) {
-  const Camera cam = view_camera(view);
+std::vector<uint8_t> ViewSession::mask_png(const Camera& cam) {
   return encode_mask_png(engine_->mask(cam, selected_), cam.width, cam.height);
 }
 

@@ -47,7 +47,9 @@ const char* visibility_name(Visibility v);
 
 // Render sizes the server accepts (each side, and pixels per picture).
 constexpr int kMaxViewSide = 4096;
-constexpr int64_t kMaxViewPixels = 4096LL * 4096;
+// At most 4K UHD's pixels: one render of that size needs about 0.6 GB of
+// device and host memory on the CPU device; larger ones are refused.
+constexpr int64_t kMaxViewPixels = 3840LL * 2160;
 
 class ViewSession {
  public:
@@ -61,13 +63,20 @@ class ViewSession {
   // The camera of a training view at the served resolution; throws for an
   // unknown name (listing a few) or when no scene was given.
   Camera view_camera(const std::string& name) const;
+  // A camera resized to width x height (the intrinsics scaled with it);
+  // std::invalid_argument outside the render bounds.
+  static Camera resized(const Camera& camera, int width, int height);
   // A camera from a pose (R row-major then t, world to camera), intrinsics
   // and size; throws naming what is out of range.
   static Camera pose_camera(const std::vector<double>& pose12, double fx, double fy, double cx, double cy, int width,
                             int height);
 
   // The picture as JPEG (quality 1-100); *ms gets the render time.
-  std::vector<uint8_t> render_jpeg(const Camera& camera, ViewMode mode, int quality, double* ms);
+  std::vector<uint8_t> render_jpeg(const Camera& camera, ViewMode mode, int quality, double* ms) {
+    return render_image(camera, mode, quality, false, ms);
+  }
+  // JPEG at `quality`, or PNG (lossless, a screenshot) when png is true.
+  std::vector<uint8_t> render_image(const Camera& camera, ViewMode mode, int quality, bool png, double* ms);
 
   // Queries: make the result the current selection and answer
   // {"anchors", "gaussians", "ms", ...}. A click in a training view takes
@@ -82,7 +91,7 @@ class ViewSession {
 
   // The current selection's mask in a training view: the PNG bytes `ag2gs
   // query` writes for the same selection and view.
-  std::vector<uint8_t> mask_png(const std::string& view);
+  std::vector<uint8_t> mask_png(const Camera& camera);
   // The current selection's Gaussians, standard 3DGS layout (query's
   // selection.ply); throws when nothing is selected.
   std::vector<uint8_t> selection_ply() const;

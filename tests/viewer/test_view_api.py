@@ -9,6 +9,7 @@ import os
 import random
 import signal
 import socket
+import struct
 import threading
 import time
 import unittest
@@ -279,6 +280,21 @@ class ViewApi(unittest.TestCase):
             t.join()
         self.assertEqual(errors, [])
 
+
+    def test_sized_renders_masks_and_png(self):
+        status, ctype, data = self.v.request("/api/render?view=view_000&w=321&h=241&format=png")
+        self.assertEqual((status, ctype), (200, "image/png"))
+        self.assertEqual(data[:8], b"\x89PNG\r\n\x1a\n")
+        self.assertEqual(struct.unpack(">II", data[16:24]), (321, 241))
+        status, ctype, data = self.v.request("/api/mask?view=view_000&w=320&h=240")
+        self.assertEqual(status, 200)
+        self.assertEqual(struct.unpack(">II", data[16:24]), (320, 240))
+        # The view's own size is the old answer, byte for byte.
+        self.assertEqual(self.v.request("/api/render?view=view_000&quality=70")[2],
+                         self.v.request("/api/render?view=view_000&quality=70&w=160&h=120")[2])
+        self.assertIn("format", self.expect_error(400, "/api/render?view=view_000&format=gif"))
+        self.assertIn("3840x2160", self.expect_error(400, "/api/render?view=view_000&w=4096&h=4096"))
+        self.expect_error(400, "/api/render?view=view_000&w=100")
 
     def test_kept_alive_connection_is_as_fast_as_a_fresh_one(self):
         # Without TCP_NODELAY each answer on a kept-alive connection waited

@@ -21,13 +21,14 @@ from selenium.webdriver.chrome.service import Service
 from selenium.webdriver.common.action_chains import ActionChains
 from selenium.webdriver.common.by import By
 from selenium.webdriver.common.keys import Keys
+from selenium.webdriver.support.ui import Select
 
 from viewer_util import SCENE, VOCAB, Viewer, read_png_grey, test_dir
 
 MODEL = os.path.join(test_dir(), "model")
 
 # In the page: compares the displayed picture with the rgb render of the same
-# view and with the selection's mask; the pixels that the highlight changed
+# view and with the selection's mask (both at the displayed picture's size); the pixels that the highlight changed
 # (summed channel difference above 90 of 765) against the mask's pixels. JPEG
 # blurs colour over 2x2 blocks and rings at edges, so the IoU leaves out a
 # band of 2 pixels on either side of the mask's outline ("iou"; "iou_all"
@@ -39,9 +40,10 @@ const pixels = (img) => { const c = document.createElement("canvas"); c.width = 
   const g = c.getContext("2d"); g.drawImage(img, 0, 0); return g.getImageData(0, 0, c.width, c.height).data; };
 (async () => {
   const shown = pixels(document.getElementById("frame"));
-  const plain = pixels(await load(`/api/render?view=${view}&mode=rgb&quality=88`));
-  const mask = pixels(await load(`/api/mask?view=${view}`));
-  const w = document.getElementById("frame").naturalWidth, n = mask.length / 4, m = (i) => mask[4 * i] > 127;
+  const w = document.getElementById("frame").naturalWidth, h0 = document.getElementById("frame").naturalHeight;
+  const plain = pixels(await load(`/api/render?view=${view}&mode=rgb&quality=88&w=${w}&h=${h0}`));
+  const mask = pixels(await load(`/api/mask?view=${view}&w=${w}&h=${h0}`));
+  const n = mask.length / 4, m = (i) => mask[4 * i] > 127;
   let both = 0, either = 0, bothAll = 0, eitherAll = 0, inMask = 0, changed = 0;
   for (let i = 0; i < n; i++) {
     const p = 4 * i, x = i % w, y = (i - x) / w, h = n / w;
@@ -153,6 +155,50 @@ class ViewBrowser(unittest.TestCase):
         self.assertLess(roll, 0.5)
         print("orbit: horizon roll %.3f degrees, height above the target %.3f (first %.3f)" % (roll, height, height0))
         self.assertGreater(height, 0.0)
+
+    def test_sharp_picture_link_and_screenshot(self):
+        d = self.d
+        d.get(self.v.base + "/")
+        self.wait_for("the first frame", lambda: self.state("frames") >= 1)
+        self.settled(0)
+        # The picture is rendered at its size on the screen, not the view's
+        # 160x120 stretched.
+        natural = d.execute_script("const i = document.getElementById('frame'); return [i.naturalWidth, "
+                                   "i.naturalHeight, i.getBoundingClientRect().width, "
+                                   "i.getBoundingClientRect().height];")
+        print("picture: %dx%d rendered, %.0fx%.0f on the screen" % tuple(natural))
+        self.assertGreater(natural[0], 2 * 160)
+        self.assertLess(abs(natural[0] - natural[2]), 3)
+        self.assertLess(abs(natural[1] - natural[3]), 3)
+        # The views' size on request.
+        frames = self.state("frames")
+        Select(d.find_element(By.ID, "res")).select_by_value("0")
+        self.settled(frames)
+        self.assertEqual(d.execute_script("return document.getElementById('frame').naturalWidth;"), 160)
+        Select(d.find_element(By.ID, "res")).select_by_value("1")
+        # A moved camera goes into the address; opening it shows that camera.
+        frames = self.state("frames")
+        body = d.find_element(By.TAG_NAME, "body")
+        for k in [Keys.ARROW_LEFT] * 5 + [Keys.ARROW_UP] * 2:
+            body.send_keys(k)
+        self.settled(frames)
+        url = d.current_url
+        self.assertIn("#cam=", url)
+        R, C = self.state("R"), self.state("C")
+        d.get("about:blank")
+        d.get(url)
+        self.wait_for("the linked frame", lambda: self.state("frames") >= 1)
+        self.assertFalse(self.state("atView"))
+        for a, b in zip(R + C, self.state("R") + self.state("C")):
+            self.assertAlmostEqual(a, b, places=5)
+        # The screenshot: a PNG of the picture's size, rendered again.
+        size = d.execute_async_script(
+            "const done = arguments[0]; const [w, h] = frameSize(false);"
+            "fetch(renderUrl(false, [w, h], '&format=png')).then(async (r) => {"
+            "  const b = await r.blob(); const i = await createImageBitmap(b);"
+            "  done([w, h, i.width, i.height, r.headers.get('Content-Type')]); });")
+        self.assertEqual(size[0:2], size[2:4])
+        self.assertEqual(size[4], "image/png")
 
     def test_the_page(self):
         d = self.d
