@@ -331,14 +331,17 @@ void cmd_query(const GlobalOptions& global, QueryArgs a) {
   const double ply_ms = ms_since(t_out);
   const auto t_mask = std::chrono::steady_clock::now();
   nlohmann::json masks = nlohmann::json::array();
-  for (int v : views) {
-    const SceneView& sv = scene->views()[v];
+  std::vector<std::string> names;
+  for (int v : views) names.push_back(scene->views()[v].name);
+  const std::vector<std::string> stems = output_stems(names);  // a/1.jpg and b/1.jpg: a_1.png, b_1.png
+  for (size_t i = 0; i < views.size(); ++i) {
+    const SceneView& sv = scene->views()[views[i]];
     const std::vector<uint8_t> m = engine.mask(sv.camera, selected);
-    const std::string path = (fs::path(a.out) / "masks" / (sv.stem + ".png")).string();
+    const std::string path = (fs::path(a.out) / "masks" / (stems[i] + ".png")).string();
     write_mask_png(path, m, sv.camera.width, sv.camera.height);
     size_t on = 0;
     for (uint8_t b : m) on += b;
-    masks.push_back({{"view", sv.name}, {"file", "masks/" + sv.stem + ".png"}, {"pixels", on}});
+    masks.push_back({{"view", sv.name}, {"file", "masks/" + stems[i] + ".png"}, {"pixels", on}});
   }
   const double mask_ms = ms_since(t_mask);
 

@@ -49,28 +49,6 @@ struct RenderArgs {
   bool force = false;         // --force: replace the renders already in OUT
 };
 
-// The file-name stem of each view's outputs: the image's stem, or, where two
-// images share one (a/1.jpg, b/1.jpg), the image's path without its
-// extension with '/' as '_' (a_1, b_1), so no view overwrites another.
-std::vector<std::string> output_stems(const std::vector<Camera>& cams) {
-  std::map<std::string, int> uses;
-  for (const Camera& c : cams) ++uses[fs::path(c.name).stem().string()];
-  std::vector<std::string> stems;
-  std::set<std::string> taken;
-  for (const Camera& c : cams) {
-    std::string stem = fs::path(c.name).stem().string();
-    if (uses[stem] > 1) {
-      stem = (fs::path(c.name).parent_path() / fs::path(c.name).stem()).generic_string();
-      std::replace(stem.begin(), stem.end(), '/', '_');
-    }
-    if (!taken.insert(stem).second)
-      throw std::runtime_error("views '" + c.name + "' and another one would write the same files '" + stem +
-                               ".*'; rename one of the images or pick views with --views");
-    stems.push_back(stem);
-  }
-  return stems;
-}
-
 std::array<float, 3> parse_rgb(const std::string& s) {
   std::array<float, 3> v{};
   std::stringstream ss(s);
@@ -251,7 +229,9 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
   InstanceMapper mapper(rt);
   if (wants("instance")) mapper.set_clusters(anchor_cluster, children);
   fs::path out_dir(a.out);
-  const std::vector<std::string> stems = output_stems(cams);
+  std::vector<std::string> names;
+  for (const Camera& c : cams) names.push_back(c.name);
+  const std::vector<std::string> stems = output_stems(names);
   std::vector<std::string> files;  // what this run writes, inside OUT
   for (const std::string& o : outputs)
     for (const std::string& stem : stems)

@@ -8,6 +8,8 @@
 #include <cstdlib>
 #include <ctime>
 #include <filesystem>
+#include <map>
+#include <set>
 #include <stdexcept>
 
 namespace ag2gs::cli {
@@ -151,6 +153,25 @@ void refuse_output_in_inputs(const std::string& out, const std::string& scene,
     if (!d.empty() && o == resolved(d))
       throw std::runtime_error(flag + " " + out + " is the input folder " + d +
                                "; nothing was changed: choose another " + flag);
+}
+
+std::vector<std::string> output_stems(const std::vector<std::string>& image_names) {
+  std::map<std::string, int> uses;
+  for (const std::string& n : image_names) ++uses[fs::path(n).stem().string()];
+  std::vector<std::string> stems;
+  std::set<std::string> taken;
+  for (const std::string& n : image_names) {
+    std::string stem = fs::path(n).stem().string();
+    if (uses[stem] > 1) {
+      stem = (fs::path(n).parent_path() / fs::path(n).stem()).generic_string();
+      std::replace(stem.begin(), stem.end(), '/', '_');
+    }
+    if (!taken.insert(stem).second)
+      throw std::runtime_error("views '" + n + "' and another one would write the same files '" + stem +
+                               ".*'; rename one of the images or pick views with --views");
+    stems.push_back(stem);
+  }
+  return stems;
 }
 
 }  // namespace ag2gs::cli

@@ -65,6 +65,12 @@ void refuse_output_over_inputs(const std::string& out, const std::vector<std::st
 // `path` is `dir` or lies inside it, compared after resolving `.`, `..` and
 // the symbolic links of the parts that exist.
 bool path_is_within(const std::string& path, const std::string& dir);
+
+// The file-name stem of each view's outputs: the image's stem, or, where two
+// images share one (a/1.jpg, b/1.jpg), the image's path without its
+// extension with '/' as '_' (a_1, b_1), so no view overwrites another.
+// Throws std::runtime_error when two views would still write one name.
+std::vector<std::string> output_stems(const std::vector<std::string>& image_names);
 // Refuses an output (folder or file) that lies inside the scene folder, a
 // dataset whose images, masks and poses it could replace, or that is one of
 // the input folders (a model folder: writing beside its files is fine,

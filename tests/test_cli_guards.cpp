@@ -13,6 +13,7 @@
 #include <utility>
 #include <vector>
 
+#include "cli/run_guard.h"
 #include "cli_test_util.h"
 #include "host/io/atomic_file.h"
 #include "host/io/ply_io.h"
@@ -239,6 +240,22 @@ TEST(CliGuards, StaleTemporaryFilesOfDeadProcessesAreRemoved) {
   test::CliResult r = test::run_cli("train " + sample_scene() + " -o " + m + kTiny);
   ASSERT_EQ(r.code, 0) << r.output;
   EXPECT_FALSE(fs::exists(stale)) << "a dead run's temporary file survived the next write";
+}
+
+// Two images with one stem in different folders (a/1.jpg, b/1.jpg) get
+// their own output names in render and query (16 views wrote 15 files).
+TEST(CliGuards, OutputStemsTellApartImagesSharingAStem) {
+  EXPECT_EQ(cli::output_stems({"a/1.jpg", "b/1.jpg", "2.png", "c/d/3.png"}),
+            (std::vector<std::string>{"a_1", "b_1", "2", "3"}));
+  EXPECT_EQ(cli::output_stems({"1.jpg", "sub/1.png"}), (std::vector<std::string>{"1", "sub_1"}));
+  EXPECT_EQ(cli::output_stems({}), std::vector<std::string>{});
+  // Names that still collide after that are refused, naming the view.
+  try {
+    cli::output_stems({"a_1.jpg", "a/1.jpg", "b/1.jpg", "a_1.png"});
+    ADD_FAILURE() << "no error";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("would write the same files"), std::string::npos) << e.what();
+  }
 }
 
 }  // namespace
