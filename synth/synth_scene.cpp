@@ -1569,6 +1569,8 @@ void write_synth_scene(const std::string& out_dir, const SynthOptions& opt) {
   // Written only when on, so scenes generated without it keep their bytes.
   if (opt.background_masks) synth["options"]["background_masks"] = true;
   if (opt.removal_gt) synth["options"]["removal_gt"] = true;
+  // Written only when off, so the files of default scenes stay as they were.
+  if (!opt.wall_points) synth["options"]["wall_points"] = false;
   write_text_atomic(root / "synth.json", synth.dump(1) + "\n");
   spdlog::info("synth: wrote {} views, {} objects, {} points to {}", opt.views, scene.objects.size(), points.size(),
                out_dir);
