@@ -218,6 +218,7 @@ class ViewBrowser(unittest.TestCase):
             chain.move_by_offset(12, 3)
         chain.release().perform()
         self.settled(frames)
+        print("after a drag: the full-size frame %.0f ms after the release" % self.state("refineMs"))
         self.assertIn("pose=", self.state("shown"))
         self.assertFalse(self.state("atView"))
         self.assertNotEqual(self.picture(), before, "a drag must change the picture")
