@@ -15,6 +15,7 @@
 
 #include "cli/render_colours.h"
 #include "host/core/timing.h"
+#include "host/io/colmap_reader.h"
 #include "host/io/ply_io.h"
 #include "host/io/semantic_io.h"
 #include "host/scene/scene_up.h"
@@ -213,15 +214,7 @@ void check_view_size(int width, int height) {
 
 Camera ViewSession::resized(const Camera& camera, int width, int height) {
   check_view_size(width, height);
-  Camera c = camera;
-  const double sx = double(width) / camera.width, sy = double(height) / camera.height;
-  c.fx *= sx;
-  c.cx *= sx;
-  c.fy *= sy;
-  c.cy *= sy;
-  c.width = width;
-  c.height = height;
-  return c;
+  return resize_camera(camera, width, height);
 }
 
 Camera ViewSession::pose_camera(const std::vector<double>& p, double fx, double fy, double cx, double cy, int width,

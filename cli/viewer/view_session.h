@@ -71,11 +71,8 @@ class ViewSession {
   static Camera pose_camera(const std::vector<double>& pose12, double fx, double fy, double cx, double cy, int width,
                             int height);
 
-  // The picture as JPEG (quality 1-100); *ms gets the render time.
-  std::vector<uint8_t> render_jpeg(const Camera& camera, ViewMode mode, int quality, double* ms) {
-    return render_image(camera, mode, quality, false, ms);
-  }
-  // JPEG at `quality`, or PNG (lossless, a screenshot) when png is true.
+  // The picture as JPEG (quality 1-100), or as PNG (lossless, a screenshot)
+  // when png is true; *ms gets the render time.
   std::vector<uint8_t> render_image(const Camera& camera, ViewMode mode, int quality, bool png, double* ms);
 
   // Queries: make the result the current selection and answer

@@ -487,8 +487,18 @@ Camera scale_camera(const Camera& camera, int factor) {
                                 std::to_string(camera.height) + " vanishes at 1/" + std::to_string(factor) +
                                 " resolution; use a smaller factor");
   }
-  const double sx = static_cast<double>(out.width) / camera.width;
-  const double sy = static_cast<double>(out.height) / camera.height;
+  return resize_camera(camera, out.width, out.height);
+}
+
+Camera resize_camera(const Camera& camera, int width, int height) {
+  if (width < 1 || height < 1)
+    throw std::invalid_argument("resize_camera: " + std::to_string(width) + "x" + std::to_string(height) +
+                                " is not an image size");
+  Camera out = camera;
+  const double sx = static_cast<double>(width) / camera.width;
+  const double sy = static_cast<double>(height) / camera.height;
+  out.width = width;
+  out.height = height;
   out.fx *= sx;
   out.cx *= sx;
   out.fy *= sy;

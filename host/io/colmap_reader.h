@@ -42,6 +42,9 @@ bool is_pinhole_model(const std::string& model_name);
 // factor 1 returns the camera unchanged. Throws std::invalid_argument when
 // factor < 1 or the image would vanish.
 Camera scale_camera(const Camera& camera, int factor);
+// The camera with an image of width x height (both >= 1): fx and cx scale by
+// width / camera.width, fy and cy by height / camera.height.
+Camera resize_camera(const Camera& camera, int width, int height);
 
 // The cameras named in `comma_list` ("a.png,b" or "a, b"), in list order.
 // Each entry matches an image name exactly, or its name without extension, or
