@@ -241,7 +241,7 @@ GrowthResult AnchorGrowth::step(AnchorModel& model, uint64_t seed) {
                                                   : std::vector<Eigen::Vector3d>();
     auto request = [&](int to_layer, const Eigen::Vector3d& at) {
       const Eigen::Vector3i cell = grid.cell_of(to_layer, at);
-      if ((cell.array() < -kMaxAnchorCell).any() || (cell.array() >= kMaxAnchorCell).any()) return;
+      if (!cell_in_range(cell)) return;
       const double share = std::min(1.0, static_cast<double>(st.count[g]) / full_seen);
       const double seen = share * share;
       requests.push_back({anchor_voxel_key(to_layer, cell), static_cast<int64_t>(g), to_layer, cell,

@@ -22,10 +22,6 @@ constexpr double kQuatPerturbation = 1e-2;  // half-width of the initial xyz per
 // Random-number streams of one (anchor, child) counter.
 enum Stream { kOffsetX = 0, kQuatX = 3, kFeatureX = 6 };
 
-bool cell_in_range(const Eigen::Vector3i& c) {
-  return (c.array() >= -kMaxAnchorCell).all() && (c.array() < kMaxAnchorCell).all();
-}
-
 int64_t int_pow(int base, int exp) {
   int64_t r = 1;
   for (int i = 0; i < exp; ++i) r *= base;

@@ -107,6 +107,9 @@ struct AnchorInitStats {
 // Anchor cells must lie in [-kMaxAnchorCell, kMaxAnchorCell) on every axis
 // (20 bits per axis in the 64-bit voxel key).
 constexpr int kMaxAnchorCell = 1 << 19;
+inline bool cell_in_range(const Eigen::Vector3i& c) {
+  return (c.array() >= -kMaxAnchorCell).all() && (c.array() < kMaxAnchorCell).all();
+}
 
 class AnchorModel {
  public:

@@ -148,19 +148,24 @@ void Trainer::choose_background(const VoxelGrid& grid, std::vector<Eigen::Vector
     // there would crowd the surfaces' own anchors (the sample at -r 2,
     // 80x60: -1.3 dB).
     const int top = std::max(0, config_.anchors.init_layer);
-    std::unordered_set<uint64_t> taken;
+    std::unordered_set<uint64_t> taken;  // the top-layer voxels holding an SfM point
     for (const Eigen::Vector3d& p : scene_.points()) {
-      if (!p.allFinite()) continue;
       const Eigen::Vector3i c = grid.cell_of(top, p);
-      if ((c.array().abs() < kMaxAnchorCell - 1).all())
-        for (int dz = -1; dz <= 1; ++dz)
-          for (int dy = -1; dy <= 1; ++dy)
-            for (int dx = -1; dx <= 1; ++dx) taken.insert(anchor_voxel_key(top, c + Eigen::Vector3i(dx, dy, dz)));
+      if (p.allFinite() && cell_in_range(c)) taken.insert(anchor_voxel_key(top, c));
     }
+    auto near_points = [&](const Eigen::Vector3i& c) {
+      for (int dz = -1; dz <= 1; ++dz)
+        for (int dy = -1; dy <= 1; ++dy)
+          for (int dx = -1; dx <= 1; ++dx) {
+            const Eigen::Vector3i n = c + Eigen::Vector3i(dx, dy, dz);
+            if (cell_in_range(n) && taken.count(anchor_voxel_key(top, n))) return true;
+          }
+      return false;
+    };
     size_t near = 0;
     for (size_t i = 0; i < shell.size(); ++i) {
       const Eigen::Vector3i c = grid.cell_of(top, shell[i]);
-      if (!(c.array().abs() < kMaxAnchorCell).all() || taken.count(anchor_voxel_key(top, c))) {
+      if (!cell_in_range(c) || near_points(c)) {
         ++near;
         continue;
       }
