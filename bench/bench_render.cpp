@@ -103,8 +103,9 @@ int main(int argc, char** argv) {
 
   Runtime rt(device);
   rt.set_profiling(true, by_kernel);
-  std::printf("device: %s (%s), vector width %d, sort %s\n", rt.info().name.c_str(), rt.info().platform.c_str(),
-              rt.vector_width(), radix_sort_plan_for(rt.info()).describe().c_str());
+  std::printf("device: %s (%s), vector width %d, sort %s, blend backward %s\n", rt.info().name.c_str(),
+              rt.info().platform.c_str(), rt.vector_width(), radix_sort_plan_for(rt.info()).describe().c_str(),
+              Renderer(rt).blend_bwd_plan().c_str());
   std::vector<size_t> counts = quick ? std::vector<size_t>{10000} : std::vector<size_t>{10000, 100000, 1000000};
   if (!only.empty()) counts = only;
   std::vector<std::pair<int, int>> sizes = {{400, 300}, {800, 600}};

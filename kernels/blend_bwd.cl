@@ -7,10 +7,17 @@
 //
 // The per-Gaussian gradient itself is blend_vjp in common.cl, which both
 // layouts below call.
-// Defines: BATCH, NO_STAGING (CPU layout below); GRAD_RGB, GRAD_FEAT,
+// Defines: BATCH, SEG, NO_STAGING (CPU layout below); GRAD_RGB, GRAD_FEAT,
 // GRAD_DEPTH, GRAD_ALPHA, GRAD_DIST: 0 when that upstream gradient is zero
 // everywhere (not given), so blend_vjp leaves their terms out (a zero term
 // adds nothing; float rules forbid the compiler to drop x * 0 itself).
+
+// GPU layout: SEG (a power of two dividing WG_SIZE) work-items sum each
+// value's partials; PSTRIDE pads s_part's rows against bank conflicts.
+#ifndef SEG
+#define SEG 1
+#endif
+#define PSTRIDE (WG_SIZE + SEG)
 
 #if NO_STAGING
 // CPU layout: one work-item per tile. The Gaussians are the outer loop and the
@@ -158,7 +165,10 @@ void blend_bwd(int width, int height, int tiles_x,
                __global float* isect_grads) {        // [M,G2_SIZE] by slot
   __local float s_rec[BATCH * REC_SIZE];
   __local uint s_slot[BATCH];
-  __local float s_part[BATCH * WG_SIZE * G2_SIZE];
+  __local float s_part[BATCH * G2_SIZE * PSTRIDE];
+#if SEG > 1
+  __local float s_seg[BATCH * G2_SIZE * SEG];
+#endif
   __local int s_bound;
   const int lid = get_local_id(0);
   PixelRow pr = pixel_row(tiles_x, width, height);
@@ -202,37 +212,58 @@ void blend_bwd(int width, int height, int tiles_x,
     }
     barrier(CLK_LOCAL_MEM_FENCE);
     for (int j = 0; j < nb; ++j) {
-      __local float* part = s_part + (j * WG_SIZE + lid) * G2_SIZE;
+      __local float* part = s_part + j * G2_SIZE * PSTRIDE + lid;
       __local const float* q = s_rec + j * REC_SIZE;
       const BlendRec rec = BLEND_REC_LOAD(q);
       BlendVjp d;
       if (!blend_vjp(rec, rec.u - pr.px, rec.v - pr.py, (vint)(b0 + j) < last, dist_depth_vjp(rec.z, dnear, dfar),
                      &tot, &run, &d)) {
-        for (int c = 0; c < G2_SIZE; ++c) part[c] = 0.f;
+        for (int c = 0; c < G2_SIZE; ++c) part[c * PSTRIDE] = 0.f;
         continue;
       }
-      part[G2_U] = HSUM(d.u);
-      part[G2_V] = HSUM(d.v);
-      part[G2_CA] = HSUM(d.ca);
-      part[G2_CB] = HSUM(d.cb);
-      part[G2_CC] = HSUM(d.cc);
-      part[G2_OPACITY] = HSUM(d.op);
-      part[G2_RGB] = HSUM(d.r);
-      part[G2_RGB + 1] = HSUM(d.g);
-      part[G2_RGB + 2] = HSUM(d.b);
-      part[G2_FEAT] = HSUM(d.f0);
-      part[G2_FEAT + 1] = HSUM(d.f1);
-      part[G2_FEAT + 2] = HSUM(d.f2);
-      part[G2_Z] = HSUM(d.z_depth + d.z_dist);
+      part[G2_U * PSTRIDE] = HSUM(d.u);
+      part[G2_V * PSTRIDE] = HSUM(d.v);
+      part[G2_CA * PSTRIDE] = HSUM(d.ca);
+      part[G2_CB * PSTRIDE] = HSUM(d.cb);
+      part[G2_CC * PSTRIDE] = HSUM(d.cc);
+      part[G2_OPACITY * PSTRIDE] = HSUM(d.op);
+      part[G2_RGB * PSTRIDE] = HSUM(d.r);
+      part[(G2_RGB + 1) * PSTRIDE] = HSUM(d.g);
+      part[(G2_RGB + 2) * PSTRIDE] = HSUM(d.b);
+      part[G2_FEAT * PSTRIDE] = HSUM(d.f0);
+      part[(G2_FEAT + 1) * PSTRIDE] = HSUM(d.f1);
+      part[(G2_FEAT + 2) * PSTRIDE] = HSUM(d.f2);
+      part[G2_Z * PSTRIDE] = HSUM(d.z_depth + d.z_dist);
     }
     barrier(CLK_LOCAL_MEM_FENCE);
-    // Sum the work-items' partials in index order into each intersection's slot.
-    for (int idx = lid; idx < nb * G2_SIZE; idx += WG_SIZE) {
-      int j = idx / G2_SIZE, c = idx % G2_SIZE;
+    // Sum the work-items' partials of each value (row r = j * G2_SIZE + c of
+    // s_part) into the intersection's slot, in a fixed order.
+    const int rows = nb * G2_SIZE;
+#if SEG == 1
+    // One work-item per value, work-items in index order.
+    for (int r = lid; r < rows; r += WG_SIZE) {
+      __local const float* p = s_part + r * PSTRIDE;
       float s = 0.f;
-      for (int l = 0; l < WG_SIZE; ++l) s += s_part[(j * WG_SIZE + l) * G2_SIZE + c];
-      isect_grads[(size_t)s_slot[j] * G2_SIZE + c] = s;
+      for (int l = 0; l < WG_SIZE; ++l) s += p[l];
+      isect_grads[(size_t)s_slot[r / G2_SIZE] * G2_SIZE + r % G2_SIZE] = s;
     }
+#else
+    // SEG work-items per value: segment g sums work-items g, g + SEG, ...;
+    // then one work-item sums the SEG segment sums in order. PSTRIDE = WG_SIZE
+    // + SEG puts a warp's 32 / SEG rows x SEG segments in distinct banks.
+    for (int k = lid; k < rows * SEG; k += WG_SIZE) {
+      __local const float* p = s_part + (k / SEG) * PSTRIDE + k % SEG;
+      float s = 0.f;
+      for (int l = 0; l < WG_SIZE / SEG; ++l) s += p[l * SEG];
+      s_seg[k] = s;
+    }
+    barrier(CLK_LOCAL_MEM_FENCE);
+    for (int r = lid; r < rows; r += WG_SIZE) {
+      float s = 0.f;
+      for (int g = 0; g < SEG; ++g) s += s_seg[r * SEG + g];
+      isect_grads[(size_t)s_slot[r / G2_SIZE] * G2_SIZE + r % G2_SIZE] = s;
+    }
+#endif
   }
   // Intersections behind every pixel's last blended Gaussian get zeros.
   for (int k = bound + lid; k < n; k += WG_SIZE) {

@@ -127,6 +127,79 @@ TEST(RenderBackward, ThousandGaussians) {
   check_backward(160, 120, 1000, 1, 17, random_output_grads(160, 120, 7));
 }
 
+// Every blend backward plan of the GPU layout (kernels/blend_bwd.cl: pixels
+// per work-item, Gaussians per staging batch, work-items per summed value)
+// against the reference, on a crowded tile that needs many batches and an odd
+// image size whose edge tiles are partly outside; each plan twice, bit for bit.
+// The plans sum the same partials in other orders, so they may differ from one
+// another in the last bits, never from the reference.
+TEST(RenderBackward, EveryBlendBwdPlanMatchesTheReference) {
+  const char* old = std::getenv("AG2GS_BLEND_STAGING");
+  const std::string saved = old ? old : "";
+  setenv("AG2GS_BLEND_STAGING", "1", 1);
+  test::SceneSpec spec;
+  spec.n = 400;
+  spec.sh_degree = 1;
+  spec.extent = 0.4;
+  spec.log_scale_lo = -4.5;
+  spec.log_scale_hi = -3.0;
+  spec.opacity_lo = 0.05;
+  spec.opacity_hi = 0.6;
+  const GaussianSet crowded = test::random_scene(spec, 21);
+  Camera cam = test::look_at_origin(37, 23);
+  cam.cx = 24.0;
+  cam.cy = 8.0;
+  const OutputGrads og = random_output_grads(37, 23, 9);
+  for (const char* plan : {"1:2:1", "1:2:8", "1:1:256", "1:3:2", "2:4:4", "2:5:128", "4:8:1", "4:8:2", "4:7:64",
+                           "8:16:1", "8:1:32", "16:32:1", "16:3:16"}) {
+    SCOPED_TRACE(plan);
+    setenv("AG2GS_BLEND_BWD", plan, 1);
+    const uint64_t local = test::runtime().info().local_mem;
+    if (local > 0 && parse_blend_bwd_plan(plan).local_bytes() > local) {
+      // A GPU's 48 KB hold fewer Gaussians per batch than PoCL's megabytes.
+      std::printf("plan %s: needs %zu bytes of local memory, the device has %llu: refused\n", plan,
+                  parse_blend_bwd_plan(plan).local_bytes(), static_cast<unsigned long long>(local));
+      EXPECT_THROW(Renderer r(test::runtime()), std::invalid_argument);
+      continue;
+    }
+    std::printf("plan %s: ", plan);
+    check_backward_on(crowded, cam, og);
+    Renderer a(test::runtime()), b(test::runtime());
+    EXPECT_EQ(a.blend_bwd_plan(), plan);
+    a.render(crowded, cam);
+    b.render(crowded, cam);
+    const GaussianGrads ga = a.render_backward(og), gb = b.render_backward(og);
+    EXPECT_EQ(ga.means, gb.means);
+    EXPECT_EQ(ga.opacities, gb.opacities);
+    EXPECT_EQ(ga.sh, gb.sh);
+  }
+  unsetenv("AG2GS_BLEND_BWD");
+  if (old)
+    setenv("AG2GS_BLEND_STAGING", saved.c_str(), 1);
+  else
+    unsetenv("AG2GS_BLEND_STAGING");
+}
+
+// A plan the kernel cannot run is refused naming the variable.
+TEST(RenderBackward, BadBlendBwdPlanIsRefused) {
+  for (const char* bad : {"", "1:2", "3:2:1", "1:0:1", "1:2:3", "1:2:512", "32:2:1", "a:b:c", "1:2:1:4", "1:200:1"}) {
+    SCOPED_TRACE(bad);
+    if (!*bad) {
+      EXPECT_THROW(parse_blend_bwd_plan(bad), std::invalid_argument);
+      continue;
+    }
+    setenv("AG2GS_BLEND_BWD", bad, 1);
+    try {
+      (void)blend_bwd_plan_for(test::runtime());
+      ADD_FAILURE() << "accepted";
+    } catch (const std::invalid_argument& e) {
+      EXPECT_NE(std::string(e.what()).find("AG2GS_BLEND_BWD"), std::string::npos) << e.what();
+    }
+  }
+  unsetenv("AG2GS_BLEND_BWD");
+  EXPECT_EQ(parse_blend_bwd_plan("4:8:2").describe(), "4:8:2");
+}
+
 }  // namespace
 // The device-gradient entry point (used by the trainer, whose losses run on
 // the device) computes exactly what the host entry point computes.

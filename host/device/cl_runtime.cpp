@@ -249,7 +249,8 @@ void store_cached_binary(const std::string& path, const std::string& key, const 
 cl::Program Runtime::program(const std::string& file, const std::map<std::string, std::string>& defines) {
   std::string header = "// generated defines\n";
   for (auto& [k, v] : defines) header += "#define " + k + " " + v + "\n";
-  header += "#define VW " + std::to_string(vector_width_) + "\n";
+  // A kernel may ask for its own vector width (the blend backward's plan).
+  if (!defines.count("VW")) header += "#define VW " + std::to_string(vector_width_) + "\n";
   std::string source = header + kernel_source("layout.h") + kernel_source("common.cl") + "\n#line 1\n" + kernel_source(file);
   std::string options = "-cl-std=CL1.2";
   // OpenCL lets x / y and sqrt be off by a few ulp, and a GPU compiler may

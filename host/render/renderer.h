@@ -34,6 +34,20 @@ struct DeviceGaussianGrads {
 // The camera block the kernels read (CAM_* of kernels/layout.h).
 std::vector<float> pack_camera(const Camera& cam, const RenderSettings& settings);
 
+// How the GPU layout of the blend backward (kernels/blend_bwd.cl) sums each
+// intersection's per-pixel partials: pixels per work-item (its own vector
+// width), Gaussians staged per batch, and work-items per summed value (SEG).
+// Every plan is deterministic; plans differ in rounding (the order of the
+// sums), so a device keeps one. AG2GS_BLEND_BWD="VW:BATCH:SEG" overrides;
+// the CPU layout (no staging) has no plan.
+struct BlendBwdPlan {
+  int vector_width = 4, batch = 8, seg = 2;
+  std::string describe() const;
+  size_t local_bytes() const;  // the kernel's local memory
+};
+BlendBwdPlan parse_blend_bwd_plan(const std::string& text);  // "VW:BATCH:SEG"; throws naming AG2GS_BLEND_BWD
+BlendBwdPlan blend_bwd_plan_for(const Runtime& rt);          // the default or AG2GS_BLEND_BWD, checked
+
 struct FrameStats {
   size_t n_gaussians = 0;
   size_t n_intersections = 0;
@@ -123,6 +137,8 @@ class Renderer {
   std::vector<PixelContribution> pixel_contributions(int x, int y) const;
 
   const FrameStats& stats() const { return stats_; }
+  // The blend backward's plan ("VW:BATCH:SEG"), or "cpu" for the CPU layout.
+  std::string blend_bwd_plan() const { return bwd_staged_ ? bwd_plan_.describe() : "cpu"; }
   Runtime& runtime() { return rt_; }
 
  private:
@@ -140,6 +156,8 @@ class Renderer {
 
   Runtime& rt_;
   RadixSort sort_;  // depth order and tile order (the device's plan)
+  bool bwd_staged_;
+  BlendBwdPlan bwd_plan_;
   std::unique_ptr<DeviceGaussians> owned_;  // for render()
   const DeviceGaussians* gaussians_ = nullptr;
   Camera cam_;

@@ -105,6 +105,14 @@ step render_forward "$build/test_render_forward" \
   --gtest_filter='RenderForward.OnePixel:RenderForward.OddSize17x9:RenderForward.Background:RenderForward.LowerActiveShDegree'
 step render_backward "$build/test_render_backward" \
   --gtest_filter='RenderBackward.OddSize:RenderBackward.BackgroundAndActiveDegree:RenderBackward.CrowdedTileAndEmptyTiles'
+# The blend backward's other plans: one pixel per work-item with its values
+# summed in 8 segments, and 8 pixels per work-item (the default is 4:8:2).
+if [ "$layout" = gpu ]; then
+  for plan in 1:2:8 8:3:1; do
+    AG2GS_BLEND_BWD=$plan step render_backward_plan_${plan//:/_} "$build/test_render_backward" \
+      --gtest_filter='RenderBackward.OddSize:RenderBackward.CrowdedTileAndEmptyTiles'
+  done
+fi
 # The radix sorts (the CPU block sort and the GPU work-group sort, every
 # digit width and work-group shape) against std::stable_sort, once; and
 # renders with the other layout's sort and scans (AG2GS_SORT picks both).
