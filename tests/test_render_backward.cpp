@@ -107,15 +107,19 @@ TEST(RenderBackward, OtherLowpass) {
 // centre of tile (1, 0) of a 48x32 image (within 7 pixels of it), so the GPU layout's forward pass
 // stages more records than one batch (256) holds and its backward pass runs
 // many batches, while the other tiles have no Gaussian at all.
-TEST(RenderBackward, CrowdedTileAndEmptyTiles) {
+test::SceneSpec crowded_spec(double opacity_lo, double opacity_hi) {
   test::SceneSpec spec;
   spec.n = 400;
   spec.sh_degree = 1;
   spec.extent = 0.4;
   spec.log_scale_lo = -4.5;
   spec.log_scale_hi = -3.0;
-  spec.opacity_lo = 0.01;
-  spec.opacity_hi = 0.05;
+  spec.opacity_lo = opacity_lo;
+  spec.opacity_hi = opacity_hi;
+  return spec;
+}
+TEST(RenderBackward, CrowdedTileAndEmptyTiles) {
+  const test::SceneSpec spec = crowded_spec(0.01, 0.05);
   Camera cam = test::look_at_origin(48, 32);
   cam.cx = 24.0;  // the origin projects to the centre of tile (1, 0)
   cam.cy = 8.0;
@@ -137,15 +141,7 @@ TEST(RenderBackward, EveryBlendBwdPlanMatchesTheReference) {
   const char* old = std::getenv("AG2GS_BLEND_STAGING");
   const std::string saved = old ? old : "";
   setenv("AG2GS_BLEND_STAGING", "1", 1);
-  test::SceneSpec spec;
-  spec.n = 400;
-  spec.sh_degree = 1;
-  spec.extent = 0.4;
-  spec.log_scale_lo = -4.5;
-  spec.log_scale_hi = -3.0;
-  spec.opacity_lo = 0.05;
-  spec.opacity_hi = 0.6;
-  const GaussianSet crowded = test::random_scene(spec, 21);
+  const GaussianSet crowded = test::random_scene(crowded_spec(0.05, 0.6), 21);
   Camera cam = test::look_at_origin(37, 23);
   cam.cx = 24.0;
   cam.cy = 8.0;
