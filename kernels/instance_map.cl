@@ -15,7 +15,11 @@
 // Float rounding of the surplus only matters when W_c is within a few ulps
 // times the ray length of 0.5, where the float sum itself is ambiguous.
 //
-// Defines: MIN_FRACTION (float literal).
+// With WITH_IMAGES 1, walk 1 also sums the feature planes and the alpha as
+// blend_fwd does (same weights, same order, so the same bits): a view needs
+// Renderer::bin() alone instead of a whole forward pass before this kernel.
+//
+// Defines: MIN_FRACTION (float literal), WITH_IMAGES (0 or 1).
 
 // Gaussian id of list entry j of this tile and its cluster (children inherit
 // their anchor's cluster: anchor = gid / children).
@@ -43,7 +47,9 @@ void instance_map(int width, int height, int tiles_x, int children,
                   __global const float* records,        // [N,REC_SIZE]
                   __global const int* anchor_cluster,   // [N / children] cluster id, -1 = none
                   __global int* out_id,                 // [H,W] cluster id, -1 = none
-                  __global float* out_weight) {         // [H,W] weight of the vote's candidate
+                  __global float* out_weight,           // [H,W] weight of the vote's candidate
+                  __global float* out_feat,             // [3,H,W] with WITH_IMAGES: blend_fwd's feature
+                  __global float* out_alpha) {          // [H,W] with WITH_IMAGES: blend_fwd's alpha
   PixelRow pr = pixel_row(tiles_x, width, height);
   const int2 range = ranges[pr.tile];
   const int n = range.y - range.x;
@@ -53,11 +59,17 @@ void instance_map(int width, int height, int tiles_x, int children,
   vint cand = -1;
   vfloat surplus = 0.f;
   vint last_cand = -1;  // last list entry that added to the final candidate
+#if WITH_IMAGES
+  vfloat f0 = 0.f, f1 = 0.f, f2 = 0.f;
+#endif
+  vfloat T = 1.f;
   {
-    vfloat T = 1.f;
     vint done = NOT(pr.inside);
     for (int j = 0; j < n; ++j) {
       INSTANCE_STEP
+#if WITH_IMAGES
+      f0 += w * q[REC_FEAT]; f1 += w * q[REC_FEAT + 1]; f2 += w * q[REC_FEAT + 2];
+#endif
       if (k >= 0) {
         vint same = cand == k;
         vint wins = NOT(same) & (w > surplus);
@@ -84,7 +96,7 @@ void instance_map(int width, int height, int tiles_x, int children,
 #endif
   vfloat weight = 0.f;
   {
-    vfloat T = 1.f;
+    vfloat T = 1.f;  // walk 2's own (walk 1's T gives the alpha below)
     vint done = NOT(pr.inside) | (cand < 0);
     for (int j = 0; j < end; ++j) {
       INSTANCE_STEP
@@ -95,4 +107,11 @@ void instance_map(int width, int height, int tiles_x, int children,
   vint id = select((vint)-1, cand, (cand >= 0) & (weight > MIN_FRACTION));
   store_row_int(id, out_id, pr, width);
   store_row(weight, out_weight, pr, width);
+#if WITH_IMAGES
+  const size_t npix = (size_t)width * height;
+  store_row(f0, out_feat, pr, width);
+  store_row(f1, out_feat + npix, pr, width);
+  store_row(f2, out_feat + 2 * npix, pr, width);
+  store_row(1.f - T, out_alpha, pr, width);
+#endif
 }

@@ -7,7 +7,8 @@
 
 namespace ag2gs {
 
-InstanceMapper::InstanceMapper(Runtime& rt) : rt_(rt), anchor_cluster_(&rt), ids_(&rt), weights_(&rt) {}
+InstanceMapper::InstanceMapper(Runtime& rt)
+    : rt_(rt), anchor_cluster_(&rt), ids_(&rt), weights_(&rt), feat_(&rt), alpha_(&rt) {}
 
 void InstanceMapper::set_clusters(const std::vector<int32_t>& anchor_cluster, int children, float min_fraction) {
   if (children < 1) throw std::invalid_argument("instance map: children per anchor must be >= 1");
@@ -25,6 +26,14 @@ void InstanceMapper::set_clusters(const std::vector<int32_t>& anchor_cluster, in
 }
 
 void InstanceMapper::compute(const Renderer& renderer) {
+  run(renderer, false);
+}
+
+void InstanceMapper::compute_with_images(const Renderer& renderer) {
+  run(renderer, true);
+}
+
+void InstanceMapper::run(const Renderer& renderer, bool with_images) {
   if (!have_clusters_) throw std::logic_error("InstanceMapper::compute() before set_clusters()");
   const Renderer::DeviceFrame f = renderer.device_frame();
   if (f.n_gaussians != anchors_ * static_cast<size_t>(children_))
@@ -39,11 +48,15 @@ void InstanceMapper::compute(const Renderer& renderer) {
   weights_.reserve(npix * 4);
   char frac[32];
   std::snprintf(frac, sizeof frac, "((float)(%.9g))", static_cast<double>(min_fraction_));
-  cl::Kernel k = rt_.kernel("instance_map.cl", "instance_map", {{"MIN_FRACTION", frac}});
+  // Without images the kernel writes neither plane: small placeholders.
+  feat_.reserve(with_images ? npix * 12 : 4);
+  alpha_.reserve(with_images ? npix * 4 : 4);
+  cl::Kernel k =
+      rt_.kernel("instance_map.cl", "instance_map", {{"MIN_FRACTION", frac}, {"WITH_IMAGES", with_images ? "1" : "0"}});
   const int wg = 256 / rt_.vector_width();
   const int ntiles = f.tiles_x * f.tiles_y;
   set_kernel_args(k, f.width, f.height, f.tiles_x, children_, *f.ranges, *f.isect_vals, *f.isect_gid, *f.records,
-                  anchor_cluster_, ids_, weights_);
+                  anchor_cluster_, ids_, weights_, feat_, alpha_);
   rt_.launch("instance_map", k, cl::NDRange(static_cast<size_t>(ntiles) * wg), cl::NDRange(wg));
 }
 

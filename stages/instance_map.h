@@ -23,6 +23,9 @@
 //   renderer.forward(gaussians, camera, settings);   // gaussians from Expander: row g = a*K + i
 //   mapper.compute(renderer);                         // after set_clusters()
 //   InstanceMap m = mapper.download();                // or device_ids()/device_weights()
+// or, when the view's feature and alpha are all that is read besides the ids:
+//   renderer.bin(gaussians, camera, settings);       // no blend
+//   mapper.compute_with_images(renderer);             // + device_feature()/device_alpha()
 #pragma once
 
 #include <cstdint>
@@ -49,17 +52,26 @@ class InstanceMapper {
   // Runs on the renderer's last forward(). Throws std::invalid_argument when
   // the frame's Gaussian count is not A*K, std::logic_error before set_clusters.
   void compute(const Renderer& renderer);
+  // compute() that also writes the feature planes [3,H,W] and the alpha
+  // [H,W] bit for bit as Renderer::forward() blends them (settings.features
+  // on), from the same walk: after Renderer::bin() the view needs no blend
+  // pass (stage 3 renders each view once instead of twice).
+  void compute_with_images(const Renderer& renderer);
   InstanceMap download() const;
 
   // Results of the last compute(), [H,W], valid until the next compute().
   const DeviceBuffer& device_ids() const { return ids_; }
   const DeviceBuffer& device_weights() const { return weights_; }
+  // After compute_with_images(): planar like Renderer::device_feature()/device_alpha().
+  const DeviceBuffer& device_feature() const { return feat_; }
+  const DeviceBuffer& device_alpha() const { return alpha_; }
   int width() const { return width_; }
   int height() const { return height_; }
 
  private:
   Runtime& rt_;
-  DeviceBuffer anchor_cluster_, ids_, weights_;
+  void run(const Renderer& renderer, bool with_images);
+  DeviceBuffer anchor_cluster_, ids_, weights_, feat_, alpha_;
   size_t anchors_ = 0;
   int children_ = 0;
   float min_fraction_ = 0.5f;

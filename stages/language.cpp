@@ -219,18 +219,19 @@ LanguageFeatures attach_language(Runtime& rt, const AnchorModel& model, const Cl
     t0 = std::chrono::steady_clock::now();
     RenderSettings settings;
     settings.sh_degree = 0;
-    renderer.forward(gaussians, cam, settings);
+    // The instance walk blends the feature and the alpha too: no blend pass.
+    renderer.bin(gaussians, cam, settings);
     rt.queue().finish();
     st.render_ms += ms_since(t0);
     t0 = std::chrono::steady_clock::now();
-    mapper.compute(renderer);
+    mapper.compute_with_images(renderer);
     rt.queue().finish();
     st.instance_ms += ms_since(t0);
     t0 = std::chrono::steady_clock::now();
     const size_t npix = static_cast<size_t>(cam.width) * cam.height;
     mapper.device_ids().download(ids, npix);
-    renderer.device_feature().download(feature, npix * 3);
-    if (config.normalise_by_alpha) renderer.device_alpha().download(alpha, npix);
+    mapper.device_feature().download(feature, npix * 3);
+    if (config.normalise_by_alpha) mapper.device_alpha().download(alpha, npix);
     std::vector<MaskMatch> matches = score_view(ids, C, feature, alpha, *masks, config);
     st.pairs += matches.size();
     for (const MaskMatch& m : matches) st.matches += m.score > config.min_score;

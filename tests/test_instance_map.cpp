@@ -249,6 +249,58 @@ TEST(InstanceMap, SingleClusterWeightIsRenderedAlpha) {
   EXPECT_EQ(mismatched, 0u);
 }
 
+// Stage 3's one pass: after Renderer::bin() (no blend), compute_with_images()
+// writes the ids and weights of compute() after a whole forward pass, and the
+// feature planes and alpha that forward pass blended, bit for bit: on random
+// clustered scenes and on an opaque stack whose pixels stop early (T < T_MIN).
+TEST(InstanceMap, OneWalkGivesTheForwardPassFeatureAndAlphaBitForBit) {
+  auto same_bits = [](const std::vector<float>& a, const std::vector<float>& b) {
+    return a.size() == b.size() && std::memcmp(a.data(), b.data(), a.size() * 4) == 0;
+  };
+  for (int scene = 0; scene < 3; ++scene) {
+    std::vector<int32_t> ac;
+    const int K = scene == 2 ? 1 : 3;
+    GaussianSet g = clustered_scene(scene == 2 ? 300 : 120, K, 5 + scene, ac);
+    if (scene == 2)  // an opaque stack along the view axis
+      for (size_t i = 0; i < g.size(); ++i) {
+        g.means[3 * i] *= 0.2f;
+        g.means[3 * i + 1] *= 0.2f;
+        g.opacities[i] = 0.3f + 0.6f * static_cast<float>(i % 7) / 6.f;
+      }
+    const Camera cam = test::look_at_origin(61 + 4 * scene, 37 + 3 * scene);
+    const size_t npix = static_cast<size_t>(cam.width) * cam.height;
+    DeviceGaussians dg(test::runtime());
+    dg.upload(g);
+    RenderSettings settings;
+    settings.sh_degree = 0;
+    Renderer full(test::runtime()), binned(test::runtime());
+    InstanceMapper a(test::runtime()), b(test::runtime());
+    a.set_clusters(ac, K);
+    b.set_clusters(ac, K);
+    full.forward(dg, cam, settings);
+    a.compute(full);
+    binned.bin(dg, cam, settings);
+    EXPECT_THROW(binned.download_output(), std::logic_error);
+    b.compute_with_images(binned);
+    const InstanceMap ma = a.download(), mb = b.download();
+    std::vector<float> fa, fb, aa, ab;
+    full.device_feature().download(fa, npix * 3);
+    full.device_alpha().download(aa, npix);
+    b.device_feature().download(fb, npix * 3);
+    b.device_alpha().download(ab, npix);
+    const size_t saturated = std::count_if(aa.begin(), aa.end(), [](float x) { return x > 1.f - 2e-4f; });
+    std::printf("scene %d: %zu pixels, %zu with a cluster, %zu saturated\n", scene, npix,
+                static_cast<size_t>(std::count_if(ma.ids.begin(), ma.ids.end(), [](int v) { return v >= 0; })),
+                saturated);
+    EXPECT_EQ(ma.ids, mb.ids);
+    EXPECT_TRUE(same_bits(ma.weight, mb.weight));
+    EXPECT_TRUE(same_bits(fa, fb));
+    EXPECT_TRUE(same_bits(aa, ab));
+    EXPECT_GT(*std::max_element(fa.begin(), fa.end()), 0.f);  // features were blended at all
+    EXPECT_GT(saturated, 0u);                                 // some pixels stop early
+  }
+}
+
 TEST(InstanceMap, DeterministicAndValidated) {
   std::vector<int32_t> ac;
   const GaussianSet g = clustered_scene(100, 3, 2, ac);

@@ -205,7 +205,7 @@ std::vector<Renderer::PixelContribution> Renderer::pixel_contributions(int x, in
   return out;
 }
 
-void Renderer::forward(const DeviceGaussians& g, const Camera& cam, const RenderSettings& settings) {
+void Renderer::bin(const DeviceGaussians& g, const Camera& cam, const RenderSettings& settings) {
   cam.validate();
   if (settings.sh_degree > 3) throw std::invalid_argument("render: SH degree must be 0..3");
   if (!(settings.near_plane > 0.f) || !(settings.dist_far > settings.dist_near) || !(settings.dist_near > 0.f))
@@ -218,7 +218,6 @@ void Renderer::forward(const DeviceGaussians& g, const Camera& cam, const Render
   tiles_y_ = static_cast<int>(ceil_div(cam.height, kTile));
   const size_t n = g.n;
   const int ni = static_cast<int>(n);
-  const size_t npix = static_cast<size_t>(cam.width) * cam.height;
   const int ntiles = tiles_x_ * tiles_y_;
   stats_ = FrameStats{n, 0, cam.width, cam.height};
 
@@ -312,7 +311,14 @@ void Renderer::forward(const DeviceGaussians& g, const Camera& cam, const Render
     set_kernel_args(tr, static_cast<int>(M), *sorted_tile_keys_, ranges_);
     rt_.launch("bin", tr, cl::NDRange(M), cl::NDRange(64));
   }
+  have_frame_ = true;
+  have_images_ = false;
+}
 
+void Renderer::forward(const DeviceGaussians& g, const Camera& cam, const RenderSettings& settings) {
+  bin(g, cam, settings);
+  const size_t npix = static_cast<size_t>(cam.width) * cam.height;
+  const int ntiles = tiles_x_ * tiles_y_;
   out_rgb_.reserve(npix * 12);
   out_feat_.reserve(npix * 12);
   out_depth_.reserve(npix * 4);
@@ -331,12 +337,12 @@ void Renderer::forward(const DeviceGaussians& g, const Camera& cam, const Render
   set_kernel_args(blend, cam.width, cam.height, tiles_x_, cam_buf_, ranges_, *sorted_isect_vals_, isect_gid_, records_,
                   out_rgb_, out_feat_, out_depth_, out_alpha_, out_dist_, out_aux_, out_last_, out_count_);
   rt_.launch("blend_fwd", blend, cl::NDRange(static_cast<size_t>(ntiles) * wg), cl::NDRange(wg));
-  have_frame_ = true;
+  have_images_ = true;
   frame_features_ = settings.features;
 }
 
 RenderOutput Renderer::download_output() {
-  if (!have_frame_) throw std::logic_error("download_output() before forward()");
+  if (!have_images_) throw std::logic_error("download_output() before forward()");
   RenderOutput out;
   out.width = cam_.width;
   out.height = cam_.height;
@@ -368,7 +374,7 @@ void Renderer::upload_plane(DeviceBuffer& buf, const std::vector<float>& hwc, in
 }
 
 void Renderer::backward(const OutputGrads& grads) {
-  if (!have_frame_) throw std::logic_error("backward() before forward()");
+  if (!have_images_) throw std::logic_error("backward() before forward()");
   upload_plane(g_rgb_, grads.rgb, 3, "rgb");
   upload_plane(g_feat_, grads.feature, 3, "feature");
   upload_plane(g_depth_, grads.depth, 1, "depth");
@@ -380,7 +386,7 @@ void Renderer::backward(const OutputGrads& grads) {
 }
 
 void Renderer::backward(const DeviceOutputGrads& grads) {
-  if (!have_frame_) throw std::logic_error("backward() before forward()");
+  if (!have_images_) throw std::logic_error("backward() before forward()");
   const size_t npix = static_cast<size_t>(cam_.width) * cam_.height;
   // A given buffer is used in place; a missing one is a zeroed internal plane.
   auto pick = [&](const DeviceBuffer* given, DeviceBuffer& zero, int channels,

@@ -65,6 +65,11 @@ class Renderer {
 
   // Device-side API for the trainer: the frame state stays on the device.
   void forward(const DeviceGaussians& g, const Camera& cam, const RenderSettings& settings);
+  // forward() without the blend: projection, depth sort and binning only, so
+  // device_frame() is valid and the images are not (download_output() and
+  // backward() refuse); for passes that walk the lists themselves
+  // (InstanceMapper::compute_with_images).
+  void bin(const DeviceGaussians& g, const Camera& cam, const RenderSettings& settings);
   RenderOutput download_output();
   void backward(const OutputGrads& grads);
   GaussianGrads download_grads();
@@ -165,7 +170,8 @@ class Renderer {
   int sh_active_ = 0;
   int tiles_x_ = 0, tiles_y_ = 0;
   FrameStats stats_;
-  bool have_frame_ = false;
+  bool have_frame_ = false;     // device_frame() valid (bin() or forward())
+  bool have_images_ = false;    // the images and the backward's inputs (forward())
   bool frame_features_ = true;  // the last forward() blended the feature planes
 
   DeviceBuffer cam_buf_, records_, rects_, tile_counts_, depth_keys_, radii_;
