@@ -80,10 +80,11 @@ double seconds_since(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
 
-// The image an external inpainter wrote for `view`: DIR/<stem>.png, exactly
-// the size the view is rendered at. Returns [H,W,3] in 0..1.
-std::vector<float> read_inpainted(const std::string& dir, const SceneView& view) {
-  const fs::path path = fs::path(dir) / (view.stem + ".png");
+// The image an external inpainter wrote for `view`: DIR/<stem>.png (`stem`:
+// the view's name in holes/ and targets/, output_stems), exactly the size the
+// view is rendered at. Returns [H,W,3] in 0..1.
+std::vector<float> read_inpainted(const std::string& dir, const SceneView& view, const std::string& stem) {
+  const fs::path path = fs::path(dir) / (stem + ".png");
   if (!fs::exists(path))
     throw std::runtime_error("--inpainted " + dir + ": " + path.filename().string() + " is missing (one " +
                              std::to_string(view.camera.width) + "x" + std::to_string(view.camera.height) +
@@ -95,6 +96,13 @@ std::vector<float> read_inpainted(const std::string& dir, const SceneView& view)
                              ", expected " + std::to_string(view.camera.width) + "x" +
                              std::to_string(view.camera.height) + " (the view at the model's -r; use -r to match)");
   return rgb;
+}
+
+// The file names of the training views' holes/ and targets/ images.
+std::vector<std::string> train_view_stems(const Scene& scene) {
+  std::vector<std::string> names;
+  for (int v : scene.train_views()) names.push_back(scene.views()[v].name);
+  return output_stems(names);
 }
 
 // The archive of the model after the removal: the anchors, the training
@@ -166,8 +174,11 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
   std::unique_ptr<Scene> scene = Scene::open(a.scene, so);
   std::vector<float> embedding;
   if (by_text) embedding = load_query_embedding(a.request, model_file, language.dim);
-  if (!a.inpainted.empty())
-    for (int v : scene->train_views()) read_inpainted(a.inpainted, scene->views()[v]);  // all present, right size
+  if (!a.inpainted.empty()) {
+    const std::vector<std::string> stems = train_view_stems(*scene);
+    for (size_t i = 0; i < stems.size(); ++i)  // all present, right size
+      read_inpainted(a.inpainted, scene->views()[scene->train_views()[i]], stems[i]);
+  }
 
   // ---- selection
   Runtime rt(global.device);
@@ -255,14 +266,16 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
     nlohmann::json views = nlohmann::json::array();
     size_t hole_total = 0;
     const auto t_holes = std::chrono::steady_clock::now();
+    // a/1.jpg and b/1.jpg: holes/a_1.png and holes/b_1.png.
+    const std::vector<std::string> stems = train_view_stems(*scene);
     for (size_t i = 0; i < train_views.size(); ++i) {
       const SceneView& sv = scene->views()[train_views[i]];
       const ViewHole h = holes.find(renderer, sv.camera, a.holes, render_settings, sky.enabled() ? &sky : nullptr);
       const std::vector<float> target = a.inpainted.empty()
                                             ? inpaint_hole(h.rgb_after, h.hole, h.width, h.height, method)
-                                            : read_inpainted(a.inpainted, sv);
-      write_mask_png((tmp / "holes" / (sv.stem + ".png")).string(), h.hole, h.width, h.height);
-      write_rgb_png((tmp / "targets" / (sv.stem + ".png")).string(), target, h.width, h.height);
+                                            : read_inpainted(a.inpainted, sv, stems[i]);
+      write_mask_png((tmp / "holes" / (stems[i] + ".png")).string(), h.hole, h.width, h.height);
+      write_rgb_png((tmp / "targets" / (stems[i] + ".png")).string(), target, h.width, h.height);
       if (!a.no_fill) footprint.add_view(sv.camera, h, target);
       if (a.iters > 0) {
         const std::vector<uint8_t> around = dilate_mask(h.object, h.width, h.height, a.holes.dilate);

@@ -247,11 +247,15 @@ void cmd_simulate(const GlobalOptions& global, SimulateArgs a) {
   const fs::path& tmp = staged.path();
   {
     std::vector<std::unique_ptr<cv::VideoWriter>> videos;
-    for (int v : views) {
-      const SceneView& sv = scene->views()[v];
-      fs::create_directories(tmp / "frames" / sv.stem);
+    // a/1.jpg and b/1.jpg: frames/a_1/ and frames/b_1/.
+    std::vector<std::string> names;
+    for (int v : views) names.push_back(scene->views()[v].name);
+    const std::vector<std::string> stems = output_stems(names);
+    for (size_t i = 0; i < views.size(); ++i) {
+      const SceneView& sv = scene->views()[views[i]];
+      fs::create_directories(tmp / "frames" / stems[i]);
       auto w = std::make_unique<cv::VideoWriter>();
-      w->open((tmp / "frames" / (sv.stem + ".avi")).string(), cv::CAP_OPENCV_MJPEG,
+      w->open((tmp / "frames" / (stems[i] + ".avi")).string(), cv::CAP_OPENCV_MJPEG,
               cv::VideoWriter::fourcc('M', 'J', 'P', 'G'), a.fps, cv::Size(sv.camera.width, sv.camera.height));
       if (!w->isOpened()) {
         spdlog::warn("OpenCV cannot write a video here; the frames are PNG only");
@@ -268,7 +272,7 @@ void cmd_simulate(const GlobalOptions& global, SimulateArgs a) {
         RenderOutput o = renderer.render(g, sv.camera, rs);
         if (sky.enabled()) composite_sky(renderer, sky, sv.camera, o);
         std::snprintf(name, sizeof name, "%04d.png", f);
-        write_rgb_png((tmp / "frames" / sv.stem / name).string(), o.rgb, sv.camera.width, sv.camera.height);
+        write_rgb_png((tmp / "frames" / stems[i] / name).string(), o.rgb, sv.camera.width, sv.camera.height);
         if (videos[i]) {
           cv::Mat img(sv.camera.height, sv.camera.width, CV_32FC3, o.rgb.data());
           cv::Mat bgr;

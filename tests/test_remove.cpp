@@ -18,6 +18,8 @@
 #include <string>
 
 #include "cli_test_util.h"
+#include "host/io/colmap_reader.h"
+#include "host/io/colmap_writer.h"
 #include "host/io/model_io.h"
 #include "stages/anchor_model.h"
 
@@ -213,6 +215,42 @@ TEST(Remove, TrailingSlashAndNoPartialFolderLeft) {
   EXPECT_TRUE(fs::exists(out / "model.ag2gs"));
   for (const auto& e : fs::directory_iterator(fixture().root))
     EXPECT_EQ(e.path().filename().string().find(".partial."), std::string::npos) << e.path();
+}
+
+// Two training images with one stem in different folders (w1/view_005.png,
+// w2/view_005.png: the fixture's view_005 and view_006 moved and renamed,
+// their cameras with them) keep their own holes/, targets/ and simulate's
+// frames/ files, named w1_view_005 and w2_view_005 as `render` names them
+// (issue 42: one stem meant one file for two views).
+TEST(Remove, ViewsSharingAStemKeepTheirOwnFiles) {
+  const fs::path scene = fresh("stems_scene"), out = fresh("stems_removed"), sim = fresh("stems_simulated");
+  fs::create_directories(scene / "images" / "w1");
+  fs::create_directories(scene / "images" / "w2");
+  ColmapModel m = read_colmap_model((fixture().scene / "sparse" / "0").string());
+  for (Camera& c : m.cameras_for_images) {
+    std::string name = c.name;
+    if (name == "view_005.png") name = "w1/view_005.png";
+    if (name == "view_006.png") name = "w2/view_005.png";
+    fs::copy_file(fixture().scene / "images" / c.name, scene / "images" / name);
+    c.name = name;
+  }
+  write_colmap_model((scene / "sparse" / "0").string(), m.cameras_for_images, m.points, m.colors);
+  const fs::path sel = fixture().root / "selection_stems.json";
+  write_selection(sel, {2, 9});
+  auto r = test::run_cli("remove " + fixture().model.string() + " --scene " + scene.string() + " -o " + out.string() +
+                         " --selection " + sel.string() + " --quiet");
+  ASSERT_EQ(r.code, 0) << r.output;
+  for (const char* dir : {"holes", "targets"}) {
+    EXPECT_TRUE(fs::exists(out / dir / "w1_view_005.png")) << dir;
+    EXPECT_TRUE(fs::exists(out / dir / "w2_view_005.png")) << dir;
+    EXPECT_EQ(std::distance(fs::directory_iterator(out / dir), fs::directory_iterator()), 7) << dir;
+  }
+  r = test::run_cli("simulate " + fixture().model.string() + " --scene " + scene.string() + " -o " + sim.string() +
+                    " --selection " + sel.string() +
+                    " --frames 1 --fps 250 --grid 16 --views w1/view_005.png,w2/view_005.png --quiet");
+  ASSERT_EQ(r.code, 0) << r.output;
+  EXPECT_TRUE(fs::exists(sim / "frames" / "w1_view_005" / "0001.png"));
+  EXPECT_TRUE(fs::exists(sim / "frames" / "w2_view_005" / "0001.png"));
 }
 
 TEST(Remove, ExternalInpaintingIsUsedAsItIs) {
