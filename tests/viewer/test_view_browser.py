@@ -156,6 +156,48 @@ class ViewBrowser(unittest.TestCase):
         print("orbit: horizon roll %.3f degrees, height above the target %.3f (first %.3f)" % (roll, height, height0))
         self.assertGreater(height, 0.0)
 
+    def test_touch_pinch_and_a_phone_sized_window(self):
+        # A phone's width: the picture keeps the width and most of the height
+        # (the panel goes below it); two fingers moving apart zoom in without
+        # turning the camera or clicking, and moving together pan.
+        d = self.d
+        d.set_window_size(390, 844)
+        try:
+            d.get(self.v.base + "/")
+            self.wait_for("the first frame", lambda: self.state("frames") >= 1)
+            stage = d.execute_script("const r = document.getElementById('stage').getBoundingClientRect();"
+                                     "return [r.width, r.height, window.innerWidth, window.innerHeight];")
+            print("phone-sized window: picture area %dx%d of %dx%d" % tuple(stage))
+            self.assertGreaterEqual(stage[0], stage[2] - 2)
+            self.assertGreater(stage[1], 0.55 * stage[3])
+            before = d.execute_script("const s = window.ag2gs; return [s.R, s.C, s.target, s.selected || 0];")
+            queries = len(self.v.output)
+            touch = """
+                const st = document.getElementById('stage'), r = st.getBoundingClientRect();
+                const ev = (type, id, x, y) => st.dispatchEvent(new PointerEvent(type, {pointerId: id,
+                    pointerType: 'touch', isPrimary: id === 11, clientX: r.left + x, clientY: r.top + y,
+                    bubbles: true, cancelable: true, button: 0}));
+                ev('pointerdown', 11, 150, 200); ev('pointerdown', 12, 250, 200);
+                for (let k = 1; k <= 8; ++k) ev('pointermove', 12, 250 + 10 * k, 200);   // apart: 100 -> 180 px
+                ev('pointermove', 11, 160, 230); ev('pointermove', 12, 340, 230);       // both 10 px right, 30 down
+                ev('pointerup', 12, 340, 230); ev('pointerup', 11, 160, 230);
+                const s = window.ag2gs; return [s.R, s.C, s.target];"""
+            R, C, target = d.execute_script(touch)
+            dist = lambda a, b: math.sqrt(sum((x - y) ** 2 for x, y in zip(a, b)))
+            ratio = dist(C, target) / dist(before[1], before[2])
+            turn = max(abs(x - y) for x, y in zip(R, before[0]))
+            moved = dist(target, before[2])
+            print("pinch: distance to the target x%.3f (fingers 100 -> 180 px), rotation change %.2g, pan %.3g"
+                  % (ratio, turn, moved))
+            self.assertAlmostEqual(ratio, 100.0 / 180.0, places=3)
+            self.assertLess(turn, 1e-9)
+            self.assertGreater(moved, 0.0)
+            time.sleep(0.3)
+            self.assertEqual(self.state("selected") or 0, before[3], "a pinch must not click")
+            self.assertNotIn("query ", self.v.output[queries:], "a pinch must not click")
+        finally:
+            d.set_window_size(1100, 760)
+
     def test_sharp_picture_link_and_screenshot(self):
         d = self.d
         d.get(self.v.base + "/")
