@@ -5,6 +5,7 @@
 
 #include "cli/commands.h"
 #include "host/device/cl_runtime.h"
+#include "host/device/device_policy.h"
 
 namespace ag2gs::cli {
 namespace {

@@ -186,7 +186,7 @@ TEST(RenderBackward, BadBlendBwdPlanIsRefused) {
     }
     setenv("AG2GS_BLEND_BWD", bad, 1);
     try {
-      (void)blend_bwd_plan_for(test::runtime());
+      (void)blend_bwd_plan_for(test::runtime().info());
       ADD_FAILURE() << "accepted";
     } catch (const std::invalid_argument& e) {
       EXPECT_NE(std::string(e.what()).find("AG2GS_BLEND_BWD"), std::string::npos) << e.what();

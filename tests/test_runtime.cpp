@@ -10,6 +10,7 @@
 #include <sstream>
 
 #include "host/device/cl_runtime.h"
+#include "host/device/device_policy.h"
 #include "host/device/kernel_source.h"
 #include "tests/test_util.h"
 

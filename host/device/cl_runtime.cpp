@@ -10,6 +10,7 @@
 #include <limits>
 #include <sstream>
 
+#include "host/device/device_policy.h"
 #include "host/device/kernel_source.h"
 
 namespace fs = std::filesystem;
@@ -83,14 +84,6 @@ std::vector<DeviceInfo> list_devices() {
   return out;
 }
 
-int default_device_index(const std::vector<DeviceInfo>& devices) {
-  for (auto& d : devices)
-    if (d.is_gpu) return d.index;
-  for (auto& d : devices)
-    if (d.is_cpu) return d.index;
-  return 0;
-}
-
 // PoCL (the CPU driver) hides its device when it cannot create its kernel
 // cache: $POCL_CACHE_DIR, else $XDG_CACHE_HOME/pocl, else $HOME/.cache/pocl.
 // The folder that would hold that cache when it cannot be written ("" when
@@ -159,13 +152,7 @@ Runtime::Runtime(int device_index) {
   AG2GS_CL_CHECK(err);
   queue_ = cl::CommandQueue(context_, info_.device, CL_QUEUE_PROFILING_ENABLE, &err);
   AG2GS_CL_CHECK(err);
-  vector_width_ = info_.is_gpu ? 1 : 16;
-  if (const char* env = std::getenv("AG2GS_VECTOR_WIDTH"); env && *env) {
-    int v = std::atoi(env);
-    if (v != 1 && v != 2 && v != 4 && v != 8 && v != 16)
-      throw std::runtime_error(std::string("AG2GS_VECTOR_WIDTH='") + env + "' must be 1, 2, 4, 8 or 16");
-    vector_width_ = v;
-  }
+  vector_width_ = vector_width_for(info_);
   if (const char* log = std::getenv("AG2GS_LAUNCH_LOG"); log && *log) {
     launch_log_ = std::fopen(log, "a");
     if (!launch_log_) throw std::runtime_error(std::string("AG2GS_LAUNCH_LOG='") + log + "' cannot be opened for appending");

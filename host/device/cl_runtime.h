@@ -54,8 +54,6 @@ struct DeviceInfo {
 };
 
 std::vector<DeviceInfo> list_devices();
-// Default: the first GPU, else the first CPU, else device 0.
-int default_device_index(const std::vector<DeviceInfo>& devices);
 // Resolves -1 to $AG2GS_DEVICE, then to the default. Throws when out of range.
 int resolve_device_index(int requested, const std::vector<DeviceInfo>& devices);
 

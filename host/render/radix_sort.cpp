@@ -6,6 +6,8 @@
 #include <stdexcept>
 #include <vector>
 
+#include "host/device/device_policy.h"
+
 namespace ag2gs {
 
 namespace {
@@ -124,12 +126,9 @@ RadixSortPlan radix_sort_plan_for(const DeviceInfo& device) {
   RadixSortPlan p;
   if (const char* e = std::getenv("AG2GS_SORT"); e && *e) {
     p = parse_radix_sort_plan(e);
-  } else if (!device.is_gpu) {
-    // CPUs: a few long blocks, one work-item each (the Group plan's barriers
-    // cost more than its parallelism gives on a few cores: 13.5 against 5.5
-    // ms for 100k Gaussians at 800x600 on 2 cores).
+  } else if (!group_sort_for(device)) {  // CPUs: a few long blocks, one work-item each
     p.kind = RadixSortPlan::Kind::Block;
-    p.block = 4096;
+    p.block = kCpuSortBlockKeys;
   }
   return p.fit_to(device);
 }

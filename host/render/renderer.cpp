@@ -5,7 +5,6 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdlib>
-#include <sstream>
 #include <stdexcept>
 
 #include "kernels/layout.h"
@@ -17,22 +16,6 @@ namespace {
 constexpr int kTile = TILE;
 constexpr int kScanBlock = 1024;
 constexpr int kScanWg = 256;  // the GPU scan's work-group (bin.cl)
-
-// GPUs stage Gaussians through local memory in work-groups of a tile's
-// pixels; CPUs walk the lists without barriers. AG2GS_BLEND_STAGING=1 or 0
-// overrides (tests run the GPU layout on the CPU with it).
-bool blend_staging_for(const Runtime& rt) {
-  if (const char* e = std::getenv("AG2GS_BLEND_STAGING")) {
-    if (std::string(e) == "1") return true;
-    if (std::string(e) == "0") return false;
-    throw std::invalid_argument(std::string("AG2GS_BLEND_STAGING must be 0 or 1, got '") + e + "'");
-  }
-  return rt.info().is_gpu;
-}
-
-bool is_pow2(int v) {
-  return v > 0 && (v & (v - 1)) == 0;
-}
 
 size_t ceil_div(size_t a, size_t b) {
   return (a + b - 1) / b;
@@ -54,68 +37,6 @@ std::vector<float> to_interleaved(const std::vector<float>& chw, size_t npix, in
 
 }  // namespace
 
-std::string BlendBwdPlan::describe() const {
-  return std::to_string(vector_width) + ":" + std::to_string(batch) + ":" + std::to_string(seg);
-}
-
-size_t BlendBwdPlan::local_bytes() const {
-  const size_t wg = kTile * kTile / vector_width, rows = static_cast<size_t>(batch) * G2_SIZE;
-  return 4 * (static_cast<size_t>(batch) * (REC_SIZE + 1) + rows * (wg + seg) + (seg > 1 ? rows * seg : 0) + 1);
-}
-
-BlendBwdPlan parse_blend_bwd_plan(const std::string& text) {
-  BlendBwdPlan p;
-  std::stringstream in(text);
-  std::string part;
-  std::vector<int> v;
-  while (std::getline(in, part, ':')) {
-    char* end = nullptr;
-    long x = std::strtol(part.c_str(), &end, 10);
-    if (part.empty() || *end != '\0' || x < 1 || x > 65536) {
-      v.clear();
-      break;
-    }
-    v.push_back(static_cast<int>(x));
-  }
-  const int wg = v.size() == 3 && is_pow2(v[0]) ? kTile * kTile / v[0] : 0;
-  if (v.size() != 3 || v[0] > 16 || !is_pow2(v[0]) || !is_pow2(v[2]) || v[2] > wg)
-    throw std::invalid_argument("AG2GS_BLEND_BWD='" + text +
-                                "' must be VW:BATCH:SEG: VW 1, 2, 4, 8 or 16 pixels per work-item, BATCH >= 1 "
-                                "Gaussians per staging batch, SEG a power of two up to 256 / VW (e.g. 1:2:8)");
-  p.vector_width = v[0];
-  p.batch = v[1];
-  p.seg = v[2];
-  return p;
-}
-
-BlendBwdPlan blend_bwd_plan_for(const Runtime& rt) {
-  BlendBwdPlan p;
-  const DeviceInfo& d = rt.info();
-  const uint64_t local = d.local_mem > 0 ? d.local_mem : 32768;
-  if (const char* e = std::getenv("AG2GS_BLEND_BWD"); e && *e) {
-    p = parse_blend_bwd_plan(e);
-  } else {
-    // Measured on an NVIDIA H100 beside 9 other plans (docs/benchmarks.md,
-    // "The blend backward's plans"): 4 pixels per work-item sum their
-    // partials in registers, so a batch of 8 Gaussians leaves 64 values per
-    // summed value in local memory instead of 256 (1M Gaussians at 1920x1080:
-    // blend backward 5.5 -> 3.0 ms). A device with less local memory than the
-    // 28 KB this takes stages fewer Gaussians per batch.
-    p = BlendBwdPlan{};  // 4:8:2
-    while (p.batch > 1 && p.local_bytes() > local) p.batch /= 2;
-  }
-  if (p.local_bytes() > local)
-    throw std::invalid_argument("blend backward plan " + p.describe() + " needs " + std::to_string(p.local_bytes()) +
-                                " bytes of local memory, " + d.name + " has " + std::to_string(local) +
-                                "; choose a smaller BATCH or a wider VW in AG2GS_BLEND_BWD");
-  const size_t wg = kTile * kTile / p.vector_width;
-  if (d.max_work_group > 0 && wg > d.max_work_group)
-    throw std::invalid_argument("blend backward plan " + p.describe() + " needs work-groups of " + std::to_string(wg) +
-                                ", " + d.name + " allows " + std::to_string(d.max_work_group) +
-                                "; choose a wider VW in AG2GS_BLEND_BWD");
-  return p;
-}
-
 DeviceGaussians::DeviceGaussians(Runtime& rt)
     : means(&rt), scales(&rt), quats(&rt), opacities(&rt), sh(&rt), features(&rt) {}
 
@@ -134,8 +55,8 @@ void DeviceGaussians::upload(const GaussianSet& set) {
 Renderer::Renderer(Runtime& rt)
     : rt_(rt),
       sort_(rt),
-      bwd_staged_(blend_staging_for(rt)),
-      bwd_plan_(bwd_staged_ ? blend_bwd_plan_for(rt) : BlendBwdPlan{}) {
+      bwd_staged_(blend_staging_for(rt.info())),
+      bwd_plan_(bwd_staged_ ? blend_bwd_plan_for(rt.info()) : BlendBwdPlan{}) {
   for (DeviceBuffer* b :
        {&cam_buf_,        &records_,     &rects_,          &tile_counts_,   &depth_keys_,     &radii_,
         &order_keys_tmp_, &order_vals_,  &order_vals_tmp_, &counts_sorted_, &offsets_,        &block_sums_,
@@ -329,11 +250,10 @@ void Renderer::forward(const DeviceGaussians& g, const Camera& cam, const Render
   out_count_.reserve(npix * 4);
   const int wg = 256 / rt_.vector_width();
   // CPUs: no local-memory staging (records come from cache), see blend_fwd.cl.
-  cl::Kernel blend =
-      rt_.kernel("blend_fwd.cl", "blend_fwd",
-                 {{"BATCH", std::to_string(std::max(64, wg))},
-                  {"NO_STAGING", blend_staging_for(rt_) ? "0" : "1"},
-                  {"WITH_FEAT", settings.features ? "1" : "0"}});
+  cl::Kernel blend = rt_.kernel("blend_fwd.cl", "blend_fwd",
+                                {{"BATCH", std::to_string(std::max(64, wg))},
+                                 {"NO_STAGING", blend_staging_for(rt_.info()) ? "0" : "1"},
+                                 {"WITH_FEAT", settings.features ? "1" : "0"}});
   set_kernel_args(blend, cam.width, cam.height, tiles_x_, cam_buf_, ranges_, *sorted_isect_vals_, isect_gid_, records_,
                   out_rgb_, out_feat_, out_depth_, out_alpha_, out_dist_, out_aux_, out_last_, out_count_);
   rt_.launch("blend_fwd", blend, cl::NDRange(static_cast<size_t>(ntiles) * wg), cl::NDRange(wg));

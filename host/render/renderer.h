@@ -8,6 +8,7 @@
 
 #include "host/core/gaussians.h"
 #include "host/device/cl_runtime.h"
+#include "host/device/device_policy.h"
 #include "host/render/radix_sort.h"
 
 namespace ag2gs {
@@ -33,20 +34,6 @@ struct DeviceGaussianGrads {
 
 // The camera block the kernels read (CAM_* of kernels/layout.h).
 std::vector<float> pack_camera(const Camera& cam, const RenderSettings& settings);
-
-// How the GPU layout of the blend backward (kernels/blend_bwd.cl) sums each
-// intersection's per-pixel partials: pixels per work-item (its own vector
-// width), Gaussians staged per batch, and work-items per summed value (SEG).
-// Every plan is deterministic; plans differ in rounding (the order of the
-// sums), so a device keeps one. AG2GS_BLEND_BWD="VW:BATCH:SEG" overrides;
-// the CPU layout (no staging) has no plan.
-struct BlendBwdPlan {
-  int vector_width = 4, batch = 8, seg = 2;
-  std::string describe() const;
-  size_t local_bytes() const;  // the kernel's local memory
-};
-BlendBwdPlan parse_blend_bwd_plan(const std::string& text);  // "VW:BATCH:SEG"; throws naming AG2GS_BLEND_BWD
-BlendBwdPlan blend_bwd_plan_for(const Runtime& rt);          // the default or AG2GS_BLEND_BWD, checked
 
 struct FrameStats {
   size_t n_gaussians = 0;
