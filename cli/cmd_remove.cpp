@@ -174,11 +174,12 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
   std::unique_ptr<Scene> scene = Scene::open(a.scene, so);
   std::vector<float> embedding;
   if (by_text) embedding = load_query_embedding(a.request, model_file, language.dim);
-  if (!a.inpainted.empty()) {
-    const std::vector<std::string> stems = train_view_stems(*scene);
+  // The training views' names in holes/, targets/ and --inpainted (a/1.jpg
+  // and b/1.jpg: a_1.png and b_1.png).
+  const std::vector<std::string> stems = train_view_stems(*scene);
+  if (!a.inpainted.empty())
     for (size_t i = 0; i < stems.size(); ++i)  // all present, right size
       read_inpainted(a.inpainted, scene->views()[scene->train_views()[i]], stems[i]);
-  }
 
   // ---- selection
   Runtime rt(global.device);
@@ -266,8 +267,6 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
     nlohmann::json views = nlohmann::json::array();
     size_t hole_total = 0;
     const auto t_holes = std::chrono::steady_clock::now();
-    // a/1.jpg and b/1.jpg: holes/a_1.png and holes/b_1.png.
-    const std::vector<std::string> stems = train_view_stems(*scene);
     for (size_t i = 0; i < train_views.size(); ++i) {
       const SceneView& sv = scene->views()[train_views[i]];
       const ViewHole h = holes.find(renderer, sv.camera, a.holes, render_settings, sky.enabled() ? &sky : nullptr);

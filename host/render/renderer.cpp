@@ -55,8 +55,8 @@ void DeviceGaussians::upload(const GaussianSet& set) {
 Renderer::Renderer(Runtime& rt)
     : rt_(rt),
       sort_(rt),
-      bwd_staged_(blend_staging_for(rt.info())),
-      bwd_plan_(bwd_staged_ ? blend_bwd_plan_for(rt.info()) : BlendBwdPlan{}) {
+      staged_(blend_staging_for(rt.info())),
+      bwd_plan_(staged_ ? blend_bwd_plan_for(rt.info()) : BlendBwdPlan{}) {
   for (DeviceBuffer* b :
        {&cam_buf_,        &records_,     &rects_,          &tile_counts_,   &depth_keys_,     &radii_,
         &order_keys_tmp_, &order_vals_,  &order_vals_tmp_, &counts_sorted_, &offsets_,        &block_sums_,
@@ -252,7 +252,7 @@ void Renderer::forward(const DeviceGaussians& g, const Camera& cam, const Render
   // CPUs: no local-memory staging (records come from cache), see blend_fwd.cl.
   cl::Kernel blend = rt_.kernel("blend_fwd.cl", "blend_fwd",
                                 {{"BATCH", std::to_string(std::max(64, wg))},
-                                 {"NO_STAGING", blend_staging_for(rt_.info()) ? "0" : "1"},
+                                 {"NO_STAGING", staged_ ? "0" : "1"},
                                  {"WITH_FEAT", settings.features ? "1" : "0"}});
   set_kernel_args(blend, cam.width, cam.height, tiles_x_, cam_buf_, ranges_, *sorted_isect_vals_, isect_gid_, records_,
                   out_rgb_, out_feat_, out_depth_, out_alpha_, out_dist_, out_aux_, out_last_, out_count_);
@@ -339,16 +339,15 @@ void Renderer::backward_from(const DeviceBuffer& g_rgb, const DeviceBuffer& g_fe
   const size_t M = stats_.n_intersections;
   isect_grads_.reserve(std::max<size_t>(M, 1) * G2_SIZE * 4);
   const int ntiles = tiles_x_ * tiles_y_;
-  const bool staging = bwd_staged_;
   // GPUs: the plan's work-groups of a tile's pixels; CPUs: one work-item per
   // tile at the runtime's vector width, see blend_bwd.cl.
-  const int wg = staging ? kTile * kTile / bwd_plan_.vector_width : 1;
+  const int wg = staged_ ? kTile * kTile / bwd_plan_.vector_width : 1;
   auto flag = [](bool b) { return std::string(b ? "1" : "0"); };
   std::map<std::string, std::string> defs{
-      {"NO_STAGING", staging ? "0" : "1"},  {"GRAD_RGB", flag(present.rgb)},
+      {"NO_STAGING", staged_ ? "0" : "1"},  {"GRAD_RGB", flag(present.rgb)},
       {"GRAD_FEAT", flag(present.feature)}, {"GRAD_DEPTH", flag(present.depth)},
       {"GRAD_ALPHA", flag(present.alpha)},  {"GRAD_DIST", flag(present.distortion)}};
-  if (staging) {
+  if (staged_) {
     defs["VW"] = std::to_string(bwd_plan_.vector_width);
     defs["BATCH"] = std::to_string(bwd_plan_.batch);
     defs["SEG"] = std::to_string(bwd_plan_.seg);

@@ -130,7 +130,7 @@ class Renderer {
 
   const FrameStats& stats() const { return stats_; }
   // The blend backward's plan ("VW:BATCH:SEG"), or "cpu" for the CPU layout.
-  std::string blend_bwd_plan() const { return bwd_staged_ ? bwd_plan_.describe() : "cpu"; }
+  std::string blend_bwd_plan() const { return staged_ ? bwd_plan_.describe() : "cpu"; }
   Runtime& runtime() { return rt_; }
 
  private:
@@ -148,7 +148,7 @@ class Renderer {
 
   Runtime& rt_;
   RadixSort sort_;  // depth order and tile order (the device's plan)
-  bool bwd_staged_;
+  bool staged_;     // blending stages through local memory (device_policy.h), read once
   BlendBwdPlan bwd_plan_;
   std::unique_ptr<DeviceGaussians> owned_;  // for render()
   const DeviceGaussians* gaussians_ = nullptr;
