@@ -84,6 +84,7 @@ void apply_preset(const CLI::App& sub, TrainArgs& a) {
   unless_given("--init-children-at-points", c.anchors.init_children_at_points, true);
   unless_given("--recycle-opacity", c.recycle_opacity, 0.02);
   unless_given("--final-prune-opacity", c.final_prune_opacity, 0.015);
+  unless_given("--prune-importance", c.prune_importance, 0.01);
   unless_given("--lr-offset", c.offset_lr_init, 1e-2);
   unless_given("--lr-scaling", c.scaling_lr, 0.01);
   unless_given("--grow-min-seen", c.grow_min_seen, 0.1);
@@ -91,11 +92,13 @@ void apply_preset(const CLI::App& sub, TrainArgs& a) {
   unless_given("--far-shell", c.far_shell, true);
   spdlog::info(
       "preset {}: --scale-cap {} --children {} --init-layers {} --{} --grow-budget {} --grow-min-seen {} "
-      "--grow-split {} --far-shell {} --recycle-opacity {} --final-prune-opacity {} --lr-offset {} --lr-scaling {}",
+      "--grow-split {} --far-shell {} --recycle-opacity {} --final-prune-opacity {} --prune-importance {} --lr-offset "
+      "{} "
+      "--lr-scaling {}",
       a.preset, c.anchors.scale_cap, c.anchors.children, c.anchors.init_layers,
       c.anchors.init_children_at_points ? "init-children-at-points" : "init-children-random", c.grow_budget,
-      c.grow_min_seen, c.grow_split, c.far_shell, c.recycle_opacity, c.final_prune_opacity, c.offset_lr_init,
-      c.scaling_lr);
+      c.grow_min_seen, c.grow_split, c.far_shell, c.recycle_opacity, c.final_prune_opacity, c.prune_importance,
+      c.offset_lr_init, c.scaling_lr);
 }
 
 bool has_stage(const TrainArgs& a, int s) {
@@ -282,9 +285,13 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
                          : std::string("no split: one finer anchor at a child's mean, grown children start small"),
         c.prune_opacity, c.prune_opacity > 0 ? "" : " (off)",
         g.prune_unseen ? "in the last " + std::to_string(g.unseen_window) + " views" : std::string("off"),
-        c.final_prune_opacity > 0
-            ? fmt::format("; after iteration {}: mean opacity < {:.3g}", c.iterations, c.final_prune_opacity)
-            : std::string());
+        (c.prune_importance > 0
+             ? fmt::format("; at iteration {}: the anchors that together draw the least {:.3g}% of the training views",
+                           c.effective_prune_importance_at(), 100 * c.prune_importance)
+             : std::string()) +
+            (c.final_prune_opacity > 0
+                 ? fmt::format("; after iteration {}: mean opacity < {:.3g}", c.iterations, c.final_prune_opacity)
+                 : std::string()));
     spdlog::info("growth budget: {} per round{}, at most {} Gaussians{}",
                  c.grow_budget > 0 ? fmt::format("{:.0f}% of the anchors", 100 * c.grow_budget) : "no limit",
                  c.grow_budget > 0 ? " (at least 64)" : "",
@@ -644,6 +651,14 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                   "After the last stage-1 iteration, remove anchors whose children's mean opacity is below this "
                   "(default 0.015; --preset paper: 0 = off)")
       ->check(finite_range(0.0, 0.999));
+  sub->add_option("--prune-importance", c.prune_importance,
+                  "Once, at --prune-importance-at, remove the anchors that draw least (their Gaussians' blending "
+                  "weights summed over every pixel of the training views) while together they draw at most this "
+                  "share of the pictures (default 0.01; --preset paper: 0 = off)")
+      ->check(finite_range(0.0, 0.999));
+  sub->add_option("--prune-importance-at", c.prune_importance_at,
+                  "The iteration of the importance prune (default 0: halfway between the end of growing and --iters)")
+      ->check(CLI::Range(0, std::numeric_limits<int>::max()));
   sub->add_option("--prune-unseen-window", c.prune_unseen_window,
                   "In growing rounds, remove anchors none of whose children was visible in the last N training views "
                   "(default 0 = 2 x training views; -1 = off)")

@@ -38,6 +38,11 @@ void TrainConfig::validate() const {
   if (!(prune_opacity >= 0 && prune_opacity < 1)) bad("prune_opacity must be in [0, 1)");
   if (!(recycle_opacity >= 0 && recycle_opacity < 1)) bad("recycle_opacity must be in [0, 1)");
   if (!(final_prune_opacity >= 0 && final_prune_opacity < 1)) bad("final_prune_opacity must be in [0, 1)");
+  if (!(prune_importance >= 0 && prune_importance < 1))
+    bad("prune_importance must be in [0, 1) (a share of what the training views show; 0 = off)");
+  if (prune_importance_at < 0 || prune_importance_at > iterations)
+    bad("prune_importance_at is " + std::to_string(prune_importance_at) + "; use 0 (from the schedule) or 1 to " +
+        std::to_string(iterations) + " (the stage-1 iterations)");
   if (downscales < -1 || downscales > 6)
     bad("downscales is " + std::to_string(downscales) + "; use -1 (from the images), 0 (off) or 1 to 6");
   if (res_schedule < 0) bad("res_schedule must be 0 (from the iterations) or at least 1 iteration");
@@ -69,6 +74,15 @@ int TrainConfig::effective_mask_from() const {
 
 int TrainConfig::effective_grow_until() const {
   return grow_until > 0 ? grow_until : static_cast<int>(static_cast<int64_t>(iterations) * 2 / 3);
+}
+
+int TrainConfig::effective_prune_importance_at() const {
+  if (prune_importance_at > 0) return prune_importance_at;
+  // Halfway between the end of growing and the end of stage 1: the last
+  // round's anchors have had time to show what they draw, and the
+  // neighbours of the removed ones have the other half to take over
+  // (measured against a growing interval after the end: docs/benchmarks.md).
+  return std::max(1, std::min(iterations, (effective_grow_until() + iterations) / 2));
 }
 
 GrowthConfig TrainConfig::growth_config(size_t train_views) const {
@@ -137,6 +151,8 @@ nlohmann::json TrainConfig::to_json() const {
           {"grow_same_layer", grow_same_layer},
           {"recycle_opacity", recycle_opacity},
           {"final_prune_opacity", final_prune_opacity},
+          {"prune_importance", prune_importance},
+          {"prune_importance_at", effective_prune_importance_at()},
           {"grow_budget", grow_budget},
           {"max_gaussians", max_gaussians},
           {"prop_iters", effective_prop_iters()},
@@ -207,6 +223,8 @@ TrainConfig TrainConfig::from_json(const nlohmann::json& j) {
     c.grow_same_layer = j.value("grow_same_layer", false);
     c.recycle_opacity = j.value("recycle_opacity", 0.0);
     c.final_prune_opacity = j.value("final_prune_opacity", 0.0);  // written before the option
+    c.prune_importance = j.value("prune_importance", 0.0);
+    c.prune_importance_at = j.value("prune_importance_at", 0);
     // Checkpoints from before the budgets grew without limit.
     c.grow_budget = j.value("grow_budget", 0.0);
     c.max_gaussians = j.value("max_gaussians", int64_t{0});

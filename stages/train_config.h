@@ -139,6 +139,15 @@ struct TrainConfig {
   // round draw almost nothing; the default preset sets 0.02, the recycling
   // threshold); 0 = off.
   double final_prune_opacity = 0;
+  // Once, at iteration prune_importance_at (0 = halfway between the end of
+  // growing and the last stage-1 iteration): each anchor's children's
+  // blending weights are summed over every pixel of the training views
+  // (host/render/importance.h), and the anchors that draw least are removed
+  // while together they draw at most this share of the total
+  // (least_drawing_anchors). 0 = off (the published rule; the program's
+  // default preset sets 0.01).
+  double prune_importance = 0;
+  int prune_importance_at = 0;
   // In the same rounds: remove anchors none of whose children was visible in
   // the last this many training views (at least a round); 0 = 2 x the number
   // of training views (two epochs: anchors that only a few views see stay),
@@ -179,6 +188,7 @@ struct TrainConfig {
   // The SH interval actually used.
   int effective_sh_interval() const;
   int effective_grow_until() const;
+  int effective_prune_importance_at() const;
   int effective_prop_iters() const { return prop_iters >= 0 ? prop_iters : iterations / 6; }
   // Stage 1 + stage 2.
   int total_iterations() const { return iterations + effective_prop_iters(); }

@@ -19,6 +19,7 @@
 #include "host/io/atomic_file.h"
 #include "host/io/model_io.h"
 #include "host/io/ply_io.h"
+#include "host/render/importance.h"
 #include "stages/anchor_regularisers.h"
 
 namespace fs = std::filesystem;
@@ -282,6 +283,8 @@ StepStats Trainer::step(bool compute_offset_loss, const std::function<void()>& b
   update(st, size.first, size.second);
   if (before_rounds) before_rounds();
   if (!st.stage2 && growth_.due(st.iteration)) growing_round(st);
+  if (!st.stage2 && config_.prune_importance > 0 && st.iteration == config_.effective_prune_importance_at())
+    importance_prune(st);
   if (!st.stage2 && st.iteration == config_.iterations && config_.final_prune_opacity > 0) final_prune(st);
   if (opacity_reset_due(st.iteration)) reset_opacities(st);
   iteration_ = st.iteration;
@@ -477,6 +480,33 @@ void Trainer::growing_round(StepStats& st) {
   }
 }
 
+void Trainer::remove_anchor_rows(const std::vector<uint8_t>& keep) {
+  const std::vector<int> kept = model_.remove_anchors(keep);
+  anchors_.upload(model_);
+  groups_->gather(AnchorModel::child_rows(kept, model_.children()), kept);
+  growth_.reset(model_.gaussians());  // the statistics follow the rows
+}
+
+void Trainer::importance_prune(StepStats& st) {
+  model();  // host values current
+  expander_.forward(anchors_, gaussians_, active_sh_degree());
+  RenderSettings settings;
+  settings.lowpass = config_.lowpass_at_level(0);
+  std::vector<Camera> cameras;
+  for (int v : train_views_) cameras.push_back(scene_.views()[v].camera);
+  const std::vector<double> per_child = blend_weight_sums(renderer_, gaussians_, cameras, settings);
+  const size_t before = model_.size();
+  const std::vector<uint8_t> keep = least_drawing_anchors(per_child, model_.children(), config_.prune_importance);
+  const size_t removed = before - static_cast<size_t>(std::count(keep.begin(), keep.end(), uint8_t{1}));
+  if (removed == 0) return;
+  remove_anchor_rows(keep);
+  st.pruned += static_cast<int>(removed);
+  spdlog::info(
+      "iteration {}: removed the {} anchors that together draw {:.3g}% of the training views (the least) -> {} "
+      "anchors, {} Gaussians",
+      st.iteration, removed, 100 * config_.prune_importance, model_.size(), model_.gaussians());
+}
+
 void Trainer::final_prune(StepStats& st) {
   model();  // host values current
   const size_t before = model_.size();
@@ -493,10 +523,7 @@ void Trainer::final_prune(StepStats& st) {
                  st.iteration, config_.final_prune_opacity);
     return;
   }
-  const std::vector<int> kept = model_.remove_anchors(keep);
-  anchors_.upload(model_);
-  groups_->gather(AnchorModel::child_rows(kept, model_.children()), kept);
-  growth_.reset(model_.gaussians());  // growing is over; the statistics follow the rows
+  remove_anchor_rows(keep);
   st.pruned += static_cast<int>(removed);
   spdlog::info("iteration {}: removed {} anchors whose children's mean opacity is below {} -> {} anchors, {} Gaussians",
                st.iteration, removed, config_.final_prune_opacity, model_.size(), model_.gaussians());

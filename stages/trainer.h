@@ -213,6 +213,11 @@ class Trainer {
   void growing_round(StepStats& st);
   // After the last stage-1 iteration (TrainConfig::final_prune_opacity).
   void final_prune(StepStats& st);
+  // Once, at TrainConfig::effective_prune_importance_at().
+  void importance_prune(StepStats& st);
+  // Removes the anchors with keep[a] = 0 from the model, the device arrays,
+  // the optimiser's rows and the growth statistics (after the prunes).
+  void remove_anchor_rows(const std::vector<uint8_t>& keep);
   void reset_opacities(StepStats& st);
   // The open pixels of every training view (sky_open_, their share and
   // radius), and the sky's start (config.sky_degree >= 0).

@@ -16,9 +16,11 @@
 #include "host/io/model_io.h"
 #include "host/io/model_ply.h"
 #include "host/io/ply_io.h"
+#include "host/render/importance.h"
 #include "host/scene/scene.h"
 #include "io_test_util.h"
 #include "stages/anchor_model.h"
+#include "stages/expander.h"
 #include "stages/trainer.h"
 #include "test_util.h"
 
@@ -194,6 +196,94 @@ TEST(Train, FinalPruneRemovesFadedAnchorsAndKeepsTheRest) {
   }
 }
 
+// The importance prune (TrainConfig::prune_importance) runs once, at its
+// iteration: the anchors that draw least over the training views
+// (blend_weight_sums of the model at that iteration, checked against the
+// reference in test_render_backward; least_drawing_anchors, checked below)
+// go while together they draw at most the share, the others keep their bits
+// in their order, and training goes on from the rows left.
+TEST(Train, ImportancePruneRemovesTheAnchorsThatDrawLeast) {
+  SceneOptions so;
+  so.resolution = 2;
+  so.eval = true;
+  auto scene = Scene::open(sample_scene(), so);
+  TrainConfig cfg;
+  cfg.iterations = 30;
+  cfg.anchors.top_cells = 50;
+  cfg.white_background = true;
+  cfg.grow_from = 1000;  // no growing rounds
+  cfg.prune_importance_at = 20;
+  Trainer ref_trainer(test::runtime(), *scene, cfg);
+  for (int it = 0; it < cfg.prune_importance_at; ++it) ASSERT_FALSE(ref_trainer.step().skipped);
+  const AnchorModel ref = ref_trainer.model();
+  // The measure, from the model the pruning run holds at that iteration.
+  Runtime& rt = test::runtime();
+  DeviceAnchors da(rt);
+  da.upload(ref);
+  DeviceGaussians dg(rt);
+  // The trainer's SH degree during that step: that of iteration at - 1.
+  Expander(rt).forward(da, dg,
+                       std::min(cfg.anchors.sh_degree, (cfg.prune_importance_at - 1) / cfg.effective_sh_interval()));
+  std::vector<Camera> cams;
+  for (int v : scene->train_views()) cams.push_back(scene->views()[v].camera);
+  Renderer r(rt);
+  RenderSettings settings;
+  settings.lowpass = cfg.lowpass_at_level(0);
+  const std::vector<double> per_child = blend_weight_sums(r, dg, cams, settings);
+  const int K = ref.children();
+  cfg.prune_importance = 0.02;
+  const std::vector<uint8_t> expected = least_drawing_anchors(per_child, K, cfg.prune_importance);
+  Trainer trainer(test::runtime(), *scene, cfg);
+  int pruned = 0;
+  for (int it = 0; it < cfg.prune_importance_at; ++it) pruned += trainer.step().pruned;
+  const AnchorModel& m = trainer.model();
+  m.check();
+  size_t r_row = 0, below = 0;
+  double total = 0, removed_weight = 0;
+  for (size_t a = 0; a < ref.size(); ++a) {
+    double drawn = 0;
+    for (int i = 0; i < K; ++i) drawn += per_child[a * K + i];
+    total += drawn;
+    if (!expected[a]) {
+      ++below;
+      removed_weight += drawn;
+      continue;
+    }
+    ASSERT_LT(r_row, m.size());
+    for (int i = 0; i < K; ++i) {
+      ASSERT_EQ(m.opacity_logit()[r_row * K + i], ref.opacity_logit()[a * K + i]);
+      for (int c = 0; c < 3; ++c) ASSERT_EQ(m.offset()[(r_row * K + i) * 3 + c], ref.offset()[(a * K + i) * 3 + c]);
+    }
+    ++r_row;
+  }
+  std::printf("importance prune of %.0f%%: %zu of %zu anchors removed, drawing %.3f%%\n", 100 * cfg.prune_importance,
+              below, ref.size(), 100 * removed_weight / total);
+  EXPECT_EQ(r_row, m.size());
+  EXPECT_EQ(static_cast<size_t>(pruned), below);
+  EXPECT_GT(below, ref.size() / 20);
+  EXPECT_LE(removed_weight, cfg.prune_importance * total);
+  // Training goes on from the pruned rows, through the last iteration.
+  for (int it = cfg.prune_importance_at; it < cfg.iterations; ++it) ASSERT_FALSE(trainer.step().skipped);
+  // An iteration outside stage 1 is refused.
+  TrainConfig late = cfg;
+  late.prune_importance_at = cfg.iterations + 1;
+  EXPECT_THROW(late.validate(), std::invalid_argument);
+}
+
+// least_drawing_anchors against the rule worked by hand: 4 anchors of 2
+// children drawing 3, 1, 6 and 1 px (total 11); ties go by index.
+TEST(Train, LeastDrawingAnchorsTakeTheLeastWhileUnderTheShare) {
+  const std::vector<double> per_child = {1, 2, 0.5, 0.5, 6, 0, 0, 1};
+  using Keep = std::vector<uint8_t>;
+  EXPECT_EQ(least_drawing_anchors(per_child, 2, 0.0), (Keep{1, 1, 1, 1}));
+  EXPECT_EQ(least_drawing_anchors(per_child, 2, 1.5 / 11), (Keep{1, 0, 1, 1}));  // 1 fits, 1 + 1 does not
+  EXPECT_EQ(least_drawing_anchors(per_child, 2, 2.5 / 11), (Keep{1, 0, 1, 0}));
+  EXPECT_EQ(least_drawing_anchors(per_child, 2, 4.9 / 11), (Keep{1, 0, 1, 0}));  // + 3 would make 5
+  EXPECT_EQ(least_drawing_anchors(per_child, 2, 5.5 / 11), (Keep{0, 0, 1, 0}));
+  EXPECT_EQ(least_drawing_anchors(per_child, 2, 1.0), (Keep{0, 0, 1, 0}));  // never every anchor
+  EXPECT_THROW(least_drawing_anchors(per_child, 3, 0.1), std::invalid_argument);
+}
+
 TEST(Train, ViewOrderIsASeededPermutationPerEpoch) {
   SceneOptions so;
   so.resolution = 2;
@@ -260,10 +350,17 @@ TEST(Train, SameSeedGivesByteIdenticalModelFiles) {
   ASSERT_NE(pruned_at, std::string::npos) << r1.output;
   ASSERT_EQ(std::sscanf(r1.output.c_str() + pruned_at, "pruned %d -> %d anchors", &pruned, &after), 2) << r1.output;
   EXPECT_GT(grew, 0);
-  EXPECT_EQ(static_cast<size_t>(after), model.size());
+  // The importance prune (at iteration 50, halfway from the end of growing
+  // to the last iteration) says what it removed.
+  int least = 0;
+  const size_t least_at = r1.output.find("iteration 50: removed the ");
+  ASSERT_NE(least_at, std::string::npos) << r1.output;
+  ASSERT_EQ(std::sscanf(r1.output.c_str() + least_at, "iteration 50: removed the %d anchors", &least), 1);
+  EXPECT_GT(least, 0);
+  EXPECT_EQ(static_cast<size_t>(after - least), model.size());
   const size_t init_at = r1.output.find("anchors: ");
   ASSERT_NE(init_at, std::string::npos);
-  EXPECT_EQ(std::stoul(r1.output.substr(init_at + 9)) + grew - pruned, model.size());
+  EXPECT_EQ(std::stoul(r1.output.substr(init_at + 9)) + grew - pruned - least, model.size());
   GaussianSet ply = read_ply(model_objects_ply(dir.file("a")));  // without a baked sky
   EXPECT_EQ(ply.size(), model.gaussians());
   EXPECT_EQ(ply.sh_degree, 3);

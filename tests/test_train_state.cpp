@@ -199,7 +199,7 @@ TEST(TrainState, ResumedRunGivesTheBytesOfTheStraightRun) {
 // The same with the switches against the gap to free Gaussians: recycling in
 // the growing rounds, a scale cap on the top layer, children on the SfM points,
 // the final prune after the last iteration (in the resumed half), and split
-// growth.
+// growth, the importance prune.
 TEST(TrainState, ResumeIsBitExactWithRecyclingAndAScaleCap) {
   TrainConfig cfg = split_config();
   cfg.recycle_opacity = 0.05;
@@ -208,12 +208,19 @@ TEST(TrainState, ResumeIsBitExactWithRecyclingAndAScaleCap) {
   cfg.anchors.scale_cap_layers = 1;
   cfg.anchors.init_children_at_points = true;
   cfg.grow_split = 2;
+  cfg.prune_importance = 0.02;  // at iteration 75 (growing ends at 70), in the resumed half
   EXPECT_GT(expect_resume_gives_straight_bytes(cfg, "train_resume_switches"), 0);
+  EXPECT_EQ(cfg.effective_prune_importance_at(), 75);
+  // The importance prune goes through the checkpoint; files from before it mean off.
+  EXPECT_EQ(TrainConfig::from_json(cfg.to_json()).prune_importance, 0.02);
+  EXPECT_EQ(TrainConfig::from_json(cfg.to_json()).prune_importance_at, 75);
   // Split growth goes through the checkpoint; files from before it mean off.
   EXPECT_EQ(TrainConfig::from_json(cfg.to_json()).grow_split, 2.0);
   nlohmann::json old = cfg.to_json();
   old["grow"].erase("split");
+  old.erase("prune_importance");
   EXPECT_EQ(TrainConfig::from_json(old).grow_split, 0.0);
+  EXPECT_EQ(TrainConfig::from_json(old).prune_importance, 0.0);
 }
 
 // The same with a sky (forced: the sample's open share is below the rule's
