@@ -40,6 +40,22 @@ namespace fs = std::filesystem;
 namespace ag2gs::cli {
 namespace {
 
+void refuse_ply_of_another_model(const std::string& ply, const GaussianSet& set, const ModelArchive& archive) {
+  const AnchorModel am = AnchorModel::from_archive(archive);
+  const std::string& mf = archive.source;
+  const std::string fix = "; move it aside and train again, or render the file alone with --ply " + ply;
+  if (set.size() != am.gaussians())
+    throw std::runtime_error(ply + " holds " + std::to_string(set.size()) + " Gaussians where " + mf + " has " +
+                             std::to_string(am.gaussians()) + ": it was not written from this model" + fix);
+  // point_cloud(_objects).ply holds the model's expanded Gaussians row for
+  // row; their means are a function of the anchors and offsets alone.
+  const GaussianSet mine = expand_reference(am, 0);
+  for (size_t i = 0; i < mine.means.size(); ++i)
+    if (mine.means[i] != set.means[i])
+      throw std::runtime_error(ply + ": Gaussian " + std::to_string(i / 3) + " lies elsewhere than in " + mf +
+                               ": the file was not written from this model" + fix);
+}
+
 struct RenderArgs {
   std::string model, ply, scene, out, views, outputs = "rgb", bg = "0,0,0", sparse;
   bool bg_given = false;  // --bg on the command line (else a model's sky, when it has one)
@@ -170,8 +186,10 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
   // A model trained with a sky (host/render/sky.h) renders its rgb over
   // it, as training saw it, unless --bg asks for a fixed background.
   std::optional<std::vector<float>> sky_coefficients;
-  if (!a.model.empty() && !a.bg_given && fs::exists(fs::path(a.model) / "model.ag2gs"))
-    sky_coefficients = sky_from_archive(read_model_archive((fs::path(a.model) / "model.ag2gs").string()));
+  std::optional<ModelArchive> model_archive;
+  if (!a.model.empty() && fs::exists(fs::path(a.model) / "model.ag2gs"))
+    model_archive = read_model_archive((fs::path(a.model) / "model.ag2gs").string());
+  if (model_archive && !a.bg_given) sky_coefficients = sky_from_archive(*model_archive);
   GaussianSet set;
   // Instance maps need the anchors' clusters: the model's Gaussians are then
   // expanded from model.ag2gs (row g = anchor g / K, the same Gaussians as
@@ -199,6 +217,10 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
     set = read_ply(ply, PlyValues::activated, a.drop_invalid ? InvalidGaussians::drop : InvalidGaussians::reject,
                    &dropped);
     if (dropped > 0) spdlog::warn("{}: left out {} Gaussians with invalid numbers (--drop-invalid)", ply, dropped);
+    // The folder's PLY must be its model's: a file copied in from another
+    // model, or left from an earlier one, would render another scene under
+    // this model's name (and over its sky).
+    if (model_archive && dropped == 0) refuse_ply_of_another_model(ply, set, *model_archive);
   }
   if (!fs::is_directory(a.scene))
     throw std::runtime_error(a.scene +

@@ -10,6 +10,7 @@
 
 #include "cli_test_util.h"
 #include "host/io/model_io.h"
+#include "host/io/model_ply.h"
 
 namespace fs = std::filesystem;
 
@@ -190,6 +191,39 @@ TEST(Cli, RenderModelFolderWithViewSetsAndOutputs) {
   fs::remove_all(dir);
 }
 
+// A model folder's point_cloud.ply must be its model.ag2gs's: one copied in
+// from another model (same scene, another seed: as many Gaussians,
+// elsewhere) or another file altogether is refused, naming the file and the
+// way out; rendered alone with --ply it still renders.
+TEST(Cli, RenderRefusesAModelFoldersPlyFromAnotherModel) {
+  const std::string scene = src() + "/data_samples/synth_small";
+  fs::path dir = temp("ply_of_another");
+  for (const char* seed : {"1", "2"}) {
+    Result t = run("train " + scene + " -o " + (dir / seed).string() +
+                   " -r 2 --top-cells 50 --iters 3 --stages 1 --log-every 0 --seed " + seed);
+    ASSERT_EQ(t.code, 0) << t.output;
+  }
+  const std::string a = (dir / "1").string();
+  Result r = run("render " + a + " --scene " + scene + " -o " + (dir / "ok").string());
+  ASSERT_EQ(r.code, 0) << r.output;
+  // The file render reads: point_cloud_objects.ply when the model has a sky.
+  const std::string target = ag2gs::model_objects_ply(a);
+  fs::copy_file(ag2gs::model_objects_ply((dir / "2").string()), target, fs::copy_options::overwrite_existing);
+  r = run("render " + a + " --scene " + scene + " -o " + (dir / "x").string());
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.output.find(".ply: Gaussian "), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("not written from this model"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("--ply"), std::string::npos) << r.output;
+  EXPECT_FALSE(fs::exists(dir / "x"));
+  fs::copy_file(src() + "/data_samples/tiny_scene/gaussians.ply", target, fs::copy_options::overwrite_existing);
+  r = run("render " + a + " --scene " + scene + " -o " + (dir / "x").string());
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.output.find("Gaussians where"), std::string::npos) << r.output;
+  r = run("render --ply " + target + " --scene " + scene + " -o " + (dir / "alone").string());
+  EXPECT_EQ(r.code, 0) << r.output;
+  fs::remove_all(dir);
+}
+
 // --init-layer picks the voxel layer the SfM points seed: the top layer by
 // default, every layer with -1 (the log line "per layer a/b/c"); a layer the
 // grid does not have is refused before training.
@@ -234,7 +268,8 @@ TEST(Cli, TrainPresetsDefaultAppearanceAndPaperExplicitFlagsWin) {
   EXPECT_NE(
       app.output.find("preset appearance: --scale-cap 64 --children 4 --init-layers 2 "
                       "--init-children-at-points --grow-budget 0.1 --grow-min-seen 0.1 --grow-split 4 --far-shell true "
-                      "--recycle-opacity 0.02 --final-prune-opacity 0.015 --lr-offset 0.01 --lr-scaling 0.01"),
+                      "--recycle-opacity 0.02 --final-prune-opacity 0.015 --prune-importance 0.01 --lr-offset 0.01 "
+                      "--lr-scaling 0.01"),
       std::string::npos)
       << app.output;
   const auto c = config_of(dir / "app");
