@@ -11,6 +11,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <map>
 #include <mutex>
 #include <sstream>
 #include <thread>
@@ -116,6 +117,8 @@ std::string json_string(const nlohmann::json& j, const char* key) {
 }
 
 constexpr size_t kWorkers = 32;
+// Render clients remembered for superseding (the ids of open pages).
+constexpr size_t kMaxClients = 4096;
 
 // The Host values served: the loopback names and the address given with
 // --host, each with or without a port. Empty: any (a viewer opened to the
@@ -209,6 +212,14 @@ void cmd_view(const GlobalOptions& global, const ViewArgs& a) {
                std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
 
   std::mutex lock;  // one request at a time touches the session (renders are serialised)
+  // Renders that carry `client=ID` (the page sends one per page load): a
+  // request still waiting for the lock when a newer one of its client
+  // arrives is answered 204 without rendering (X-Superseded: 1), so a
+  // client that asks faster than the device renders gets its latest
+  // camera next, not a backlog of old ones.
+  std::mutex latest_lock;
+  std::map<std::string, uint64_t> latest;  // client -> arrival number of its newest render
+  uint64_t arrivals = 0;
   httplib::Server svr;
   svr.set_payload_max_length(kMaxBody);
   svr.set_read_timeout(10, 0);
@@ -267,7 +278,28 @@ void cmd_view(const GlobalOptions& global, const ViewArgs& a) {
   svr.Get("/api/render", [&](const httplib::Request& req, httplib::Response& res) {
     const ViewMode mode = parse_view_mode(req.has_param("mode") ? req.get_param_value("mode") : "rgb");
     const int quality = int_param(req, "quality", 85);
+    std::string client;
+    uint64_t arrival = 0;
+    if (req.has_param("client")) {
+      client = req.get_param_value("client");
+      if (client.empty() || client.size() > 64)
+        throw std::invalid_argument("client: an id of 1 to 64 characters (the page makes one per page load)");
+      std::lock_guard<std::mutex> l(latest_lock);
+      if (latest.size() >= kMaxClients) latest.clear();  // ids of closed pages; at worst one stale frame renders
+      arrival = ++arrivals;
+      latest[client] = arrival;
+    }
     std::lock_guard<std::mutex> g(lock);
+    if (!client.empty()) {
+      std::lock_guard<std::mutex> l(latest_lock);
+      const auto it = latest.find(client);
+      if (it != latest.end() && it->second != arrival) {
+        res.status = 204;
+        res.set_header("X-Superseded", "1");
+        res.set_header("Cache-Control", "no-store");
+        return;
+      }
+    }
     const std::string format = req.has_param("format") ? req.get_param_value("format") : "jpeg";
     if (format != "jpeg" && format != "png")
       throw std::invalid_argument("format '" + format + "': choose jpeg (the default) or png (a screenshot)");

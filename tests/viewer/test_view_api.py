@@ -281,6 +281,39 @@ class ViewApi(unittest.TestCase):
         self.assertEqual(errors, [])
 
 
+    def test_a_newer_render_of_a_client_supersedes_its_waiting_one(self):
+        # A slow render holds the lock; two renders of client "c" wait behind
+        # it; the older of the two is answered 204 without rendering, the
+        # newer renders. Another client's waiting render is not touched.
+        big = "/api/render?view=view_000&w=3840&h=2160&quality=60"
+        results = {}
+
+        def get(name, path):
+            status, _, data = self.v.request(path)
+            results[name] = (status, len(data))
+
+        slow = threading.Thread(target=get, args=("slow", big))
+        slow.start()
+        time.sleep(0.05)
+        older = threading.Thread(target=get, args=("older", "/api/render?view=view_001&client=c"))
+        other = threading.Thread(target=get, args=("other", "/api/render?view=view_001&client=d"))
+        older.start()
+        other.start()
+        time.sleep(0.05)
+        newer = threading.Thread(target=get, args=("newer", "/api/render?view=view_002&client=c"))
+        newer.start()
+        for t in (slow, older, other, newer):
+            t.join()
+        print("superseding:", results)
+        self.assertEqual(results["slow"][0], 200)
+        self.assertEqual(results["older"], (204, 0))
+        self.assertEqual(results["other"][0], 200)
+        self.assertEqual(results["newer"][0], 200)
+        self.assertGreater(results["newer"][1], 0)
+        # A lone request of a client renders; a bad id is refused.
+        self.assertEqual(self.v.request("/api/render?view=view_000&client=c")[0], 200)
+        self.assertIn("client", self.expect_error(400, "/api/render?view=view_000&client=" + "x" * 65))
+
     def test_sized_renders_masks_and_png(self):
         status, ctype, data = self.v.request("/api/render?view=view_000&w=321&h=241&format=png")
         self.assertEqual((status, ctype), (200, "image/png"))
