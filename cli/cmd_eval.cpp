@@ -109,6 +109,17 @@ void cmd_eval(const GlobalOptions& global, EvalArgs a) {
   row("mean", text, click);
   std::printf("query time (selection + mask): text %.1f ms mean, %.1f ms max; click %.1f ms mean, %.1f ms max\n",
               text.mean_ms, text.max_ms, click.mean_ms, click.max_ms);
+  if (!report.absent.empty()) {
+    size_t none = 0;
+    std::string missed;
+    for (const AbsentPhrase& a : report.absent) {
+      none += a.none;
+      if (!a.none) missed += (missed.empty() ? " (selected something: \"" : ", \"") + a.phrase + "\"";
+    }
+    if (!missed.empty()) missed += ")";
+    std::printf("absent phrases (in the vocabulary, in no label): %zu of %zu answered none%s\n", none,
+                report.absent.size(), missed.c_str());
+  }
   if (report.unscored_clicks > 0)
     spdlog::warn("{} click(s) not scored: no category, or no label file for their frame", report.unscored_clicks);
 

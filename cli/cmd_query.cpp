@@ -125,6 +125,15 @@ std::vector<float> load_query_embedding(const QueryRequest& a, const std::string
   return it->second;
 }
 
+std::vector<std::vector<float>> load_rival_embeddings(const QueryRequest& a) {
+  std::vector<std::vector<float>> rivals;
+  if (a.text.empty() || a.vocab.empty()) return rivals;
+  const Vocabulary vocab = read_vocabulary(a.vocab);
+  for (const auto& [phrase, e] : vocab.phrases)
+    if (phrase != a.text) rivals.push_back(e);
+  return rivals;
+}
+
 std::vector<uint8_t> encode_mask_png(const std::vector<uint8_t>& mask, int width, int height) {
   cv::Mat img(height, width, CV_8UC1);
   for (int y = 0; y < height; ++y)
@@ -202,9 +211,13 @@ std::vector<int32_t> run_query(QueryEngine& engine, const Scene& scene, const Qu
     spdlog::info("click ({}, {}) on {}: alpha {:.3f}, depth {:.4f}, seed anchor {} at {:.4f} from the point", cx, cy,
                  scene.views()[click_view].name, c.alpha, c.depth, c.seed, c.seed_distance);
   } else {
-    const TextResult t = engine.text(embedding);
+    const std::vector<std::vector<float>> rivals = load_rival_embeddings(r);
+    const TextResult t = engine.text(embedding, rivals);
     selected = t.selected;
     *ms = t.ms;
+    j["none"] = t.none;
+    j["clusters_won"] = t.won;
+    j["rival_phrases"] = rivals.size();
     j["query"] = {{"type", "text"}};
     if (!r.text.empty()) {
       j["query"]["text"] = r.text;
@@ -218,8 +231,16 @@ std::vector<int32_t> run_query(QueryEngine& engine, const Scene& scene, const Qu
     nlohmann::json scores = nlohmann::json::array();
     for (double s : t.scores) scores.push_back(finite_or_null(s));
     j["scores"] = scores;
-    spdlog::info("text: best cosine {:.4f}; {} seed cluster(s) within {}, {} seed anchors", t.best,
-                 t.seed_clusters.size(), text_margin, t.seeds.size());
+    if (t.none)
+      spdlog::warn(
+          "text: \"{}\" names nothing here: each cluster is described better by another of the {} phrases of {} "
+          "(the phrase's best cosine {:.4f}); nothing is selected",
+          r.text, rivals.size(), r.vocab, t.best);
+    else
+      spdlog::info(
+          "text: best cosine {:.4f} of the {} cluster(s) the phrase describes best of {} phrases; {} seed "
+          "cluster(s) within {}, {} seed anchors",
+          t.best, t.won, rivals.size() + 1, t.seed_clusters.size(), text_margin, t.seeds.size());
   }
   return selected;
 }

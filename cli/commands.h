@@ -75,6 +75,10 @@ void check_query_request(const QueryRequest& request);
 // The text query's embedding: --text-embedding's .npy or --text's phrase of
 // --vocab; throws naming the file and the fix when it does not fit `dim`.
 std::vector<float> load_query_embedding(const QueryRequest& request, const std::string& model_file, int dim);
+// The embeddings of the --vocab file's other phrases (--text): a cluster is
+// the phrase's only if none of them describes it better (QueryEngine::text).
+// Empty for --text-embedding.
+std::vector<std::vector<float>> load_rival_embeddings(const QueryRequest& request);
 // How a click selects (--click-by): "features" grows over the trained
 // features (queries/query.h); "support" takes what stands on the scene's
 // main plane (a model trained without SAM masks has no features to grow

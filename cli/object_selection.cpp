@@ -147,6 +147,10 @@ SelectedObject select_object(Runtime& rt, const TrainedModel& tm, const Scene& s
   out.anchors.assign(model.size(), 0);
   for (int32_t s : selected) out.anchors[s] = 1;
   for (uint8_t b : out.anchors) out.count += b;
+  if (out.count == 0 && report.value("none", false))
+    throw std::runtime_error("\"" + request.text + "\" names nothing in this model (another phrase of " +
+                             request.vocab + " describes every object better): nothing to " + action +
+                             " (try another phrase; `ag2gs query` shows what a query selects)");
   if (out.count == 0)
     throw std::runtime_error("the query selected no anchor: nothing to " + action +
                              " (try another click or phrase; `ag2gs query` shows what a query selects)");

@@ -573,19 +573,39 @@ std::vector<int32_t> support_grow(const AnchorModel& model, const Plane& plane, 
   return out;
 }
 
-TextResult QueryEngine::text(const std::vector<float>& embedding) {
+TextResult QueryEngine::text(const std::vector<float>& embedding, const std::vector<std::vector<float>>& rivals) {
   if (!have_language_) throw std::logic_error("QueryEngine::text before set_language");
   const auto t0 = std::chrono::steady_clock::now();
   TextResult r;
   r.scores = text_scores(language_, embedding);
-  r.best = -std::numeric_limits<double>::infinity();
+  double any_best = -std::numeric_limits<double>::infinity();
   for (double s : r.scores)
-    if (!std::isnan(s)) r.best = std::max(r.best, s);
-  if (!std::isfinite(r.best))
+    if (!std::isnan(s)) any_best = std::max(any_best, s);
+  if (!std::isfinite(any_best))
     throw std::invalid_argument("no cluster of the model has a language feature (stage 3 found no mask matches)");
+  // The clusters the phrase wins against every rival.
+  std::vector<uint8_t> wins(r.scores.size(), 0);
+  for (size_t c = 0; c < r.scores.size(); ++c) wins[c] = !std::isnan(r.scores[c]);
+  for (const std::vector<float>& rival : rivals) {
+    const std::vector<double> rs = text_scores(language_, rival);
+    for (size_t c = 0; c < r.scores.size(); ++c)
+      if (wins[c] && rs[c] > r.scores[c]) wins[c] = 0;
+  }
+  r.best = -std::numeric_limits<double>::infinity();
+  for (size_t c = 0; c < r.scores.size(); ++c)
+    if (wins[c]) {
+      r.best = std::max(r.best, r.scores[c]);
+      ++r.won;
+    }
+  if (r.won == 0) {
+    r.none = true;
+    r.best = any_best;
+    r.ms = ms_since(t0);
+    return r;
+  }
   std::vector<uint8_t> seed_cluster(r.scores.size(), 0);
   for (size_t c = 0; c < r.scores.size(); ++c) {
-    if (!std::isnan(r.scores[c]) && r.scores[c] >= r.best - config_.text_margin) {
+    if (wins[c] && r.scores[c] >= r.best - config_.text_margin) {
       seed_cluster[c] = 1;
       r.seed_clusters.push_back(static_cast<int32_t>(c));
     }

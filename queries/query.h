@@ -181,7 +181,12 @@ struct ClickResult {
 
 struct TextResult {
   std::vector<double> scores;          // [C] NaN = cluster without language feature
-  double best = 0;
+  double best = 0;                     // the best score of a cluster the phrase wins (of any, when none)
+  // With rival phrases: a cluster is the phrase's only if no rival scores
+  // higher on it; none = no cluster is (the phrase names nothing here),
+  // and the selection is empty.
+  bool none = false;
+  size_t won = 0;                      // clusters the phrase wins against the rivals
   std::vector<int32_t> seed_clusters;  // ascending
   std::vector<int32_t> seeds;          // their anchors, ascending
   std::vector<int32_t> selected;
@@ -211,7 +216,13 @@ class QueryEngine {
   const Renderer& renderer() const { return renderer_; }
   // Throws std::logic_error without set_language, std::invalid_argument for
   // an embedding of the wrong dimension or when no cluster has a feature.
-  TextResult text(const std::vector<float>& embedding);
+  // `rivals`: the embeddings of the vocabulary's other phrases. A cluster
+  // can seed only if the phrase scores at least as high on it as every
+  // rival (the phrase is its best description, as LERF and LangSplat rank a
+  // phrase against others); when the phrase wins no cluster the answer is
+  // "none" (TextResult::none, empty selection). Without rivals every
+  // cluster with a feature can seed.
+  TextResult text(const std::vector<float>& embedding, const std::vector<std::vector<float>>& rivals = {});
 
   // [H,W] 0/1 mask of `selected` (anchor ids) in the camera (see file comment).
   std::vector<uint8_t> mask(const Camera& camera, const std::vector<int32_t>& selected);

@@ -6,6 +6,7 @@
 #include <filesystem>
 #include <map>
 #include <opencv2/imgproc.hpp>
+#include <set>
 #include <stdexcept>
 
 #include "host/core/timing.h"
@@ -149,6 +150,18 @@ nlohmann::json QueryEvalReport::to_json() const {
     frames_json.push_back({{"frame", f}, {"text", sum_json(summary("text", f))}, {"click", sum_json(summary("click", f))}});
   j["frames"] = frames_json;
   j["unscored_clicks"] = unscored_clicks;
+  if (!absent.empty()) {
+    nlohmann::json list = nlohmann::json::array();
+    size_t none = 0;
+    for (const AbsentPhrase& a : absent) {
+      none += a.none;
+      list.push_back({{"phrase", a.phrase}, {"none", a.none}, {"selected_anchors", a.anchors}, {"best_score", a.best}});
+    }
+    j["absent"] = {{"phrases", absent.size()},
+                   {"answered_none", none},
+                   {"none_rate", static_cast<double>(none) / static_cast<double>(absent.size())},
+                   {"items", list}};
+  }
   return j;
 }
 
@@ -191,7 +204,14 @@ QueryEvalReport evaluate_queries(QueryEngine& engine, const Scene& scene, const 
     q.biou = boundary_iou(pred, gt, lf.width, lf.height, in.boundary_ratio);
   };
 
-  // Text: one selection per category, scored in every frame that labels it.
+  // Text: one selection per category, scored in every frame that labels it;
+  // each phrase against the vocabulary's others, as `ag2gs query` asks.
+  auto rivals_of = [&](const std::string& phrase) {
+    std::vector<std::vector<float>> rivals;
+    for (const auto& [p, e] : in.vocab->phrases)
+      if (p != phrase) rivals.push_back(e);
+    return rivals;
+  };
   if (in.vocab) {
     std::map<std::string, TextResult> selections;
     std::string no_text_reason;
@@ -213,7 +233,7 @@ QueryEvalReport evaluate_queries(QueryEngine& engine, const Scene& scene, const 
                                         "\", which the vocabulary lacks; add its CLIP text embedding");
           TextResult tr;
           try {
-            tr = engine.text(e->second);
+            tr = engine.text(e->second, rivals_of(cat));
           } catch (const std::invalid_argument& err) {
             // No cluster carries a language feature: no prediction (scores 0).
             no_text_reason = err.what();
@@ -222,9 +242,31 @@ QueryEvalReport evaluate_queries(QueryEngine& engine, const Scene& scene, const 
           q.select_ms = it->second.ms;  // counted once, at the first frame that asks
         }
         if (it->second.selected.empty() && !no_text_reason.empty()) q.note = no_text_reason;
+        if (it->second.none) q.note = "answered none: another phrase describes every cluster better";
         score(q, f.frame, &it->second.selected, cam);
         report.items.push_back(q);
       }
+    }
+  }
+
+  // The vocabulary's phrases that no frame labels: each should answer none.
+  if (in.vocab) {
+    std::set<std::string> labelled;
+    for (const NamedLabelFrame& f : in.frames)
+      for (const std::string& cat : f.frame.categories()) labelled.insert(cat);
+    for (const auto& [phrase, e] : in.vocab->phrases) {
+      if (labelled.count(phrase)) continue;
+      AbsentPhrase a;
+      a.phrase = phrase;
+      try {
+        const TextResult tr = engine.text(e, rivals_of(phrase));
+        a.none = tr.none;
+        a.anchors = tr.selected.size();
+        a.best = tr.best;
+      } catch (const std::invalid_argument&) {
+        a.none = true;  // no cluster has a language feature: nothing can be selected
+      }
+      report.absent.push_back(a);
     }
   }
 

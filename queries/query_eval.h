@@ -74,8 +74,19 @@ struct QueryEvalSummary {
   double mean_ms = 0, max_ms = 0;  // select + mask per query
 };
 
+// A vocabulary phrase no label frame has (a distractor): asked as a text
+// query, the right answer is "none" (QueryEngine::text against the other
+// phrases).
+struct AbsentPhrase {
+  std::string phrase;
+  bool none = false;   // answered "nothing here"
+  size_t anchors = 0;  // selected otherwise
+  double best = 0;     // the phrase's best cosine
+};
+
 struct QueryEvalReport {
   std::vector<QueryEvalItem> items;
+  std::vector<AbsentPhrase> absent;  // with a vocabulary: its phrases no frame labels
   std::vector<std::string> frames;  // label stems in order
   int unscored_clicks = 0;          // clicks without a category or label for their frame
   QueryEvalSummary summary(const std::string& kind, const std::string& frame = "") const;

@@ -425,6 +425,33 @@ TEST(Query, TextSelectsTheBestClusterAndItsNearTies) {
   }
   test::expect_error_with<std::invalid_argument>([&] { engine.text(std::vector<float>(15, 1.f)); },
                                                  {"15", "16"});
+
+  // Against rival phrases: the phrase between A and C loses A to a rival at
+  // A's own feature and keeps C; a phrase that every cluster's own phrase
+  // beats (a direction far from all three) answers none, though without
+  // rivals it selects its nearest cluster.
+  const std::vector<float> a_phrase(lang.features.begin(), lang.features.begin() + 16);
+  const std::vector<float> b_phrase(lang.features.begin() + 16, lang.features.begin() + 32);
+  const std::vector<float> c_phrase(lang.features.begin() + 32, lang.features.begin() + 48);
+  const TextResult mid_rivals = engine.text(mid, {a_phrase, b_phrase});
+  EXPECT_FALSE(mid_rivals.none);
+  EXPECT_EQ(mid_rivals.won, 1u);
+  EXPECT_EQ(mid_rivals.seed_clusters, std::vector<int32_t>{2});
+  EXPECT_EQ(mid_rivals.selected, w.built.anchors[2]);
+  std::vector<float> absent(16);
+  for (int d = 0; d < 16; ++d) absent[d] = n(rng);
+  EXPECT_FALSE(engine.text(absent).selected.empty());
+  const TextResult none = engine.text(absent, {a_phrase, b_phrase, c_phrase});
+  EXPECT_TRUE(none.none);
+  EXPECT_EQ(none.won, 0u);
+  EXPECT_TRUE(none.selected.empty());
+  EXPECT_TRUE(none.seeds.empty());
+  // Its best cosine over every cluster, for the report.
+  double best = -1;
+  for (int k = 0; k < 3; ++k) best = std::max(best, none.scores[k]);
+  EXPECT_EQ(none.best, best);
+  // A rival equal to the phrase does not take its clusters (ties go to the phrase).
+  EXPECT_EQ(engine.text(a_phrase, {a_phrase}).seed_clusters, std::vector<int32_t>{0});
 }
 
 TEST(Query, DeterministicAcrossRunsAndEngines) {

@@ -400,9 +400,9 @@ nlohmann::json ViewSession::text(const std::string& phrase) {
   r.vocab = options_.vocab;
   const std::vector<float> embedding = load_query_embedding(r, trained_.file, trained_.language.dim);
   // As run_query's text branch: the engine's selection for the embedding.
-  TextResult t = engine_->text(embedding);
+  TextResult t = engine_->text(embedding, load_rival_embeddings(r));
   nlohmann::json q = {{"type", "text"}, {"text", phrase}};
-  return finish_query(std::move(t.selected), t.ms, {{"query", q}, {"best_score", t.best}});
+  return finish_query(std::move(t.selected), t.ms, {{"query", q}, {"best_score", t.best}, {"none", t.none}});
 }
 
 void ViewSession::clear() {

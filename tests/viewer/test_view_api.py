@@ -140,6 +140,42 @@ class ViewApi(unittest.TestCase):
     def test_text_is_the_query_commands_text(self):
         self.check_selection_matches({"text": "blue mug"}, TEXT)
 
+    def test_a_phrase_for_nothing_in_the_scene_answers_none(self):
+        # "laptop" is a distractor of the vocabulary: every object is better
+        # described by another phrase, so nothing is selected, in the
+        # viewer and in `ag2gs query` (exit 0, an empty selection written).
+        import subprocess
+        from viewer_util import binary
+        status, answer = self.v.json("/api/query", {"text": "laptop"})
+        self.assertEqual(status, 200, answer)
+        self.assertTrue(answer["none"])
+        self.assertEqual(answer["anchors"], 0)
+        status, answer = self.v.json("/api/query", {"text": "blue mug"})
+        self.assertFalse(answer["none"])
+        self.assertGreater(answer["anchors"], 0)
+        out = os.path.join(test_dir(), "query_laptop")
+        p = subprocess.run([binary(), "query", MODEL, "--scene", SCENE, "--text", "laptop", "--vocab", VOCAB,
+                            "-o", out, "--force", "--views", "view_000"], capture_output=True, text=True)
+        self.assertEqual(p.returncode, 0, p.stdout + p.stderr)
+        self.assertIn('"laptop" names nothing here', p.stdout + p.stderr)
+        sel = json.loads(read(os.path.join(out, "selection.json")))
+        self.assertEqual((sel["anchors"], sel["none"]), ([], True))
+        p = subprocess.run([binary(), "remove", MODEL, "--scene", SCENE, "--text", "laptop", "--vocab", VOCAB,
+                            "-o", os.path.join(test_dir(), "remove_laptop")], capture_output=True, text=True)
+        self.assertNotEqual(p.returncode, 0)
+        self.assertIn('"laptop" names nothing in this model', p.stdout + p.stderr)
+        self.assertFalse(os.path.exists(os.path.join(test_dir(), "remove_laptop")))
+        # eval asks the vocabulary's unlabelled phrases too: the absent-phrase rate.
+        report = os.path.join(test_dir(), "eval_absent.json")
+        p = subprocess.run([binary(), "eval", MODEL, "--scene", SCENE, "--labels", os.path.join(SCENE, "label"),
+                            "--vocab", VOCAB, "-o", report, "--force"], capture_output=True, text=True)
+        self.assertEqual(p.returncode, 0, p.stdout + p.stderr)
+        absent = json.loads(read(report))["absent"]
+        print("absent phrases:", absent["answered_none"], "of", absent["phrases"])
+        self.assertEqual(absent["phrases"], 5)
+        self.assertIn("laptop", [a["phrase"] for a in absent["items"] if a["none"]])
+        self.assertGreaterEqual(absent["none_rate"], 0.6)
+
     def test_click_in_a_posed_camera(self):
         v = self.views["view_000"]
         body = {"pose": v["R"] + v["t"], "fx": v["fx"], "fy": v["fy"], "cx": v["cx"], "cy": v["cy"],
