@@ -499,12 +499,19 @@ void Trainer::importance_prune(StepStats& st) {
   const std::vector<uint8_t> keep = least_drawing_anchors(per_child, model_.children(), config_.prune_importance);
   const size_t removed = before - static_cast<size_t>(std::count(keep.begin(), keep.end(), uint8_t{1}));
   if (removed == 0) return;
+  const int K = model_.children();
+  double total = 0, gone = 0;
+  for (size_t i = 0; i < per_child.size(); ++i) {
+    total += per_child[i];
+    if (!keep[i / K]) gone += per_child[i];
+  }
   remove_anchor_rows(keep);
   st.pruned += static_cast<int>(removed);
   spdlog::info(
-      "iteration {}: removed the {} anchors that together draw {:.3g}% of the training views (the least) -> {} "
-      "anchors, {} Gaussians",
-      st.iteration, removed, 100 * config_.prune_importance, model_.size(), model_.gaussians());
+      "iteration {}: removed the {} anchors that draw least, together {:.3g}% of the training views' blending weight "
+      "(at most {:.3g}%) -> {} anchors, {} Gaussians",
+      st.iteration, removed, total > 0 ? 100 * gone / total : 0.0, 100 * config_.prune_importance, model_.size(),
+      model_.gaussians());
 }
 
 void Trainer::final_prune(StepStats& st) {

@@ -7,8 +7,8 @@
 
 namespace ag2gs {
 
-std::vector<double> blend_weight_sums(Renderer& renderer, const DeviceGaussians& g,
-                                      const std::vector<Camera>& cameras, RenderSettings settings) {
+std::vector<double> blend_weight_sums(Renderer& renderer, const DeviceGaussians& g, const std::vector<Camera>& cameras,
+                                      RenderSettings settings) {
   settings.features = true;
   std::vector<double> sums(g.n, 0.0);
   if (g.n == 0) return sums;
@@ -49,7 +49,8 @@ std::vector<uint8_t> least_drawing_anchors(const std::vector<double>& per_child,
   std::vector<uint8_t> keep(anchors, 1);
   std::vector<size_t> order(anchors);
   std::iota(order.begin(), order.end(), size_t{0});
-  std::sort(order.begin(), order.end(), [&](size_t x, size_t y) { return drawn[x] < drawn[y] || (drawn[x] == drawn[y] && x < y); });
+  std::sort(order.begin(), order.end(),
+            [&](size_t x, size_t y) { return drawn[x] < drawn[y] || (drawn[x] == drawn[y] && x < y); });
   const double budget = share * total;
   double taken = 0;
   for (size_t k = 0; k + 1 < anchors; ++k) {

@@ -24,8 +24,8 @@ namespace ag2gs {
 // One entry per Gaussian of `g` (g.n), in pixels: the sum of its blending
 // weights over every pixel of every camera. The renderer's frame state is
 // replaced (as by a forward()); `settings.features` is forced on.
-std::vector<double> blend_weight_sums(Renderer& renderer, const DeviceGaussians& g,
-                                      const std::vector<Camera>& cameras, RenderSettings settings);
+std::vector<double> blend_weight_sums(Renderer& renderer, const DeviceGaussians& g, const std::vector<Camera>& cameras,
+                                      RenderSettings settings);
 
 // The importance prune's choice: with the weight sums of A anchors' K
 // children each (per_child, [A*K]), keep[a] = 0 for the anchors that draw
