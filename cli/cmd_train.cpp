@@ -92,9 +92,8 @@ void apply_preset(const CLI::App& sub, TrainArgs& a) {
   unless_given("--far-shell", c.far_shell, true);
   spdlog::info(
       "preset {}: --scale-cap {} --children {} --init-layers {} --{} --grow-budget {} --grow-min-seen {} "
-      "--grow-split {} --far-shell {} --recycle-opacity {} --final-prune-opacity {} --prune-importance {} --lr-offset "
-      "{} "
-      "--lr-scaling {}",
+      "--grow-split {} --far-shell {} --recycle-opacity {} --final-prune-opacity {} --prune-importance {} "
+      "--lr-offset {} --lr-scaling {}",
       a.preset, c.anchors.scale_cap, c.anchors.children, c.anchors.init_layers,
       c.anchors.init_children_at_points ? "init-children-at-points" : "init-children-random", c.grow_budget,
       c.grow_min_seen, c.grow_split, c.far_shell, c.recycle_opacity, c.final_prune_opacity, c.prune_importance,
@@ -286,7 +285,8 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
         c.prune_opacity, c.prune_opacity > 0 ? "" : " (off)",
         g.prune_unseen ? "in the last " + std::to_string(g.unseen_window) + " views" : std::string("off"),
         (c.prune_importance > 0
-             ? fmt::format("; at iteration {}: the anchors that together draw the least {:.3g}% of the training views",
+             ? fmt::format("; at iteration {}: the anchors drawing least, up to {:.3g}% of the training views' "
+                           "blending weight",
                            c.effective_prune_importance_at(), 100 * c.prune_importance)
              : std::string()) +
             (c.final_prune_opacity > 0
