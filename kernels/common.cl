@@ -59,6 +59,12 @@ typedef CAT(int, VW) vint;
 // A fixed summation order: deterministic and the same on every device.
 inline float hsum4(float4 v) { return (v.s0 + v.s1) + (v.s2 + v.s3); }
 
+// The activation of opacities and anchor scales (kernels/expander.cl,
+// kernels/free_trainer.cl): s = sigmoid(x) = 1 / (1 + e^-x).
+inline float sigmoid(float x) { return 1.f / (1.f + exp(-x)); }
+// ds/dx = s (1 - s) = sigmoid(x) sigmoid(-x): no cancellation in 1 - s when s -> 1.
+inline float sigmoid_vjp(float x, float v_s) { return v_s * (sigmoid(x) * sigmoid(-x)); }
+
 #ifndef EXPF
 #define EXPF native_exp
 #endif

@@ -13,11 +13,6 @@
 #define SCALE_CAP 1.0f
 #endif
 
-// s = sigmoid(x) = 1 / (1 + e^-x).
-inline float sigmoid(float x) { return 1.f / (1.f + exp(-x)); }
-// ds/dx = s (1 - s) = sigmoid(x) sigmoid(-x): no cancellation in 1 - s when s -> 1.
-inline float sigmoid_vjp(float x, float v_s) { return v_s * (sigmoid(x) * sigmoid(-x)); }
-
 // M for voxel edge l: SCALE_CAP on the capped layers, 1 below them.
 inline float cap_of(float l, float cap_edge) { return l >= cap_edge ? SCALE_CAP : 1.f; }
 

@@ -7,11 +7,6 @@
 
 #define SH_REST 15
 
-// s = sigmoid(x) = 1 / (1 + e^-x).
-inline float sigmoid(float x) { return 1.f / (1.f + exp(-x)); }
-// ds/dx = s (1 - s) = sigmoid(x) sigmoid(-x): no cancellation in 1 - s when s -> 1.
-inline float sigmoid_vjp(float x, float v_s) { return v_s * (sigmoid(x) * sigmoid(-x)); }
-
 // scale = exp(log_scale), opacity = sigmoid(opacity_logit), mean and quat as
 // stored, sh = (dc, rest[0 .. sh_out-2]), feature = 0 (no semantic feature).
 __kernel void free_activate(
