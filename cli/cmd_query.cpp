@@ -126,12 +126,8 @@ std::vector<float> load_query_embedding(const QueryRequest& a, const std::string
 }
 
 std::vector<std::vector<float>> load_rival_embeddings(const QueryRequest& a) {
-  std::vector<std::vector<float>> rivals;
-  if (a.text.empty() || a.vocab.empty()) return rivals;
-  const Vocabulary vocab = read_vocabulary(a.vocab);
-  for (const auto& [phrase, e] : vocab.phrases)
-    if (phrase != a.text) rivals.push_back(e);
-  return rivals;
+  if (a.text.empty() || a.vocab.empty()) return {};
+  return read_vocabulary(a.vocab).others(a.text);
 }
 
 std::vector<uint8_t> encode_mask_png(const std::vector<uint8_t>& mask, int width, int height) {

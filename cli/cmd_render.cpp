@@ -200,8 +200,8 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
     if (a.model.empty())
       throw std::invalid_argument("--outputs instance needs a model folder with clusters (stage 3), not --ply");
     const std::string mf = (fs::path(a.model) / "model.ag2gs").string();
-    if (!fs::exists(mf)) throw std::runtime_error(a.model + ": no model.ag2gs, which --outputs instance needs");
-    const ModelArchive archive = read_model_archive(mf);
+    if (!model_archive) throw std::runtime_error(a.model + ": no model.ag2gs, which --outputs instance needs");
+    const ModelArchive& archive = *model_archive;
     if (!archive.meta.contains("clusters"))
       throw std::runtime_error(mf +
                                " has no clusters, which --outputs instance needs: run stage 3 "

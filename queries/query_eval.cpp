@@ -206,12 +206,6 @@ QueryEvalReport evaluate_queries(QueryEngine& engine, const Scene& scene, const 
 
   // Text: one selection per category, scored in every frame that labels it;
   // each phrase against the vocabulary's others, as `ag2gs query` asks.
-  auto rivals_of = [&](const std::string& phrase) {
-    std::vector<std::vector<float>> rivals;
-    for (const auto& [p, e] : in.vocab->phrases)
-      if (p != phrase) rivals.push_back(e);
-    return rivals;
-  };
   if (in.vocab) {
     std::map<std::string, TextResult> selections;
     std::string no_text_reason;
@@ -233,7 +227,7 @@ QueryEvalReport evaluate_queries(QueryEngine& engine, const Scene& scene, const 
                                         "\", which the vocabulary lacks; add its CLIP text embedding");
           TextResult tr;
           try {
-            tr = engine.text(e->second, rivals_of(cat));
+            tr = engine.text(e->second, in.vocab->others(cat));
           } catch (const std::invalid_argument& err) {
             // No cluster carries a language feature: no prediction (scores 0).
             no_text_reason = err.what();
@@ -259,7 +253,7 @@ QueryEvalReport evaluate_queries(QueryEngine& engine, const Scene& scene, const 
       AbsentPhrase a;
       a.phrase = phrase;
       try {
-        const TextResult tr = engine.text(e, rivals_of(phrase));
+        const TextResult tr = engine.text(e, in.vocab->others(phrase));
         a.none = tr.none;
         a.anchors = tr.selected.size();
         a.best = tr.best;

@@ -32,6 +32,13 @@ double finite_number(const json& v, const std::string& path, const std::string& 
 
 }  // namespace
 
+std::vector<std::vector<float>> Vocabulary::others(const std::string& phrase) const {
+  std::vector<std::vector<float>> out;
+  for (const auto& [p, e] : phrases)
+    if (p != phrase) out.push_back(e);
+  return out;
+}
+
 Vocabulary read_vocabulary(const std::string& path) {
   const json j = parse_file(path);
   if (!j.is_object() || j.empty()) {

@@ -15,6 +15,9 @@ namespace ag2gs {
 struct Vocabulary {
   int dim = 0;
   std::map<std::string, std::vector<float>> phrases;
+  // The embeddings of every phrase but `phrase`, in phrase order: the
+  // rivals a text query is ranked against (QueryEngine::text).
+  std::vector<std::vector<float>> others(const std::string& phrase) const;
 };
 Vocabulary read_vocabulary(const std::string& path);
 
