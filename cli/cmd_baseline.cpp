@@ -30,8 +30,14 @@ struct BaselineArgs : RunArgs {
 };
 
 void cmd_baseline(const GlobalOptions& global, BaselineArgs& a) {
+  if (a.config.position_lr_init > 0 && !(a.config.position_lr_final > 0))
+    throw std::invalid_argument(
+        "--lr-position-final must be > 0 when --lr-position is (the rate decays "
+        "exponentially from one to the other)");
   a.config.validate();
   if (a.resolution < 1) throw std::invalid_argument("-r must be >= 1 (it divides the camera resolution)");
+  refuse_file_as_output_folder(a.out, "-o");
+  refuse_output_in_inputs(a.out, a.scene, {}, "-o");
   refuse_model_overwrite(a.out, a.force, "--force to replace it");
   check_model_dir_writable(a.out);
   std::unique_ptr<Scene> scene = open_run_scene(a);
@@ -139,14 +145,18 @@ void register_baseline(CLI::App& app, GlobalOptions& global) {
       ->check(non_negative_number());
   sub->add_option("--lambda-ssim", c.lambda_ssim, "Weight of 1 - SSIM in the loss (default 0.2)")
       ->check(finite_range(0.0, 1.0));
-  sub->add_option("--lr-position", c.position_lr_init,
-                  "Position learning rate at the start, x extent (default 1.6e-4)");
-  sub->add_option("--lr-position-final", c.position_lr_final, "Position learning rate at the end, x extent (1.6e-6)");
-  sub->add_option("--lr-sh", c.sh_dc_lr, "SH DC learning rate (default 0.0025)");
-  sub->add_option("--lr-sh-rest", c.sh_rest_lr, "Higher SH learning rate (default 0.0025 / 20)");
-  sub->add_option("--lr-opacity", c.opacity_lr, "Opacity logit learning rate (default 0.05)");
-  sub->add_option("--lr-scaling", c.scaling_lr, "Log-scale learning rate (default 0.005)");
-  sub->add_option("--lr-rotation", c.rotation_lr, "Rotation learning rate (default 0.001)");
+  sub->add_option("--lr-position", c.position_lr_init, "Position learning rate at the start, x extent (default 1.6e-4)")
+      ->check(finite_range(0, 100));
+  sub->add_option("--lr-position-final", c.position_lr_final, "Position learning rate at the end, x extent (1.6e-6)")
+      ->check(finite_range(0, 100));
+  sub->add_option("--lr-sh", c.sh_dc_lr, "SH DC learning rate (default 0.0025)")->check(finite_range(0, 100));
+  sub->add_option("--lr-sh-rest", c.sh_rest_lr, "Higher SH learning rate (default 0.0025 / 20)")
+      ->check(finite_range(0, 100));
+  sub->add_option("--lr-opacity", c.opacity_lr, "Opacity logit learning rate (default 0.05)")
+      ->check(finite_range(0, 100));
+  sub->add_option("--lr-scaling", c.scaling_lr, "Log-scale learning rate (default 0.005)")->check(finite_range(0, 100));
+  sub->add_option("--lr-rotation", c.rotation_lr, "Rotation learning rate (default 0.001)")
+      ->check(finite_range(0, 100));
   sub->add_option("--densify-from", c.densify_from, "First densification iteration (default 500)")
       ->check(non_negative_number());
   sub->add_option("--densify-until", c.densify_until, "Last densification iteration (default 0 = half of --iters)")
@@ -155,7 +165,8 @@ void register_baseline(CLI::App& app, GlobalOptions& global) {
       ->check(non_negative_number());
   sub->add_option("--densify-threshold", c.grad_threshold,
                   "Mean view-space positional gradient (NDC units) above which a Gaussian is cloned or split "
-                  "(default 2e-4)");
+                  "(default 2e-4)")
+      ->check(finite_range(1e-12, 1e6));
   sub->add_option("--percent-dense", c.percent_dense,
                   "Clone when the largest scale is at most this x extent, split otherwise (default 0.01)")
       ->check(non_negative_number());

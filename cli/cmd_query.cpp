@@ -22,6 +22,7 @@
 #include "host/io/atomic_file.h"
 #include "host/io/model_io.h"
 #include "host/io/npy_io.h"
+#include "host/io/output_set.h"
 #include "host/io/ply_io.h"
 #include "host/io/semantic_io.h"
 #include "host/scene/scene.h"
@@ -247,6 +248,7 @@ TrainedModel load_trained_model(const std::string& model_dir, bool with_language
   if (!fs::exists(t.file))
     throw std::runtime_error(model_dir + ": no model.ag2gs; give a model folder written by `ag2gs train`");
   t.archive = read_model_archive(t.file);
+  check_model_archive(t.archive);
   t.model = AnchorModel::from_archive(t.archive);
   const nlohmann::json train = t.archive.meta.value("train", nlohmann::json::object());
   t.sh_degree = recorded_sh_degree(train, t.model.config().sh_degree, t.file);
@@ -288,6 +290,9 @@ void cmd_query(const GlobalOptions& global, QueryArgs a) {
   so.sparse = a.sparse;
   std::unique_ptr<Scene> scene = Scene::open(a.scene, so);
   refuse_output_in_inputs(a.out, a.scene, {a.model}, "-o");
+  refuse_file_as_output_folder(a.out, "-o");
+  finish_interrupted_output_sets(a.out);  // a killed run's last commit, finished
+  std::vector<std::string> old_masks;     // an earlier selection's, replaced or deleted together with it
   {
     std::vector<std::string> files = {"selection.json", "selection.ply", "remainder.ply"};
     std::error_code ec;
@@ -295,6 +300,7 @@ void cmd_query(const GlobalOptions& global, QueryArgs a) {
       for (const auto& e : fs::directory_iterator(fs::path(a.out) / "masks", ec))
         files.push_back("masks/" + e.path().filename().string());
     refuse_existing_results("-o", a.out, files, a.force);
+    old_masks.assign(files.begin() + 3, files.end());
   }
   int click_view = -1;
   if (by_click) click_view = scene->find_view(a.request.view);
@@ -339,6 +345,7 @@ void cmd_query(const GlobalOptions& global, QueryArgs a) {
   // Outputs.
   const auto t_out = std::chrono::steady_clock::now();
   fs::create_directories(fs::path(a.out) / "masks");
+  OutputSet written(a.out);  // the selection's files go into place together, at the end
   std::vector<uint8_t> in_sel(model.size(), 0);
   for (int32_t s : selected) in_sel[s] = 1;
   const GaussianSet sel = gaussians_of_anchors(model, sh_degree, in_sel, true);
@@ -377,6 +384,11 @@ void cmd_query(const GlobalOptions& global, QueryArgs a) {
   AtomicFile f((fs::path(a.out) / "selection.json").string());
   f.write(j.dump(2) + "\n");
   f.commit();
+  for (const std::string& m : old_masks)
+    if (std::find_if(masks.begin(), masks.end(), [&](const nlohmann::json& x) { return x["file"] == m; }) ==
+        masks.end())
+      written.remove_at_commit((fs::path(a.out) / m).string());
+  written.commit();
   spdlog::info("wrote {}: selection.ply ({} Gaussians), remainder.ply ({}), selection.json, {} mask(s) in {:.0f} ms",
                a.out, sel.size(), rest.size(), views.size(), mask_ms);
 }
@@ -385,13 +397,17 @@ void cmd_query(const GlobalOptions& global, QueryArgs a) {
 
 void add_query_config_options(CLI::App* sub, QueryConfig& c) {
   sub->add_option("--min-weight", c.min_weight,
-                  "Grow along edges with exp(-|fi-fj|^2/(2 tau^2)) above this (default 0.9)");
-  sub->add_option("--tau", c.tau, "Bilateral weight scale tau (default 0.05)");
-  sub->add_option("--text-margin", c.text_margin, "Text seeds: clusters within this of the best score (0.1)");
-  sub->add_option("--graph-scale", c.graph_cell_scale, "Query graph neighbourhood in top voxels (default 2)");
+                  "Grow along edges with exp(-|fi-fj|^2/(2 tau^2)) above this (default 0.9)")
+      ->check(finite_range(1e-6, 0.999999));
+  sub->add_option("--tau", c.tau, "Bilateral weight scale tau (default 0.05)")->check(finite_range(1e-6, 1e6));
+  sub->add_option("--text-margin", c.text_margin, "Text seeds: clusters within this of the best score (0.1)")
+      ->check(finite_range(0, 2));
+  sub->add_option("--graph-scale", c.graph_cell_scale, "Query graph neighbourhood in top voxels (default 2)")
+      ->check(CLI::Range(1, 1024));
   sub->add_option("--click-candidates", c.click_candidates,
                   "Click seed: of this many anchors nearest the clicked point, the one whose feature is closest to "
-                  "the pixel's rendered feature (default 8; 1 = the nearest anchor)");
+                  "the pixel's rendered feature (default 8; 1 = the nearest anchor)")
+      ->check(CLI::Range(1, 4096));
   sub->add_flag("--click-dominant,!--click-mean", c.click_dominant,
                 "Click depth and feature: of the feature group of anchors holding the most blending weight at the "
                 "pixel (default), "

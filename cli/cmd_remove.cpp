@@ -515,10 +515,12 @@ void register_remove(CLI::App& app, GlobalOptions& global) {
   r->add_option("--fill-quantile", a->fill.colour_quantile,
                 "The fill's colour: of the views' colour estimates at a fill voxel, ranked by brightness, the one at "
                 "this quantile (default 0.75: shadows only darken; 0.5 the median)");
-  r->add_option("--fill-opacity", a->fill.opacity, "Opacity of the fill's children (default 0.3)");
+  r->add_option("--fill-opacity", a->fill.opacity, "Opacity of the fill's children (default 0.3)")
+      ->check(finite_range(1e-4, 0.9999));
   r->add_option("--fill-near", a->fill.near,
                 "Kept anchors within this many of their voxel edges of the holes' 3D footprint are fine-tuned "
-                "with the fill (default 1.5; 0: the fill alone)");
+                "with the fill (default 1.5; 0: the fill alone)")
+      ->check(finite_range(0, 1000));
   r->add_flag("!--keep-stray", a->clear_stray,
               "Keep the children of kept anchors that sit among the object's Gaussians with its colour (by default "
               "they are cleared with it)");

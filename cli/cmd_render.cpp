@@ -26,6 +26,7 @@
 #include "host/io/model_io.h"
 #include "host/io/model_ply.h"
 #include "host/io/npy_io.h"
+#include "host/io/output_set.h"
 #include "host/io/ply_io.h"
 #include "host/render/renderer.h"
 #include "host/render/sky.h"
@@ -189,6 +190,7 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
   std::optional<ModelArchive> model_archive;
   if (!a.model.empty() && fs::exists(fs::path(a.model) / "model.ag2gs"))
     model_archive = read_model_archive((fs::path(a.model) / "model.ag2gs").string());
+  if (model_archive) check_model_archive(*model_archive);
   if (model_archive && !a.bg_given) sky_coefficients = sky_from_archive(*model_archive);
   GaussianSet set;
   // Instance maps need the anchors' clusters: the model's Gaussians are then
@@ -228,6 +230,8 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
                              "(sparse/0/ or sparse/)");
   const std::string sparse = find_colmap_model(a.scene, a.sparse);
   refuse_output_in_inputs(a.out, a.scene, {a.model}, "-o");
+  refuse_file_as_output_folder(a.out, "-o");
+  finish_interrupted_output_sets(a.out);  // a killed run's last commit, finished
   ColmapModel model = read_colmap_model(sparse);
   std::vector<Camera> cams = pick_views(model.cameras_for_images, a.views);
   if (cams.empty()) throw std::runtime_error(sparse + " has no views to render for --views '" + a.views + "'");
@@ -260,6 +264,9 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
       for (const char* ext : {".png", ".npy"}) files.push_back(o + "/" + stem + ext);
   refuse_existing_results("-o", a.out, files, a.force);
   for (const std::string& o : outputs) fs::create_directories(out_dir / o);
+  // Every file of this run goes into place at the end, together: a run
+  // stopped midway leaves the earlier results (with --force) as they were.
+  OutputSet written(a.out);
   auto t0 = std::chrono::steady_clock::now();
   for (size_t i = 0; i < cams.size(); ++i) {
     Camera cam = scale_camera(cams[i], resolution);
@@ -298,6 +305,7 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
     spdlog::info("[{}/{}] {} {}x{}  {} intersections  {:.1f} s elapsed, ETA {:.1f} s", i + 1, cams.size(), cam.name, w,
                  h, renderer.stats().n_intersections, el, eta);
   }
+  written.commit();
   const double total = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   spdlog::info("wrote {} views x {} outputs to {} ({:.2f} views/s)", cams.size(), outputs.size(), out_dir.string(),
                cams.size() / std::max(total, 1e-9));

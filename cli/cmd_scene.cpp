@@ -116,6 +116,7 @@ void print_model(const std::string& path) {
   if (a.meta.contains("anchors")) AnchorModel::from_archive(a);
   if (AnchorGraph::in_archive(a)) print_graph(a);
   if (a.meta.contains("clusters")) print_clusters(a);
+  if (a.meta.contains("anchors")) check_model_archive(a);  // the rest: counts, sky, training record
   const fs::path ply = fs::path(path).parent_path() / "point_cloud.ply";
   if (fs::exists(ply)) print_ply(ply.string());
 }

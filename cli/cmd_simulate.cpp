@@ -370,7 +370,7 @@ void register_simulate(CLI::App& app, GlobalOptions& global) {
       ->check(positive_number());
   r->add_option("--nu", a->nu, "The object's Poisson's ratio (default 0.4)");
   r->add_option("--density", a->density, "Density in kg/m^3 of every material (default 1000)")
-      ->check(positive_number());
+      ->check(finite_range(0.1, 1e5));
   r->add_option("--background-E", a->background_E,
                 "Young's modulus of the other Gaussians inside the simulation box (default 2e6; von Mises)")
       ->check(positive_number());

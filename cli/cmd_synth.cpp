@@ -27,6 +27,7 @@ struct SynthArgs {
 };
 
 void cmd_synth(const SynthArgs& a) {
+  refuse_file_as_output_folder(a.out, "OUT_DIR");
   refuse_nonempty_dir(a.out, a.force, "what is there (synth deletes a scene's images/ and sparse/0/ first)");
   auto t0 = std::chrono::steady_clock::now();
   write_synth_scene(a.out, a.options);

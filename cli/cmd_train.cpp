@@ -120,6 +120,7 @@ void stage3_only(const GlobalOptions& global, TrainArgs& a) {
   if (!fs::exists(path))
     throw std::runtime_error("--stages 3: no model " + path + "; train stages 1 and 2 into " + a.out + " first");
   const ModelArchive archive = read_model_archive(path);
+  check_model_archive(archive);  // before the scene is read: a damaged model is named first
   const nlohmann::json tr = archive.meta.value("train", nlohmann::json::object());
   SceneOptions so;
   so.resolution = a.resolution != 1 ? a.resolution : recorded_resolution(tr, path);
@@ -210,6 +211,12 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
     throw std::invalid_argument("--stages 1,3 skips stage 2; give --prop-iters 0 for a model without stage 2");
   a.stage3.cluster.validate();
   a.stage3.language.validate();
+  refuse_file_as_output_folder(a.out, "-o");
+  refuse_output_in_inputs(a.out, a.scene, {}, "-o");
+  if (a.config.offset_lr_init > 0 && !(a.config.offset_lr_final > 0))
+    throw std::invalid_argument(
+        "--lr-offset-final must be > 0 when --lr-offset is (the rate decays "
+        "exponentially from one to the other)");
   if (a.stages == std::vector<int>{3}) return stage3_only(global, a);
   // Without stage 1 the run continues from the checkpoint.
   if (!has_stage(a, 1)) a.resume = true;
@@ -510,7 +517,8 @@ void register_train(CLI::App& app, GlobalOptions& global) {
       ->check(finite_range(0, 1e+06));
   sub->add_option("--w-dist", c.w_distortion, "Weight of the depth distortion L_d (default 50)")
       ->check(finite_range(0, 1e+06));
-  sub->add_option("--dist-from", c.distortion_from, "First iteration with the distortion term (default 0)");
+  sub->add_option("--dist-from", c.distortion_from, "First iteration with the distortion term (default 0)")
+      ->check(non_negative_number());
   sub->add_option("--downscales", c.downscales,
                   "Coarse-to-fine: start at the images divided by 2^N, doubling the resolution every --res-schedule "
                   "iterations (default -1: as many halvings, at most 3, as keep the shorter side >= 64 px; 0 = off, "
@@ -695,12 +703,13 @@ void register_train(CLI::App& app, GlobalOptions& global) {
   Stage3Config& s3 = a->stage3;
   sub->add_option("--cluster-distance", s3.cluster.max_distance,
                   "Stage 3: join graph neighbours whose feature distance is below this (default 0.01)")
-      ->check(positive_number());
+      ->check(finite_range(1e-9, 1e6));
   sub->add_option("--min-cluster-size", s3.cluster.min_cluster_size,
                   "Stage 3: clusters with fewer anchors are skipped (default 5)")
       ->check(CLI::Range(1, std::numeric_limits<int>::max()));
   sub->add_option("--match-score", s3.language.min_score,
-                  "Stage 3: a cluster takes a mask's CLIP feature when their score S exceeds this (default 0.3)");
+                  "Stage 3: a cluster takes a mask's CLIP feature when their score S exceeds this (default 0.3)")
+      ->check(finite_range(-1, 1));
   sub->add_option("--match-softmax", s3.language.softmax_scale,
                   "Stage 3: the matches' weights are softmax(scale * S) (default 10)")
       ->check(finite_range(0.001, 80.0));

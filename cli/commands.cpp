@@ -44,13 +44,17 @@ bool parse_finite(const std::string& v, double* x) {
   return end != v.c_str() && *end == 0 && std::isfinite(*x);
 }
 
+// Most settings are stored as float: a larger value would become infinite.
+constexpr double kFlagMax = 3.4e38;
+
 }  // namespace
 
 CLI::Validator positive_number() {
   return CLI::Validator(
       [](std::string& v) -> std::string {
         double x = 0;
-        if (!parse_finite(v, &x) || !(x > 0)) return "must be a number > 0, not '" + v + "'";
+        if (!parse_finite(v, &x) || !(x > 0) || x > kFlagMax)
+          return "must be a number > 0 (at most 3.4e38), not '" + v + "'";
         return {};
       },
       "> 0", "positive");
@@ -60,28 +64,11 @@ CLI::Validator non_negative_number() {
   return CLI::Validator(
       [](std::string& v) -> std::string {
         double x = 0;
-        if (!parse_finite(v, &x) || !(x >= 0)) return "must be a number >= 0, not '" + v + "'";
+        if (!parse_finite(v, &x) || !(x >= 0) || x > kFlagMax)
+          return "must be a number >= 0 (at most 3.4e38), not '" + v + "'";
         return {};
       },
       ">= 0", "non-negative");
-}
-
-int recorded_resolution(const nlohmann::json& record, const std::string& file) {
-  if (!record.contains("resolution")) return 1;
-  const nlohmann::json& r = record.at("resolution");
-  if (!r.is_number_integer() || r.get<int64_t>() < 1 || r.get<int64_t>() > 64)
-    throw std::runtime_error(file + " records a training resolution of " + r.dump() +
-                             ", which is not a whole number from 1 to 64: the file is damaged; give -r R");
-  return r.get<int>();
-}
-
-int recorded_sh_degree(const nlohmann::json& train, int model_degree, const std::string& file) {
-  if (!train.contains("active_sh_degree")) return model_degree;
-  const nlohmann::json& d = train.at("active_sh_degree");
-  if (!d.is_number_integer() || d.get<int64_t>() < 0 || d.get<int64_t>() > 3)
-    throw std::runtime_error(file + " records an active SH degree of " + d.dump() +
-                             ", which is not 0 to 3: the file is damaged; train the model again");
-  return std::min(d.get<int>(), model_degree);
 }
 
 CLI::Validator finite_range(double lo, double hi) {

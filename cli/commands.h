@@ -8,11 +8,11 @@
 
 #include "host/io/model_io.h"
 #include "host/scene/scene.h"
-
 #include "queries/query.h"
 #include "stages/anchor_model.h"
 #include "stages/clustering.h"
 #include "stages/language.h"
+#include "stages/model_check.h"  // recorded_resolution, recorded_sh_degree
 
 namespace ag2gs::cli {
 
@@ -29,12 +29,6 @@ CLI::Validator non_negative_number();  // a finite number >= 0
 // A finite number in [lo, hi] (CLI::Range lets 'nan' through).
 CLI::Validator finite_range(double lo, double hi);
 
-// What a model file (or metrics.json) records of its training, checked: the
-// -r it was trained at (1 when not recorded) and the SH degree it reached
-// (at most the model's). A value out of range or of another type throws
-// std::runtime_error naming `file` and the flag that replaces it.
-int recorded_resolution(const nlohmann::json& record, const std::string& file);
-int recorded_sh_degree(const nlohmann::json& train, int model_degree, const std::string& file);
 // A seed: a whole number from 0 to 2^64 - 1, written in digits (no sign,
 // fraction or exponent: "-1" and "1e23" would otherwise wrap silently).
 CLI::Validator seed_number();

@@ -155,6 +155,13 @@ void refuse_output_in_inputs(const std::string& out, const std::string& scene,
                                "; nothing was changed: choose another " + flag);
 }
 
+void refuse_file_as_output_folder(const std::string& out, const std::string& flag) {
+  std::error_code ec;
+  if (fs::exists(out, ec) && !fs::is_directory(out, ec))
+    throw std::runtime_error(flag + " " + out + " is a file, where " + flag +
+                             " names the folder to write into; nothing was changed: choose a folder");
+}
+
 std::vector<std::string> output_stems(const std::vector<std::string>& image_names) {
   std::map<std::string, int> uses;
   for (const std::string& n : image_names) ++uses[fs::path(n).stem().string()];

@@ -78,4 +78,8 @@ std::vector<std::string> output_stems(const std::vector<std::string>& image_name
 void refuse_output_in_inputs(const std::string& out, const std::string& scene,
                              const std::vector<std::string>& input_dirs, const std::string& flag);
 
+// Refuses an output folder that exists as something else (a file): the
+// message names `flag` instead of a failed mkdir deep in the run.
+void refuse_file_as_output_folder(const std::string& out, const std::string& flag);
+
 }  // namespace ag2gs::cli

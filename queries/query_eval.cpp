@@ -83,8 +83,10 @@ std::vector<NamedLabelFrame> read_label_dir(const std::string& dir) {
     throw std::runtime_error(dir + ": no such label folder; give the folder of LERF-style <frame>.json files "
                                    "(e.g. SCENE_DIR/label)");
   std::vector<fs::path> files;
+  // Every *.json entry, folders too: read_label_frame names one that is not
+  // a file (skipping it would score the queries on fewer frames, silently).
   for (const auto& e : fs::directory_iterator(dir))
-    if (e.is_regular_file() && e.path().extension() == ".json") files.push_back(e.path());
+    if (e.path().extension() == ".json") files.push_back(e.path());
   std::sort(files.begin(), files.end());
   if (files.empty())
     throw std::runtime_error(dir + ": no <frame>.json label files (labelme style: info + objects with polygons)");

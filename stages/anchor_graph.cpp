@@ -5,6 +5,8 @@
 #include <limits>
 #include <stdexcept>
 
+#include "host/io/json_input.h"
+
 namespace ag2gs {
 
 namespace {
@@ -256,7 +258,7 @@ AnchorGraph AnchorGraph::from_archive(const ModelArchive& archive) {
     g.fingerprint_ = std::stoull(fp, &used, 16);
     if (used != fp.size()) throw std::invalid_argument("fingerprint");
   } catch (const nlohmann::json::exception& e) {
-    fail_archive(archive, std::string("meta 'graph' is incomplete or mistyped: ") + e.what());
+    fail_archive(archive, std::string("meta 'graph' is incomplete or mistyped: ") + json_error_text(e));
   } catch (const std::logic_error&) {  // stoull
     fail_archive(archive, "meta 'graph': anchor_fingerprint is not a hexadecimal number");
   }

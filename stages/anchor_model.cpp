@@ -10,6 +10,7 @@
 #include "host/core/counter_rng.h"
 #include "host/core/gaussians.h"
 #include "host/core/scalar_math.h"
+#include "host/io/json_input.h"
 
 namespace ag2gs {
 
@@ -448,7 +449,7 @@ AnchorModel AnchorModel::from_archive(const ModelArchive& archive) {
     g.layer_ratio = jg.at("layer_ratio").get<int>();
     g.layers = jg.at("layers").get<int>();
   } catch (const nlohmann::json::exception& e) {
-    fail_archive(archive, std::string("meta 'anchors' is incomplete or mistyped: ") + e.what());
+    fail_archive(archive, std::string("meta 'anchors' is incomplete or mistyped: ") + json_error_text(e));
   }
   AnchorModel model;
   try {

@@ -11,6 +11,7 @@
 
 #include "host/core/counter_rng.h"
 #include "host/io/atomic_file.h"
+#include "host/io/json_input.h"
 #include "host/io/model_io.h"
 #include "host/io/model_ply.h"
 #include "host/io/ply_io.h"
@@ -197,7 +198,7 @@ void Trainer::resume(const std::string& model_dir) {
       graph_ready_ = true;
     }
   } catch (const nlohmann::json::exception& e) {
-    fail(std::string("bad training state: ") + e.what());
+    fail(std::string("bad training state: ") + json_error_text(e));
   } catch (const std::invalid_argument& e) {
     fail(e.what());
   }

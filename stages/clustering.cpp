@@ -5,6 +5,8 @@
 #include <stdexcept>
 #include <string>
 
+#include "host/io/json_input.h"
+
 namespace ag2gs {
 
 namespace {
@@ -155,7 +157,7 @@ Clustering clustering_from_archive(const ModelArchive& archive, size_t anchors) 
   try {
     out.components = archive.meta.at("clusters").at("components").get<size_t>();
   } catch (const nlohmann::json::exception& e) {
-    fail_archive(archive, std::string("meta 'clusters' is incomplete or mistyped: ") + e.what());
+    fail_archive(archive, std::string("meta 'clusters' is incomplete or mistyped: ") + json_error_text(e));
   }
   const int32_t C = out.clusters();
   std::vector<int32_t> count(C, 0);

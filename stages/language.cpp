@@ -10,6 +10,7 @@
 #include <string>
 
 #include "host/core/timing.h"
+#include "host/io/json_input.h"
 #include "host/render/mask_loss.h"  // kMaskAlphaMin
 #include "host/render/renderer.h"
 #include "stages/expander.h"
@@ -275,13 +276,18 @@ LanguageFeatures language_from_archive(const ModelArchive& archive, int clusters
   try {
     out.dim = archive.meta.at("language").at("dim").get<int>();
   } catch (const nlohmann::json::exception& e) {
-    fail_archive(archive, std::string("meta 'language' is incomplete or mistyped: ") + e.what());
+    fail_archive(archive, std::string("meta 'language' is incomplete or mistyped: ") + json_error_text(e));
   }
   if (out.dim < 0) fail_archive(archive, "meta 'language': negative dim");
   out.features = archive.get<float>("clusters/language", {clusters, out.dim});
   out.matches = archive.get<int32_t>("clusters/language_matches", {clusters});
   for (int c = 0; c < clusters; ++c)
     if (out.matches[c] < 0) fail_archive(archive, "clusters/language_matches has a negative entry");
+  for (size_t i = 0; i < out.features.size(); ++i)
+    if (!std::isfinite(out.features[i]))
+      fail_archive(archive, "array 'clusters/language': element " + std::to_string(i) +
+                                " is not a finite number; the file is damaged: run stage 3 again (ag2gs train "
+                                "SCENE_DIR -o MODEL_DIR --stages 3)");
   return out;
 }
 

@@ -11,6 +11,7 @@
 #include "stages/anchor_graph.h"
 #include "stages/anchor_model.h"
 #include "stages/clustering.h"
+#include "stages/model_check.h"
 
 namespace fs = std::filesystem;
 
@@ -23,6 +24,7 @@ Stage3Summary run_stage3_on_model(Runtime& rt, Scene& scene, const std::string& 
   if (!fs::exists(path))
     throw std::runtime_error("no model " + path + " for stage 3; train stage 1 (and 2) into " + model_dir + " first");
   ModelArchive archive = read_model_archive(path);
+  check_model_archive(archive);
   const AnchorModel model = AnchorModel::from_archive(archive);
   AnchorGraph graph;
   if (AnchorGraph::in_archive(archive)) graph = AnchorGraph::from_archive(archive);

@@ -6,6 +6,8 @@
 #include <stdexcept>
 #include <string>
 
+#include "host/io/json_input.h"
+
 namespace ag2gs {
 
 void TrainConfig::validate() const {
@@ -263,7 +265,7 @@ TrainConfig TrainConfig::from_json(const nlohmann::json& j) {
     c.res_schedule = j.value("res_schedule", 250);
     c.coarse_lowpass = j.value("coarse_lowpass", 1.0);  // written before the option: 0.3 px at every level
   } catch (const nlohmann::json::exception& e) {
-    throw std::runtime_error(std::string("training config: ") + e.what());
+    throw std::runtime_error(std::string("training config: ") + json_error_text(e));
   }
   return c;
 }

@@ -16,6 +16,8 @@
 #include "cli/run_guard.h"
 #include "cli_test_util.h"
 #include "host/io/atomic_file.h"
+#include "host/io/image_io.h"
+#include "host/io/output_set.h"
 #include "host/io/ply_io.h"
 #include "io_test_util.h"
 
@@ -226,9 +228,14 @@ TEST(CliGuards, StaleTemporaryFilesOfDeadProcessesAreRemoved) {
   const std::string live = dir.file("model.ag2gs.tmp." + std::to_string(static_cast<long>(::getppid())));
   const std::string user = dir.file("notes.tmp.txt");
   const std::string user_dead = dir.file("thesis.tex.tmp." + std::to_string(dead_pid()));
-  for (const std::string& f : {dead, live, user, user_dead}) test::write_bytes(f, "x");
-  EXPECT_EQ(remove_stale_temp_files(dir.str()), 1);
+  // An image is written as ".NAME.png.tmp.PID.png" (OpenCV needs the extension).
+  const std::string image = dir.file(".view_000.png.tmp." + std::to_string(dead_pid()) + ".png");
+  const std::string live_image = dir.file(".view_001.png.tmp." + std::to_string(::getppid()) + ".png");
+  for (const std::string& f : {dead, live, user, user_dead, image, live_image}) test::write_bytes(f, "x");
+  EXPECT_EQ(remove_stale_temp_files(dir.str()), 2);
   EXPECT_FALSE(fs::exists(dead));
+  EXPECT_FALSE(fs::exists(image)) << "a killed run's image was left";
+  EXPECT_TRUE(fs::exists(live_image));
   EXPECT_TRUE(fs::exists(live)) << "a running process's temporary file was removed";
   EXPECT_TRUE(fs::exists(user)) << "a file that is not ours was removed";
   EXPECT_TRUE(fs::exists(user_dead)) << "a file of a kind ag2gs never writes was removed";
@@ -256,6 +263,97 @@ TEST(CliGuards, OutputStemsTellApartImagesSharingAStem) {
   } catch (const std::runtime_error& e) {
     EXPECT_NE(std::string(e.what()).find("would write the same files"), std::string::npos) << e.what();
   }
+}
+
+}  // namespace
+}  // namespace ag2gs
+
+namespace ag2gs {
+namespace {
+
+// Files written under the folder of a live OutputSet stay in their temporary
+// files until commit(), which puts them all in place; without commit() the
+// earlier files stay and no temporary file is left.
+TEST(OutputSetTest, FilesGoInPlaceTogetherOrNotAtAll) {
+  test::ScratchDir dir("output_set");
+  fs::create_directories(dir.file("rgb"));
+  const std::string json = dir.file("report.json"), png = dir.file("rgb/view_000.png");
+  test::write_bytes(json, "old");
+  test::write_bytes(png, "old");
+  const std::vector<float> grey(4 * 3, 0.5f);
+  auto write_both = [&] {
+    AtomicFile f(json);
+    f.write("new");
+    f.commit();
+    write_rgb_png(png, grey, 2, 2);
+  };
+  auto temporary_files = [&] {
+    int n = 0;
+    for (const auto& e : fs::recursive_directory_iterator(dir.str()))
+      n += e.path().filename().string().find(".tmp.") != std::string::npos;
+    return n;
+  };
+  {
+    OutputSet set(dir.str());
+    write_both();
+    EXPECT_EQ(set.size(), 2u);
+    EXPECT_EQ(test::read_bytes(json), "old") << "a file went into place before the set's commit";
+    EXPECT_EQ(test::read_bytes(png), "old");
+  }  // stopped before commit()
+  EXPECT_EQ(test::read_bytes(json), "old");
+  EXPECT_EQ(test::read_bytes(png), "old");
+  EXPECT_EQ(temporary_files(), 0);
+  {
+    OutputSet set(dir.str());
+    write_both();
+    set.remove_at_commit(dir.file("rgb/stale.png"));
+    test::write_bytes(dir.file("rgb/stale.png"), "old");
+    set.commit();
+  }
+  EXPECT_EQ(test::read_bytes(json), "new");
+  EXPECT_NE(test::read_bytes(png), "old");
+  EXPECT_FALSE(fs::exists(dir.file("rgb/stale.png")));
+  EXPECT_EQ(temporary_files(), 0);
+  EXPECT_EQ(finish_interrupted_output_sets(dir.str()), 0);
+  // Outside the set's folder a write goes straight to its file.
+  test::ScratchDir other("output_set_other");
+  OutputSet set(dir.str());
+  AtomicFile f(other.file("x.json"));
+  f.write("x");
+  f.commit();
+  EXPECT_EQ(test::read_bytes(other.file("x.json")), "x");
+  EXPECT_EQ(set.size(), 0u);
+}
+
+// A process killed during its commit left a journal: the next run into the
+// folder finishes it (the new set). One killed while writing the journal left
+// a ".json.tmp": the old set stands and the new files' copies are deleted.
+TEST(OutputSetTest, TheNextRunFinishesAKilledCommit) {
+  test::ScratchDir dir("output_set_journal");
+  const long dead = dead_pid();
+  const std::string t = ".tmp." + std::to_string(dead);
+  fs::create_directories(dir.file("masks"));
+  test::write_bytes(dir.file("selection.json"), "old");
+  test::write_bytes(dir.file("masks/a.png"), "new a");  // renamed before the kill
+  test::write_bytes(dir.file("selection.json" + t), "new");
+  test::write_bytes(dir.file("masks/b.png"), "old b");  // stale: the journal removes it
+  test::write_bytes(dir.file(".ag2gs-commit." + std::to_string(dead) + ".json"),
+                    R"({"renames": [["masks/a.png)" + t + R"(", "masks/a.png"], ["selection.json)" + t +
+                        R"(", "selection.json"]], "removals": ["masks/b.png"]})");
+  EXPECT_EQ(finish_interrupted_output_sets(dir.str()), 1);
+  EXPECT_EQ(test::read_bytes(dir.file("selection.json")), "new");
+  EXPECT_EQ(test::read_bytes(dir.file("masks/a.png")), "new a");
+  EXPECT_FALSE(fs::exists(dir.file("masks/b.png")));
+  EXPECT_FALSE(fs::exists(dir.file(".ag2gs-commit." + std::to_string(dead) + ".json")));
+
+  test::write_bytes(dir.file("selection.json" + t), "newer");
+  test::write_bytes(dir.file("masks/.c.png.tmp." + std::to_string(dead) + ".png"), "newer c");
+  test::write_bytes(dir.file(".ag2gs-commit." + std::to_string(dead) + ".json.tmp"), "{\"ren");
+  EXPECT_EQ(finish_interrupted_output_sets(dir.str()), 0);
+  EXPECT_EQ(test::read_bytes(dir.file("selection.json")), "new");
+  EXPECT_FALSE(fs::exists(dir.file("selection.json" + t)));
+  EXPECT_FALSE(fs::exists(dir.file("masks/.c.png.tmp." + std::to_string(dead) + ".png")));
+  EXPECT_FALSE(fs::exists(dir.file(".ag2gs-commit." + std::to_string(dead) + ".json.tmp")));
 }
 
 }  // namespace

@@ -786,6 +786,20 @@ TEST(QueryCli, TextByVocabularyAndByEmbedding) {
   ASSERT_EQ(r.code, 0) << r.output;
   j = nlohmann::json::parse(std::ifstream(w.dir.file("t2/selection.json")));
   EXPECT_EQ(json_ids(j["anchors"]), w.built.anchors[0]);
+  // The files of one selection are replaced together: masks the new one does
+  // not draw (other views) go with the old selection.
+  r = test::run_cli(w.base("stage3", "t2") + "--text-embedding " + w.dir.file("green.npy") +
+                    " --views view_003 --force");
+  ASSERT_EQ(r.code, 0) << r.output;
+  std::vector<std::string> masks;
+  for (const auto& e : fs::directory_iterator(w.dir.path() / "t2" / "masks")) masks.push_back(e.path().filename());
+  EXPECT_EQ(masks, std::vector<std::string>{"view_003.png"});
+  std::vector<std::string> left;
+  for (const auto& e : fs::recursive_directory_iterator(w.dir.path() / "t2"))
+    if (e.path().filename().string().find(".tmp.") != std::string::npos ||
+        e.path().filename().string().find(".ag2gs-commit") != std::string::npos)
+      left.push_back(e.path().string());
+  EXPECT_TRUE(left.empty()) << left[0];
 }
 
 TEST(QueryCli, Errors) {

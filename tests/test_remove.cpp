@@ -369,7 +369,7 @@ TEST(Remove, BadInputIsRefusedBeforeAnythingIsWritten) {
       {"--selection " + empty.string(), "selected no anchor"},
       {"--selection " + all.string(), "empty model"},
       {"--selection " + sel.string() + " --no-fill --iters 5", "--no-fill deletes only"},
-      {"--selection " + sel.string() + " --fill-opacity 1", "opacity must be in (0, 1)"},
+      {"--selection " + sel.string() + " --fill-opacity 1", "--fill-opacity: must be a number in [0.0001 - 0.9999]"},
       {"--selection " + sel.string() + " --tune-targets lama", "--tune-targets"},
       {"--selection " + sel.string() + " --inpaint lama", "expected telea, ns or none"},
       {"--selection " + sel.string() + " --stray-reach 17", "--stray-reach"},

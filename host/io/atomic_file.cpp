@@ -11,6 +11,8 @@
 #include <set>
 #include <stdexcept>
 
+#include "host/io/output_set.h"
+
 namespace ag2gs {
 
 namespace fs = std::filesystem;
@@ -19,7 +21,11 @@ int remove_stale_temp_files(const std::string& dir) {
   int removed = 0;
   std::error_code ec;
   for (fs::directory_iterator it(dir.empty() ? "." : dir, ec), end; !ec && it != end; it.increment(ec)) {
-    const std::string name = it->path().filename().string();
+    std::string name = it->path().filename().string();
+    // Images are written as ".NAME.png.tmp.PID.png" (OpenCV picks the
+    // encoder by the extension; the dot hides the file while it is written).
+    if (name.size() > 5 && name[0] == '.' && name.compare(name.size() - 4, 4, ".png") == 0)
+      name = name.substr(1, name.size() - 5);
     const size_t at = name.rfind(".tmp.");
     if (at == std::string::npos || at == 0 || at + 5 >= name.size()) continue;
     const std::string digits = name.substr(at + 5);
@@ -39,16 +45,17 @@ int remove_stale_temp_files(const std::string& dir) {
   return removed;
 }
 
+void remove_stale_temp_files_once(const std::string& dir) {
+  // Once per folder and process: a scan per file would cost O(files^2) for a
+  // folder of renders.
+  static std::mutex lock;
+  static std::set<std::string> cleaned;
+  std::lock_guard<std::mutex> hold(lock);
+  if (cleaned.insert(dir).second) remove_stale_temp_files(dir);
+}
+
 AtomicFile::AtomicFile(std::string path) : path_(std::move(path)) {
-  {
-    // Once per folder and process: a scan per file would cost O(files^2)
-    // for a folder of renders.
-    static std::mutex lock;
-    static std::set<std::string> cleaned;
-    const std::string dir = fs::path(path_).parent_path().string();
-    std::lock_guard<std::mutex> hold(lock);
-    if (cleaned.insert(dir).second) remove_stale_temp_files(dir);
-  }
+  remove_stale_temp_files_once(fs::path(path_).parent_path().string());
   temp_ = path_ + ".tmp." + std::to_string(static_cast<long>(::getpid()));
   file_ = std::fopen(temp_.c_str(), "wb");
   if (!file_) {
@@ -80,6 +87,11 @@ void AtomicFile::commit() {
   const int rc = std::fclose(file_);
   file_ = nullptr;
   if (rc != 0) fail("closing '" + temp_ + "' failed");
+  // Part of a set replaced together (host/io/output_set.h): it moves with the others.
+  if (OutputSet::defer(temp_, path_)) {
+    committed_ = true;
+    return;
+  }
   if (std::rename(temp_.c_str(), path_.c_str()) != 0) fail("cannot move '" + temp_ + "' into place");
   committed_ = true;
 }

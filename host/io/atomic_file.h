@@ -19,6 +19,9 @@ namespace ag2gs {
 // Temporary files of live processes are left alone. AtomicFile calls it
 // once per folder and process, before its first write there.
 int remove_stale_temp_files(const std::string& dir);
+// The same, at most once per folder and process (what every writer of
+// ag2gs's files calls before its first write into a folder).
+void remove_stale_temp_files_once(const std::string& dir);
 
 class AtomicFile {
  public:

@@ -9,6 +9,9 @@
 #include <opencv2/imgproc.hpp>
 #include <stdexcept>
 
+#include "host/io/atomic_file.h"
+#include "host/io/output_set.h"
+
 namespace ag2gs {
 
 namespace {
@@ -16,6 +19,7 @@ namespace {
 void write_atomic(const std::string& path, const cv::Mat& img) {
   namespace fs = std::filesystem;
   fs::path p(path);
+  remove_stale_temp_files_once(p.parent_path().string());
   std::string tmp =
       (p.parent_path() / ("." + p.filename().string() + ".tmp." + std::to_string(::getpid()) + ".png")).string();
   bool ok = false;
@@ -29,6 +33,7 @@ void write_atomic(const std::string& path, const cv::Mat& img) {
     fs::remove(tmp, ec);
     throw std::runtime_error(path + ": could not write the image (is the directory writable and the disk not full?)");
   }
+  if (OutputSet::defer(tmp, path)) return;  // moves with the rest of its set (host/io/output_set.h)
   std::error_code ec;
   fs::rename(tmp, p, ec);
   if (ec) {

@@ -32,14 +32,30 @@ int json_nesting_depth(const std::string& text, int stop_at) {
   return deepest;
 }
 
+std::string json_error_text(const nlohmann::json::exception& e) {
+  std::string text = e.what();
+  if (text.rfind("[json.exception.", 0) == 0) {
+    const size_t end = text.find("] ");
+    if (end != std::string::npos) text.erase(0, end + 2);
+  }
+  // "syntax error while parsing value - unexpected end of input; ..." says
+  // the same twice.
+  const std::string noise = "syntax error while parsing value - ";
+  const size_t at = text.find(noise);
+  if (at != std::string::npos) text.erase(at, noise.size());
+  return text;
+}
+
 nlohmann::json parse_json_input(const std::string& text, const std::string& source) {
   if (json_nesting_depth(text) > kJsonMaxDepth)
     throw std::runtime_error(source + ": JSON nested deeper than " + std::to_string(kJsonMaxDepth) +
                              " levels; this is not a file ag2gs wrote (or it was damaged)");
+  if (text.find_first_not_of(" \t\r\n") == std::string::npos)
+    throw std::runtime_error(source + ": not valid JSON (it is empty)");
   try {
     return nlohmann::json::parse(text);
   } catch (const nlohmann::json::exception& e) {
-    throw std::runtime_error(source + ": not valid JSON (" + e.what() + ")");
+    throw std::runtime_error(source + ": not valid JSON (" + json_error_text(e) + ")");
   }
 }
 

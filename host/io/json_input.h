@@ -21,6 +21,10 @@ int json_nesting_depth(const std::string& text, int stop_at = kJsonMaxDepth);
 // range included).
 nlohmann::json parse_json_input(const std::string& text, const std::string& source);
 
+// The parser's message for a user: without the library's "[json.exception.
+// type_error.302] " code, e.g. "type must be number, but is string".
+std::string json_error_text(const nlohmann::json::exception& e);
+
 // Reads and parses the file at `path` (the message names the path; a folder
 // or an unreadable file is refused as such).
 nlohmann::json read_json_file(const std::string& path);

@@ -60,6 +60,10 @@ std::optional<std::vector<float>> sky_from_archive(const ModelArchive& archive) 
   if (sky_degree_for(c.size()) < 0)
     throw std::runtime_error(archive.source + ": sky/sh holds " + std::to_string(c.size() / 3) +
                              " coefficients per channel; a sky of degree 0..3 has 1, 4, 9 or 16");
+  for (size_t i = 0; i < c.size(); ++i)
+    if (!std::isfinite(c[i]))
+      throw std::runtime_error(archive.source + ": array 'sky/sh': element " + std::to_string(i) +
+                               " is not a finite number; the file is damaged: train the model again");
   return c;
 }
 

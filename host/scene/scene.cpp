@@ -444,6 +444,8 @@ void Scene::check_all(const std::function<void()>& before_each) {
 std::shared_ptr<Image> Scene::load_image(const SceneView& v) const {
   std::vector<unsigned char> bytes;
   {
+    std::error_code ec;
+    if (fs::is_directory(v.image_path, ec)) fail(v.image_path, "is a folder, where an image file was expected");
     std::ifstream in(v.image_path, std::ios::binary);
     if (!in) fail(v.image_path, std::string("cannot be read: ") + std::strerror(errno) + "; check its permissions");
     bytes.assign(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
