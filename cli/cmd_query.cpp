@@ -247,7 +247,14 @@ TrainedModel load_trained_model(const std::string& model_dir, bool with_language
   t.file = (fs::path(model_dir) / "model.ag2gs").string();
   if (!fs::exists(t.file))
     throw std::runtime_error(model_dir + ": no model.ag2gs; give a model folder written by `ag2gs train`");
-  t.archive = read_model_archive(t.file);
+  return trained_model_from_archive(read_model_archive(t.file), t.file, with_language);
+}
+
+TrainedModel trained_model_from_archive(ModelArchive archive, const std::string& file, bool with_language) {
+  TrainedModel t;
+  t.file = file;
+  t.archive = std::move(archive);
+  if (t.archive.source.empty()) t.archive.source = file;
   check_model_archive(t.archive);
   t.model = AnchorModel::from_archive(t.archive);
   const nlohmann::json train = t.archive.meta.value("train", nlohmann::json::object());

@@ -19,10 +19,12 @@
 #include <nlohmann/json.hpp>
 #include <optional>
 #include <string>
+#include <thread>
 
 #include "cli/commands.h"
 #include "cli/run_driver.h"
 #include "cli/run_guard.h"
+#include "cli/viewer/view_server.h"
 #include "host/device/cl_runtime.h"
 #include "host/io/model_io.h"
 #include "host/scene/scene.h"
@@ -43,6 +45,39 @@ struct TrainArgs : RunArgs {
   std::string preset = "default";    // --preset
   Stage3Config stage3;
   TrainConfig config;
+  bool view = false;  // --view: serve the viewer while training
+  ServeOptions serve;
+};
+
+// `train --view`: the viewer's server on its own runtime and thread, showing
+// snapshots of the model as it trains (cli/viewer/view_server.h). Stopped
+// and joined when it goes out of scope, however the run ends.
+struct LiveView {
+  LiveView(const GlobalOptions& global, const TrainArgs& a, Trainer& trainer)
+      : rt(global.device),
+        live(rt, options(a)),
+        server([this]() -> ViewSession& { return live.session(); }, &live, a.serve) {
+    live.publish(trainer.model_archive(), false);
+    url_port = server.bind(a.out + " while it trains");
+    thread = std::thread([this] { server.run(); });
+  }
+  ~LiveView() {
+    server.stop();
+    if (thread.joinable()) thread.join();
+  }
+  static ViewOptions options(const TrainArgs& a) {
+    ViewOptions o;
+    o.model = a.out;
+    o.scene = a.scene;
+    o.sparse = a.sparse;
+    o.resolution = a.resolution;
+    return o;
+  }
+  Runtime rt;
+  LiveTraining live;
+  ViewServer server;
+  int url_port = 0;
+  std::thread thread;
 };
 
 // Presets. The default (also called "appearance") is the measured setting
@@ -217,7 +252,14 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
     throw std::invalid_argument(
         "--lr-offset-final must be > 0 when --lr-offset is (the rate decays "
         "exponentially from one to the other)");
-  if (a.stages == std::vector<int>{3}) return stage3_only(global, a);
+  if (a.stages == std::vector<int>{3}) {
+    if (a.view)
+      throw std::invalid_argument(
+          "--view shows a model while it trains; --stages 3 alone trains none: look at the "
+          "result with `ag2gs view " +
+          a.out + "`");
+    return stage3_only(global, a);
+  }
   // Without stage 1 the run continues from the checkpoint.
   if (!has_stage(a, 1)) a.resume = true;
   // A new model never replaces one by accident.
@@ -340,6 +382,18 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
       spdlog::info("removed {}: it described the model these files replace (a new one is written at the end)",
                    metrics.string());
   };
+  std::unique_ptr<LiveView> view;
+  if (a.view) {
+    view = std::make_unique<LiveView>(global, a, trainer);
+    view->live.set_status({{"iteration", it_start},
+                           {"iterations", it_end},
+                           {"stage", it_start >= c.iterations ? 2 : 1},
+                           {"psnr", 0.0},
+                           {"anchors", trainer.anchors()},
+                           {"gaussians", trainer.gaussians()},
+                           {"eta_s", -1.0}});
+  }
+  double eta_s = -1;  // the last progress line's ETA, for the viewer
   run.start(it_start);
   int skipped = 0;
   double psnr0 = NAN;
@@ -394,6 +448,17 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
       gaussians_before_round = trainer.gaussians();
     }
     if (std::isnan(psnr0)) psnr0 = st.psnr;
+    if (view) {
+      view->live.set_status({{"iteration", st.iteration},
+                             {"iterations", it_end},
+                             {"stage", st.stage2 ? 2 : 1},
+                             {"psnr", st.psnr},
+                             {"anchors", trainer.anchors()},
+                             {"gaussians", trainer.gaussians()},
+                             {"eta_s", eta_s}});
+      if (view->live.snapshot_wanted() && st.iteration != it_end) view->live.publish(trainer.model_archive(), false);
+      view->live.wait_while_paused();
+    }
     run.add_sample(st.loss - (st.with_offset_loss ? c.w_offset * st.offset_reg : 0), st.psnr, st.l1, st.ssim);
     sum_dist += st.distortion;
     sum_isect += static_cast<double>(st.intersections);
@@ -413,6 +478,7 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
       const double eta = run.eta_seconds(it_end - st.iteration, trainer.gaussians(), growing,
                                          growth_end_geometric(trainer.gaussians(), gaussians_at_start, rounds_done,
                                                               rounds_left, trainer.max_gaussians()));
+      eta_s = eta;
       const std::string eta_text =
           fmt_duration(eta) + (growing > 0 ? fmt::format(" (growing until {})", grow_until) : std::string());
       std::string mask_terms =
@@ -436,6 +502,7 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
                    InterruptGuard::signal_name(), st.iteration, it_end, a.out,
                    global.device >= 0 ? fmt::format("--device {} ", global.device) : "", a.scene, a.out,
                    a.sparse.empty() ? "" : " --sparse " + a.sparse);
+      view.reset();
       InterruptGuard::exit_after_saving();
     }
     if (a.save_every > 0 && st.iteration % a.save_every == 0 && st.iteration != it_end) {
@@ -475,6 +542,14 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   }
   run.metrics()["stages"] = stages;
   run.write_metrics();
+  if (view && !InterruptGuard::interrupted()) {
+    // The final model (with stage 3's clusters): selection works again.
+    view->live.publish(read_model_archive((fs::path(a.out) / "model.ag2gs").string()), true);
+    spdlog::info("training done; the viewer keeps serving the final model at port {} until Ctrl-C", view->url_port);
+    view->thread.join();
+    spdlog::info("stopped ({})", InterruptGuard::signal_name());
+    return;  // training completed: status 0
+  }
   if (InterruptGuard::interrupted()) {
     spdlog::warn("{} during the last stage: it finished and its files are complete; exiting with status {}",
                  InterruptGuard::signal_name(), InterruptGuard::exit_code());
@@ -678,6 +753,12 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                   "Growing rounds this many iterations after a reset do not prune by opacity (default 500)")
       ->check(non_negative_number());
   add_progress_options(sub, *a);
+  sub->add_flag("--view", a->view,
+                "Serve the viewer while training (as `ag2gs view`): the picture follows the model, with its progress "
+                "and a pause button; after training it shows the final model until Ctrl-C");
+  sub->add_option("--port", a->serve.port, "With --view: TCP port (default 8080; 0 = any free port, printed)")
+      ->check(CLI::Range(0, 65535));
+  sub->add_option("--host", a->serve.host, "With --view: address to listen on (default 127.0.0.1)");
   sub->add_option("--save-every", a->save_every, "Checkpoint every N iterations (default 0 = end only)")
       ->check(non_negative_number());
   sub->add_flag("--resume", a->resume,

@@ -104,6 +104,9 @@ struct TrainedModel {
 // language features, which a text query needs. Throws naming the file and
 // the fix.
 TrainedModel load_trained_model(const std::string& model_dir, bool with_language);
+// The same from an archive in memory (`file` names it in messages): the
+// live training view's snapshots.
+TrainedModel trained_model_from_archive(ModelArchive archive, const std::string& file, bool with_language);
 // A 0/1 mask [H,W] as the bytes of an 8-bit PNG (0/255).
 std::vector<uint8_t> encode_mask_png(const std::vector<uint8_t>& mask, int width, int height);
 // The same PNG, written atomically.

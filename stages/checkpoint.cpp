@@ -204,8 +204,7 @@ void Trainer::resume(const std::string& model_dir) {
   }
 }
 
-void Trainer::save(const std::string& model_dir) {
-  save_checkpoint(model_dir);
+ModelArchive Trainer::model_archive() {
   const AnchorModel& m = model();
   ModelArchive archive;
   m.to_archive(archive);
@@ -219,6 +218,13 @@ void Trainer::save(const std::string& model_dir) {
                            {"resolution", scene_.options().resolution},
                            {"eval_split", scene_.options().eval},
                            {"config", config_.to_json()}};
+  return archive;
+}
+
+void Trainer::save(const std::string& model_dir) {
+  save_checkpoint(model_dir);
+  const AnchorModel& m = model();
+  const ModelArchive archive = model_archive();
   fs::create_directories(model_dir);
   write_model_archive((fs::path(model_dir) / "model.ag2gs").string(), archive);
   // point_cloud.ply carries the sky too, so other viewers show what we render.

@@ -76,6 +76,7 @@
 #include <vector>
 
 #include "host/device/cl_runtime.h"
+#include "host/io/model_io.h"
 #include "host/io/model_ply.h"
 #include "host/render/adam.h"
 #include "host/render/image_loss.h"
@@ -158,6 +159,8 @@ class Trainer {
   // each written atomically. last_ply() says what the last save wrote.
   void save(const std::string& model_dir);
   const ModelPlyReport& last_ply() const { return last_ply_; }
+  // What save() writes as model.ag2gs, in memory (the live view's snapshot).
+  ModelArchive model_archive();
   // MODEL_DIR/checkpoint.ag2gs alone, atomically.
   void save_checkpoint(const std::string& model_dir);
   // Settings of the caller's that shape the run's files but are not the

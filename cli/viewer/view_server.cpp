@@ -2,6 +2,8 @@
 // type a query and see the selection. An HTTP server (cpp-httplib) in front
 // of a ViewSession; the page (cli/viewer/page.html) is compiled into the
 // program, so it works offline. The API is documented in docs/formats.md.
+#include "cli/viewer/view_server.h"
+
 #include <spdlog/spdlog.h>
 #include <sys/socket.h>
 
@@ -36,8 +38,7 @@ constexpr size_t kMaxBody = 64 * 1024;
 
 struct ViewArgs {
   ViewOptions options;
-  std::string host = "127.0.0.1";
-  int port = 8080;
+  ServeOptions serve;
 };
 
 void send_json(httplib::Response& res, const nlohmann::json& j, int status = 200) {
@@ -198,29 +199,99 @@ nlohmann::json run_query_request(ViewSession& session, const nlohmann::json& j) 
       "\"fx\", \"fy\", \"cx\", \"cy\", \"w\", \"h\", \"x\", \"y\"} (a click in a posed camera) or {\"text\": PHRASE}");
 }
 
-void cmd_view(const GlobalOptions& global, const ViewArgs& a) {
-  if (a.port < 0 || a.port > 65535) throw std::invalid_argument("--port: from 0 (any free port) to 65535");
-  if (a.options.resolution < 0) throw std::invalid_argument("-r must be >= 1 (it divides the camera resolution)");
-  InterruptGuard guard;
-  const auto t0 = std::chrono::steady_clock::now();
-  Runtime rt(global.device);
-  ViewSession session(rt, a.options);
-  const nlohmann::json info0 = session.info();
-  spdlog::info("device [{}] {}; {} anchors, {} Gaussians, {} views, text queries {}; ready in {:.1f} s", rt.info().index,
-               rt.info().name, info0["anchors"].get<size_t>(), info0["gaussians"].get<size_t>(),
-               info0["views"].size(), session.info()["text_queries"].get<bool>() ? "on" : "off (no --vocab)",
-               std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
+}  // namespace
 
-  std::mutex lock;  // one request at a time touches the session (renders are serialised)
+LiveTraining::LiveTraining(Runtime& rt, ViewOptions options) : rt_(rt), options_(std::move(options)) {
+  options_.training = true;
+}
+
+bool LiveTraining::snapshot_wanted() {
+  std::lock_guard<std::mutex> g(lock_);
+  if (!asked_) return false;
+  const auto now = std::chrono::steady_clock::now();
+  if (now - last_snapshot_ < std::chrono::milliseconds(kSnapshotMs)) return false;
+  return true;
+}
+
+void LiveTraining::publish(ModelArchive snapshot, bool final) {
+  std::lock_guard<std::mutex> g(lock_);
+  pending_ = std::move(snapshot);
+  pending_final_ = final;
+  if (final) finished_ = true;
+  asked_ = false;
+  last_snapshot_ = std::chrono::steady_clock::now();
+}
+
+void LiveTraining::set_status(const nlohmann::json& status) {
+  std::lock_guard<std::mutex> g(lock_);
+  status_ = status;
+}
+
+double LiveTraining::wait_while_paused() {
+  std::unique_lock<std::mutex> g(lock_);
+  if (!paused_) return 0;
+  const auto t0 = std::chrono::steady_clock::now();
+  spdlog::info("paused from the viewer; resume there (or Ctrl-C to stop with a checkpoint)");
+  while (paused_ && !InterruptGuard::interrupted()) changed_.wait_for(g, std::chrono::milliseconds(50));
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+ViewSession& LiveTraining::session() {
+  std::optional<ModelArchive> next;
+  bool final = false;
+  {
+    std::lock_guard<std::mutex> g(lock_);
+    next.swap(pending_);
+    final = pending_final_;
+  }
+  if (next) {
+    ViewOptions o = options_;
+    o.training = !final;
+    // The server's lock is held: no request uses the old session any more.
+    session_ = std::make_unique<ViewSession>(
+        rt_, o, trained_model_from_archive(std::move(*next), final ? o.model : "the model in training", false));
+  }
+  if (!session_) throw std::runtime_error("the first picture of the model comes after its first iteration");
+  return *session_;
+}
+
+nlohmann::json LiveTraining::status() {
+  std::lock_guard<std::mutex> g(lock_);
+  nlohmann::json j = status_;
+  j["paused"] = paused_;
+  j["finished"] = finished_;
+  return j;
+}
+
+void LiveTraining::set_paused(bool paused) {
+  {
+    std::lock_guard<std::mutex> g(lock_);
+    if (finished_ && paused) throw std::invalid_argument("training has ended; there is nothing to pause");
+    paused_ = paused;
+  }
+  changed_.notify_all();
+}
+
+void LiveTraining::asked_for_picture() {
+  std::lock_guard<std::mutex> g(lock_);
+  asked_ = true;
+}
+
+ViewServer::ViewServer(std::function<ViewSession&()> session, LiveTraining* live, const ServeOptions& options)
+    : svr_(std::make_unique<httplib::Server>()), options_(options) {
+  if (options.port < 0 || options.port > 65535) throw std::invalid_argument("--port: from 0 (any free port) to 65535");
   // Renders that carry `client=ID` (the page sends one per page load): a
   // request still waiting for the lock when a newer one of its client
   // arrives is answered 204 without rendering (X-Superseded: 1), so a
   // client that asks faster than the device renders gets its latest
   // camera next, not a backlog of old ones.
-  std::mutex latest_lock;
-  std::map<std::string, uint64_t> latest;  // client -> arrival number of its newest render
-  uint64_t arrivals = 0;
-  httplib::Server svr;
+  struct Clients {
+    std::mutex lock;
+    std::map<std::string, uint64_t> latest;  // client -> arrival number of its newest render
+    uint64_t arrivals = 0;
+  };
+  auto clients = std::make_shared<Clients>();
+  httplib::Server& svr = *svr_;
   svr.set_payload_max_length(kMaxBody);
   svr.set_read_timeout(10, 0);
   // Answers go out at once: without TCP_NODELAY a kept-alive connection
@@ -238,7 +309,7 @@ void cmd_view(const GlobalOptions& global, const ViewArgs& a) {
   svr.new_task_queue = [] { return new httplib::ThreadPool(kWorkers); };
   svr.set_keep_alive_timeout(2);
   svr.set_keep_alive_max_count(10000);
-  const std::vector<std::string> hosts = allowed_hosts(a.host);
+  const std::vector<std::string> hosts = allowed_hosts(options.host);
   svr.set_pre_routing_handler([hosts](const httplib::Request& req, httplib::Response& res) {
     const Refusal r = refusal(req, hosts);
     if (r.status == 0) return httplib::Server::HandlerResponse::Unhandled;
@@ -271,11 +342,11 @@ void cmd_view(const GlobalOptions& global, const ViewArgs& a) {
     res.set_header("Cache-Control", "no-store");
     res.set_content(viewer_page(), "text/html; charset=utf-8");
   });
-  svr.Get("/api/info", [&](const httplib::Request&, httplib::Response& res) {
-    std::lock_guard<std::mutex> g(lock);
-    send_json(res, session.info());
+  svr.Get("/api/info", [this, session, live, clients](const httplib::Request&, httplib::Response& res) {
+    std::lock_guard<std::mutex> g(lock_);
+    send_json(res, session().info());
   });
-  svr.Get("/api/render", [&](const httplib::Request& req, httplib::Response& res) {
+  svr.Get("/api/render", [this, session, live, clients](const httplib::Request& req, httplib::Response& res) {
     const ViewMode mode = parse_view_mode(req.has_param("mode") ? req.get_param_value("mode") : "rgb");
     const int quality = int_param(req, "quality", 85);
     std::string client;
@@ -284,16 +355,17 @@ void cmd_view(const GlobalOptions& global, const ViewArgs& a) {
       client = req.get_param_value("client");
       if (client.empty() || client.size() > 64)
         throw std::invalid_argument("client: an id of 1 to 64 characters (the page makes one per page load)");
-      std::lock_guard<std::mutex> l(latest_lock);
-      if (latest.size() >= kMaxClients) latest.clear();  // ids of closed pages; at worst one stale frame renders
-      arrival = ++arrivals;
-      latest[client] = arrival;
+      std::lock_guard<std::mutex> l(clients->lock);
+      if (clients->latest.size() >= kMaxClients)
+        clients->latest.clear();  // ids of closed pages; at worst one stale frame renders
+      arrival = ++clients->arrivals;
+      clients->latest[client] = arrival;
     }
-    std::lock_guard<std::mutex> g(lock);
+    std::lock_guard<std::mutex> g(lock_);
     if (!client.empty()) {
-      std::lock_guard<std::mutex> l(latest_lock);
-      const auto it = latest.find(client);
-      if (it != latest.end() && it->second != arrival) {
+      std::lock_guard<std::mutex> l(clients->lock);
+      const auto it = clients->latest.find(client);
+      if (it != clients->latest.end() && it->second != arrival) {
         res.status = 204;
         res.set_header("X-Superseded", "1");
         res.set_header("Cache-Control", "no-store");
@@ -303,75 +375,119 @@ void cmd_view(const GlobalOptions& global, const ViewArgs& a) {
     const std::string format = req.has_param("format") ? req.get_param_value("format") : "jpeg";
     if (format != "jpeg" && format != "png")
       throw std::invalid_argument("format '" + format + "': choose jpeg (the default) or png (a screenshot)");
-    const Camera cam = camera_of(session, req);
+    if (live) live->asked_for_picture();
+    const Camera cam = camera_of(session(), req);
     double ms = 0;
-    const std::vector<uint8_t> image = session.render_image(cam, mode, quality, format == "png", &ms);
+    const std::vector<uint8_t> image = session().render_image(cam, mode, quality, format == "png", &ms);
     res.set_header("X-Render-Ms", std::to_string(ms));
     res.set_header("Cache-Control", "no-store");
     res.set_content(reinterpret_cast<const char*>(image.data()), image.size(),
                     format == "png" ? "image/png" : "image/jpeg");
   });
-  svr.Post("/api/query", [&](const httplib::Request& req, httplib::Response& res) {
+  svr.Post("/api/query", [this, session, live, clients](const httplib::Request& req, httplib::Response& res) {
     const nlohmann::json body = parse_body(req);
-    std::lock_guard<std::mutex> g(lock);
-    const nlohmann::json r = run_query_request(session, body);
+    std::lock_guard<std::mutex> g(lock_);
+    const nlohmann::json r = run_query_request(session(), body);
     spdlog::info("query {}: {} anchors, {} Gaussians in {:.1f} ms", r["query"].dump(), r["anchors"].get<size_t>(),
                  r["gaussians"].get<size_t>(), r["ms"].get<double>());
     send_json(res, r);
   });
-  svr.Get("/api/mask", [&](const httplib::Request& req, httplib::Response& res) {
-    std::lock_guard<std::mutex> g(lock);
-    const std::vector<uint8_t> png = session.mask_png(camera_of(session, req));
+  svr.Get("/api/mask", [this, session, live, clients](const httplib::Request& req, httplib::Response& res) {
+    std::lock_guard<std::mutex> g(lock_);
+    const std::vector<uint8_t> png = session().mask_png(camera_of(session(), req));
     res.set_header("Cache-Control", "no-store");
     res.set_content(reinterpret_cast<const char*>(png.data()), png.size(), "image/png");
   });
-  svr.Get("/api/selection.ply", [&](const httplib::Request&, httplib::Response& res) {
-    std::lock_guard<std::mutex> g(lock);
-    const std::vector<uint8_t> ply = session.selection_ply();
+  svr.Get("/api/selection.ply", [this, session, live, clients](const httplib::Request&, httplib::Response& res) {
+    std::lock_guard<std::mutex> g(lock_);
+    const std::vector<uint8_t> ply = session().selection_ply();
     res.set_header("Content-Disposition", "attachment; filename=\"selection.ply\"");
     res.set_content(reinterpret_cast<const char*>(ply.data()), ply.size(), "application/octet-stream");
   });
-  svr.Post("/api/clear", [&](const httplib::Request&, httplib::Response& res) {
-    std::lock_guard<std::mutex> g(lock);
-    session.clear();
+  svr.Post("/api/clear", [this, session, live, clients](const httplib::Request&, httplib::Response& res) {
+    std::lock_guard<std::mutex> g(lock_);
+    session().clear();
     send_json(res, {{"anchors", 0}, {"gaussians", 0}});
   });
-  svr.Post("/api/visibility", [&](const httplib::Request& req, httplib::Response& res) {
+  svr.Post("/api/visibility", [this, session, live, clients](const httplib::Request& req, httplib::Response& res) {
     const nlohmann::json body = parse_body(req);
     const Visibility v = parse_visibility(json_string(body, "selection"));
-    std::lock_guard<std::mutex> g(lock);
-    session.set_visibility(v);
+    std::lock_guard<std::mutex> g(lock_);
+    session().set_visibility(v);
     send_json(res, {{"selection", visibility_name(v)}});
   });
 
-  int port = a.port;
+  if (live) {
+    svr.Get("/api/train", [live](const httplib::Request&, httplib::Response& res) { send_json(res, live->status()); });
+    svr.Post("/api/train", [live](const httplib::Request& req, httplib::Response& res) {
+      const nlohmann::json body = parse_body(req);
+      if (!body.contains("paused") || !body["paused"].is_boolean())
+        throw std::invalid_argument("give {\"paused\": true} to pause training, {\"paused\": false} to resume it");
+      live->set_paused(body["paused"].get<bool>());
+      send_json(res, live->status());
+    });
+  }
+}
+
+ViewServer::~ViewServer() = default;
+
+int ViewServer::bind(const std::string& what) {
+  int port = options_.port;
   if (port == 0) {
-    port = svr.bind_to_any_port(a.host);
-    if (port < 0) throw std::runtime_error("could not listen on " + a.host + " (any port)");
-  } else if (!svr.bind_to_port(a.host, port)) {
-    throw std::runtime_error("could not listen on " + a.host + ":" + std::to_string(port) +
+    port = svr_->bind_to_any_port(options_.host);
+    if (port < 0) throw std::runtime_error("could not listen on " + options_.host + " (any port)");
+  } else if (!svr_->bind_to_port(options_.host, port)) {
+    throw std::runtime_error("could not listen on " + options_.host + ":" + std::to_string(port) +
                              " (in use, or not an address of this machine); choose another with --port N, or "
                              "--port 0 for any free one");
   }
-  if (a.host != "127.0.0.1" && a.host != "localhost" && a.host != "::1")
-    spdlog::warn("listening on {}: other machines on the network can reach this viewer", a.host);
-  std::printf("ag2gs view: serving %s at http://%s:%d/ (Ctrl-C to stop)\n", a.options.model.c_str(),
-              a.host.find(':') != std::string::npos ? ("[" + a.host + "]").c_str() : a.host.c_str(), port);
+  if (options_.host != "127.0.0.1" && options_.host != "localhost" && options_.host != "::1")
+    spdlog::warn("listening on {}: other machines on the network can reach this viewer", options_.host);
+  std::printf(
+      "ag2gs view: serving %s at http://%s:%d/ (Ctrl-C to stop)\n", what.c_str(),
+      options_.host.find(':') != std::string::npos ? ("[" + options_.host + "]").c_str() : options_.host.c_str(), port);
   std::fflush(stdout);
 
+  return port;
+}
+
+void ViewServer::stop() {
+  svr_->stop();
+}
+
+bool ViewServer::run() {
   std::atomic<bool> done{false};
   std::thread watcher([&] {
     while (!done) {
       if (InterruptGuard::interrupted()) {
-        svr.stop();
+        svr_->stop();
         return;
       }
       std::this_thread::sleep_for(std::chrono::milliseconds(50));
     }
   });
-  const bool ok = svr.listen_after_bind();
+  const bool ok = svr_->listen_after_bind();
   done = true;
   watcher.join();
+  return ok || InterruptGuard::interrupted();
+}
+
+namespace {
+
+void cmd_view(const GlobalOptions& global, const ViewArgs& a) {
+  if (a.options.resolution < 0) throw std::invalid_argument("-r must be >= 1 (it divides the camera resolution)");
+  InterruptGuard guard;
+  const auto t0 = std::chrono::steady_clock::now();
+  Runtime rt(global.device);
+  ViewSession session(rt, a.options);
+  const nlohmann::json info0 = session.info();
+  spdlog::info("device [{}] {}; {} anchors, {} Gaussians, {} views, text queries {}; ready in {:.1f} s",
+               rt.info().index, rt.info().name, info0["anchors"].get<size_t>(), info0["gaussians"].get<size_t>(),
+               info0["views"].size(), session.info()["text_queries"].get<bool>() ? "on" : "off (no --vocab)",
+               std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
+  ViewServer server([&session]() -> ViewSession& { return session; }, nullptr, a.serve);
+  server.bind(a.options.model);
+  const bool ok = server.run();
   if (InterruptGuard::interrupted()) {
     spdlog::info("stopped ({})", InterruptGuard::signal_name());
     return;
@@ -388,8 +504,8 @@ void register_view(CLI::App& app, GlobalOptions& global) {
   v->add_option("--scene", a->options.scene,
                 "Scene directory the model was trained on: its training views to jump to and click in");
   v->add_option("--vocab", a->options.vocab, "Text vocabulary JSON {\"phrase\": [D floats], ...} for text queries");
-  v->add_option("--port", a->port, "TCP port (default 8080; 0 = any free port, printed)");
-  v->add_option("--host", a->host,
+  v->add_option("--port", a->serve.port, "TCP port (default 8080; 0 = any free port, printed)");
+  v->add_option("--host", a->serve.host,
                 "Address to listen on (default 127.0.0.1: this machine only; 0.0.0.0 opens it to the network)");
   v->add_option("--sparse", a->options.sparse,
                 "COLMAP model folder inside the scene (default sparse/0/, else sparse/ when it holds the model)");

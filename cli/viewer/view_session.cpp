@@ -63,8 +63,10 @@ const char* visibility_name(Visibility v) {
 }
 
 ViewSession::ViewSession(Runtime& rt, const ViewOptions& options)
-    : rt_(rt), options_(options), renderer_(rt), shown_(rt), sky_(rt) {
-  trained_ = load_trained_model(options.model, false);
+    : ViewSession(rt, options, load_trained_model(options.model, false)) {}
+
+ViewSession::ViewSession(Runtime& rt, const ViewOptions& options, TrainedModel trained)
+    : rt_(rt), options_(options), trained_(std::move(trained)), renderer_(rt), shown_(rt), sky_(rt) {
   const AnchorModel& model = trained_.model;
   if (model.size() == 0) throw std::runtime_error(trained_.file + " holds no anchors; there is nothing to view");
   const nlohmann::json& meta = trained_.archive.meta;
@@ -83,8 +85,8 @@ ViewSession::ViewSession(Runtime& rt, const ViewOptions& options)
     so.sparse = options.sparse;
     scene_ = Scene::open(options.scene, so);
   }
-  engine_ = std::make_unique<QueryEngine>(rt, model, QueryConfig{});
-  if (!options.vocab.empty()) {
+  if (!options.training) engine_ = std::make_unique<QueryEngine>(rt, model, QueryConfig{});
+  if (!options.vocab.empty() && !options.training) {
     if (!has_clusters || !meta.contains("language"))
       throw std::runtime_error(trained_.file +
                                " has no clusters/language features, which text queries need (--vocab): run stages "
@@ -101,7 +103,7 @@ ViewSession::ViewSession(Runtime& rt, const ViewOptions& options)
     text_ready_ = true;
   }
 
-  if (scene_) {  // clicks as `ag2gs query --click-by auto` makes them
+  if (scene_ && engine_) {  // clicks as `ag2gs query --click-by auto` makes them
     nlohmann::json how;
     prepare_click(*engine_, "auto", meta, *scene_, &how);
   }
@@ -155,6 +157,7 @@ nlohmann::json ViewSession::info() const {
   j["clusters"] = trained_.clustering.clusters();
   j["instance_maps"] = instances_ != nullptr;
   j["text_queries"] = text_ready_;
+  j["queries"] = engine_ != nullptr;
   nlohmann::json phrases = nlohmann::json::array();
   for (const auto& [phrase, v] : vocab_.phrases) phrases.push_back(phrase);
   j["phrases"] = phrases;
@@ -320,7 +323,7 @@ std::vector<uint8_t> ViewSession::render_image(const Camera& camera, ViewMode mo
   // Hidden, the selection is not drawn, so the highlight would paint over
   // what the removal preview shows in its place.
   if (mode == ViewMode::selection && !selected_.empty() && visibility_ != Visibility::hide) {
-    const std::vector<uint8_t> m = engine_->mask(camera, selected_);
+    const std::vector<uint8_t> m = engine().mask(camera, selected_);
     for (int y = 0; y < h; ++y)
       for (int x = 0; x < w; ++x) {
         const size_t p = static_cast<size_t>(y) * w + x;
@@ -370,7 +373,7 @@ nlohmann::json ViewSession::click_view(const std::string& view, double x, double
   double ms = 0;
   std::vector<int32_t> selected;
   try {
-    selected = run_query(*engine_, *scene_, r, {}, resolution_, engine_->config().text_margin, j, &ms);
+    selected = run_query(engine(), *scene_, r, {}, resolution_, engine().config().text_margin, j, &ms);
   } catch (const std::runtime_error& e) {
     throw std::invalid_argument(e.what());  // the click hit the background
   }
@@ -380,7 +383,7 @@ nlohmann::json ViewSession::click_view(const std::string& view, double x, double
 nlohmann::json ViewSession::click_camera(const Camera& camera, double x, double y) {
   ClickResult c;
   try {
-    c = engine_->click(camera, x, y);
+    c = engine().click(camera, x, y);
   } catch (const std::runtime_error& e) {
     throw std::invalid_argument(e.what());
   }
@@ -400,9 +403,15 @@ nlohmann::json ViewSession::text(const std::string& phrase) {
   r.vocab = options_.vocab;
   const std::vector<float> embedding = load_query_embedding(r, trained_.file, trained_.language.dim);
   // As run_query's text branch: the engine's selection for the embedding.
-  TextResult t = engine_->text(embedding, load_rival_embeddings(r));
+  TextResult t = engine().text(embedding, load_rival_embeddings(r));
   nlohmann::json q = {{"type", "text"}, {"text", phrase}};
   return finish_query(std::move(t.selected), t.ms, {{"query", q}, {"best_score", t.best}, {"none", t.none}});
+}
+
+QueryEngine& ViewSession::engine() {
+  if (!engine_)
+    throw std::invalid_argument("selecting is possible once training has ended (the model changes while it trains)");
+  return *engine_;
 }
 
 void ViewSession::clear() {
@@ -417,7 +426,7 @@ void ViewSession::set_visibility(Visibility v) {
 }
 
 std::vector<uint8_t> ViewSession::mask_png(const Camera& cam) {
-  return encode_mask_png(engine_->mask(cam, selected_), cam.width, cam.height);
+  return encode_mask_png(engine().mask(cam, selected_), cam.width, cam.height);
 }
 
 std::vector<uint8_t> ViewSession::selection_ply() const {

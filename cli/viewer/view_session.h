@@ -32,6 +32,9 @@ struct ViewOptions {
   std::string vocab;   // phrase -> CLIP embedding; empty = no text queries
   std::string sparse;  // --sparse inside the scene; empty = the scene-folder rule
   int resolution = 0;  // 0 = the model's training -r
+  // A model still training (`train --view`): pictures only, no selection
+  // (its query graph would be rebuilt for every snapshot).
+  bool training = false;
 };
 
 // What the picture shows: the model, the selection tinted over it, or the
@@ -54,6 +57,8 @@ constexpr int64_t kMaxViewPixels = 3840LL * 2160;
 class ViewSession {
  public:
   ViewSession(Runtime& rt, const ViewOptions& options);
+  // The same for a model in memory (the live training view's snapshots).
+  ViewSession(Runtime& rt, const ViewOptions& options, TrainedModel trained);
 
   // Counts, what is available, the training views (camera at the served
   // resolution, full image size, world-to-camera pose) and the scene's centre
@@ -98,6 +103,7 @@ class ViewSession {
  private:
   nlohmann::json finish_query(std::vector<int32_t> selected, double ms, nlohmann::json detail);
   void upload_shown();  // the colour set with the visibility applied
+  QueryEngine& engine();  // throws std::invalid_argument while training
 
   Runtime& rt_;
   ViewOptions options_;

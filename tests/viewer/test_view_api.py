@@ -7,15 +7,17 @@ Needs the models of tests/viewer/make_models.sh (the CTest fixture view_models).
 import json
 import os
 import random
+import shutil
 import signal
 import socket
 import struct
+import subprocess
 import threading
 import time
 import unittest
 import urllib.parse
 
-from viewer_util import SCENE, VOCAB, Viewer, read, test_dir
+from viewer_util import SCENE, VOCAB, Viewer, binary, read, test_dir
 
 MODEL = os.path.join(test_dir(), "model")
 MODEL_STAGE1 = os.path.join(test_dir(), "model_stage1")
@@ -502,6 +504,80 @@ class ViewStartAndStop(unittest.TestCase):
                                timeout=60)
         self.assertNotEqual(r.returncode, 0)
         self.assertIn("--port", r.stdout + r.stderr)
+
+
+class LiveTrainingView(unittest.TestCase):
+    """`ag2gs train ... --view`: the page and API while the model trains."""
+
+    def test_the_picture_follows_training_and_pauses(self):
+        import tempfile
+        import time
+        out = tempfile.mkdtemp(prefix="ag2gs_live_")
+        v = Viewer(SCENE, "-o", os.path.join(out, "m"), "--iters", "400", "--seed", "1", "--view", "--log-every", "0",
+                   command="train")
+        try:
+            status, t = v.json("/api/train")
+            self.assertEqual(status, 200, t)
+            for key in ("iteration", "iterations", "psnr", "gaussians", "eta_s", "paused", "finished"):
+                self.assertIn(key, t)
+            status, info = v.json("/api/info")
+            self.assertEqual(status, 200, info)
+            self.assertFalse(info["queries"], "selection while the model changes")
+            status, err = v.json("/api/query", {"view": "view_000", "x": 70, "y": 62})
+            self.assertEqual(status, 400, err)
+            self.assertIn("training", err["error"])
+            # Pictures of the model as it trains: the iteration advances and
+            # the picture changes with it.
+            status, ctype, first = v.request("/api/render?view=view_000&format=png")
+            self.assertEqual(status, 200)
+            deadline = time.time() + 120
+            while v.json("/api/train")[1]["iteration"] < t["iteration"] + 40 and time.time() < deadline:
+                time.sleep(0.1)
+            time.sleep(LIVE_SNAPSHOT_S)
+            v.request("/api/render?view=view_000&format=png")  # asks for a snapshot
+            time.sleep(LIVE_SNAPSHOT_S)
+            status, ctype, later = v.request("/api/render?view=view_000&format=png")
+            self.assertEqual(status, 200)
+            self.assertNotEqual(first, later, "the picture did not follow training")
+            # Pause: the iteration stops; resume: it goes on.
+            status, t = v.json("/api/train", {"paused": True})
+            self.assertEqual(status, 200, t)
+            self.assertTrue(t["paused"])
+            time.sleep(0.5)
+            a = v.json("/api/train")[1]["iteration"]
+            time.sleep(1.0)
+            b = v.json("/api/train")[1]
+            self.assertEqual(a, b["iteration"], "training went on while paused")
+            self.assertFalse(b["finished"])
+            status, t = v.json("/api/train", {"paused": False})
+            self.assertFalse(t["paused"])
+            deadline = time.time() + 300
+            while not v.json("/api/train")[1]["finished"] and time.time() < deadline:
+                time.sleep(0.2)
+            status, t = v.json("/api/train")
+            self.assertTrue(t["finished"], t)
+            self.assertEqual(t["iteration"], t["iterations"])
+            # After training: the final model (with clusters), selection works.
+            status, info = v.json("/api/info")
+            self.assertTrue(info["queries"], info)
+            self.assertGreater(info["clusters"], 0)
+            status, q = v.json("/api/query", {"view": "view_000", "x": 70, "y": 62})
+            self.assertEqual(status, 200, q)
+            self.assertGreater(q["anchors"], 0)
+            self.assertTrue(os.path.exists(os.path.join(out, "m", "model.ag2gs")))
+        finally:
+            code = v.stop(signal.SIGINT)
+        self.assertEqual(code, 0, v.output)
+        shutil.rmtree(out, ignore_errors=True)
+
+    def test_view_with_stage_3_alone_is_refused(self):
+        r = subprocess.run([binary(), "train", SCENE, "-o", MODEL, "--stages", "3", "--view"], capture_output=True,
+                           text=True, timeout=60)
+        self.assertNotEqual(r.returncode, 0)
+        self.assertIn("ag2gs view", r.stdout + r.stderr)
+
+
+LIVE_SNAPSHOT_S = 0.6  # a little over LiveTraining::kSnapshotMs
 
 
 if __name__ == "__main__":

@@ -12,7 +12,9 @@ Needs the models of tests/viewer/make_models.sh (the CTest fixture view_models).
 """
 import math
 import os
+import re
 import shutil
+import signal
 import time
 import unittest
 
@@ -343,6 +345,56 @@ class ViewBrowser(unittest.TestCase):
 
         self.assertEqual(self.console_errors(), [])
         self.assertIsNone(self.state("lastError"))
+
+
+class LiveBrowser(unittest.TestCase):
+    """The page of `ag2gs train ... --view`: progress advancing, new pictures, pause, then the final model."""
+
+    def test_the_page_follows_training(self):
+        import tempfile
+        out = tempfile.mkdtemp(prefix="ag2gs_live_page_")
+        v = Viewer(SCENE, "-o", os.path.join(out, "m"), "--iters", "400", "--seed", "1", "--view", "--log-every", "0",
+                   command="train")
+        d = chromium()
+        try:
+            d.get(v.base + "/")
+            text = lambda: d.find_element(By.ID, "trainstat").text
+
+            def iteration():
+                m = re.search(r"iteration (\d+)/", text())
+                return int(m.group(1)) if m else None
+
+            deadline = time.time() + 120
+            while iteration() is None and time.time() < deadline:
+                time.sleep(0.05)
+            first, frames = iteration(), d.execute_script("return window.ag2gs.frames;")
+            self.assertIsNotNone(first, text())
+            self.assertTrue(d.find_element(By.ID, "query").get_attribute("disabled"))
+            while (iteration() or 0) < first + 30 and time.time() < deadline:
+                time.sleep(0.05)
+            self.assertGreater(iteration(), first, text())
+            self.assertGreater(d.execute_script("return window.ag2gs.frames;"), frames, "no new picture")
+            d.find_element(By.ID, "pause").click()
+            deadline = time.time() + 10
+            while "paused" not in text() and time.time() < deadline:
+                time.sleep(0.05)
+            self.assertIn("paused", text())
+            self.assertEqual(d.find_element(By.ID, "pause").text, "Resume")
+            d.find_element(By.ID, "pause").click()
+            deadline = time.time() + 300
+            while "trained" not in text() and time.time() < deadline:
+                time.sleep(0.1)
+            self.assertIn("trained: 466 iterations", text())
+            # The final model: clicking selects again (no --vocab, so no text queries).
+            deadline = time.time() + 30
+            while "click an object" not in d.find_element(By.ID, "status").text and time.time() < deadline:
+                time.sleep(0.05)
+            self.assertIn("click an object", d.find_element(By.ID, "status").text)
+            self.assertIsNone(d.execute_script("return window.ag2gs.lastError;"))
+        finally:
+            d.quit()
+            v.stop(signal.SIGINT)
+            shutil.rmtree(out, ignore_errors=True)
 
 
 if __name__ == "__main__":

@@ -26,10 +26,11 @@ def test_dir():
 
 
 class Viewer:
-    """`ag2gs view ARGS --port 0`, until stop(); base is http://127.0.0.1:PORT."""
+    """`ag2gs view ARGS --port 0` (or `ag2gs COMMAND ARGS --port 0`: `train ... --view`), until stop(); base is
+    http://127.0.0.1:PORT."""
 
-    def __init__(self, *args, timeout=120):
-        self.proc = subprocess.Popen([binary(), "view", *args, "--port", "0"], stdout=subprocess.PIPE,
+    def __init__(self, *args, timeout=120, command="view"):
+        self.proc = subprocess.Popen([binary(), command, *args, "--port", "0"], stdout=subprocess.PIPE,
                                      stderr=subprocess.STDOUT, text=True)
         self.lines = []
         self.port = None
