@@ -91,20 +91,35 @@ struct LiveView {
 // one seeded layer, no growth budget. A setting the user gives on the
 // command line wins. A resumed run takes its settings from the checkpoint, so
 // a preset is applied only when given explicitly there.
-void apply_preset(const CLI::App& sub, TrainArgs& a) {
+void apply_preset(const CLI::App& sub, TrainArgs& a, bool log = true) {
   const bool continues = a.resume || std::find(a.stages.begin(), a.stages.end(), 1) == a.stages.end();
   if (continues && sub.count("--preset") == 0) return;
   TrainConfig& c = a.config;
+  // The values live in the library (TrainConfig::preset); a flag given on
+  // the command line wins over them.
+  const TrainConfig p = TrainConfig::preset(a.preset);
   auto unless_given = [&sub](const char* flag, auto& field, auto value) {
     if (sub.count(flag) == 0) field = value;
   };
+  unless_given("--top-cells", c.anchors.top_cells, p.anchors.top_cells);
+  unless_given("--max-gaussians", c.max_gaussians, p.max_gaussians);
+  unless_given("--downscales", c.downscales, p.downscales);
+  unless_given("--sky-degree", c.sky_degree, p.sky_degree);
+  unless_given("--scale-cap", c.anchors.scale_cap, p.anchors.scale_cap);
+  unless_given("--children", c.anchors.children, p.anchors.children);
+  unless_given("--init-layers", c.anchors.init_layers, p.anchors.init_layers);
+  unless_given("--grow-budget", c.grow_budget, p.grow_budget);
+  unless_given("--init-children-at-points", c.anchors.init_children_at_points, p.anchors.init_children_at_points);
+  unless_given("--recycle-opacity", c.recycle_opacity, p.recycle_opacity);
+  unless_given("--final-prune-opacity", c.final_prune_opacity, p.final_prune_opacity);
+  unless_given("--prune-importance", c.prune_importance, p.prune_importance);
+  unless_given("--lr-offset", c.offset_lr_init, p.offset_lr_init);
+  unless_given("--lr-scaling", c.scaling_lr, p.scaling_lr);
+  unless_given("--grow-min-seen", c.grow_min_seen, p.grow_min_seen);
+  unless_given("--grow-split", c.grow_split, p.grow_split);
+  unless_given("--far-shell", c.far_shell, p.far_shell);
+  if (!log) return;
   if (a.preset == "paper") {
-    unless_given("--top-cells", c.anchors.top_cells, 200);
-    unless_given("--grow-budget", c.grow_budget, 0.0);
-    unless_given("--init-layers", c.anchors.init_layers, 1);
-    unless_given("--max-gaussians", c.max_gaussians, int64_t{0});
-    unless_given("--downscales", c.downscales, 0);
-    unless_given("--sky-degree", c.sky_degree, -1);
     spdlog::info(
         "preset paper: --top-cells {} --children {} --init-layers {} --scale-cap {} --grow-budget {} --max-gaussians "
         "{} --sky-degree {}",
@@ -112,19 +127,6 @@ void apply_preset(const CLI::App& sub, TrainArgs& a) {
         c.max_gaussians, c.sky_degree);
     return;
   }
-  unless_given("--scale-cap", c.anchors.scale_cap, 64.f);
-  unless_given("--children", c.anchors.children, 2);
-  unless_given("--init-layers", c.anchors.init_layers, 2);
-  unless_given("--grow-budget", c.grow_budget, 0.1);
-  unless_given("--init-children-at-points", c.anchors.init_children_at_points, true);
-  unless_given("--recycle-opacity", c.recycle_opacity, 0.02);
-  unless_given("--final-prune-opacity", c.final_prune_opacity, 0.015);
-  unless_given("--prune-importance", c.prune_importance, 0.01);
-  unless_given("--lr-offset", c.offset_lr_init, 1e-2);
-  unless_given("--lr-scaling", c.scaling_lr, 0.01);
-  unless_given("--grow-min-seen", c.grow_min_seen, 0.1);
-  unless_given("--grow-split", c.grow_split, 4.0);
-  unless_given("--far-shell", c.far_shell, true);
   spdlog::info(
       "preset {}: --scale-cap {} --children {} --init-layers {} --{} --grow-budget {} --grow-min-seen {} "
       "--grow-split {} --far-shell {} --recycle-opacity {} --final-prune-opacity {} --prune-importance {} "
@@ -800,15 +802,24 @@ void register_train(CLI::App& app, GlobalOptions& global) {
   sub->add_option("--preset", a->preset,
                   "default (= appearance: --scale-cap 64 --children 2 --init-layers 2 --init-children-at-points "
                   "--grow-budget 0.1 --grow-min-seen 0.1 --grow-split 4 --far-shell true --recycle-opacity 0.02 "
-                  "--lr-offset 1e-2 "
+                  "--final-prune-opacity 0.015 --prune-importance 0.01 --lr-offset 1e-2 "
                   "--lr-scaling 0.01, "
                   "the voxel from the "
                   "scene) or paper (the method as published: --top-cells 200, 5 children inside their voxels, "
                   "--scale-cap 1, one seeded layer, no growth budget); flags given explicitly win")
       ->check(CLI::IsMember({"default", "appearance", "paper"}));
-  set_action(sub, [&global, a, sub] {
+  auto print_config = std::make_shared<bool>(false);
+  sub->add_flag("--print-config", *print_config,
+                "Print the settings this command would train with (the preset, then the flags given; JSON, the "
+                "`config` of model.ag2gs) and exit without reading the scene or writing anything");
+  set_action(sub, [&global, a, sub, print_config] {
     a->stages_given = sub->count("--stages") > 0;
-    apply_preset(*sub, *a);
+    apply_preset(*sub, *a, !*print_config);
+    if (*print_config) {
+      a->config.validate();
+      std::printf("%s\n", a->config.to_json().dump(2).c_str());
+      return;
+    }
     cmd_train(global, *a);
   });
 }

@@ -10,6 +10,35 @@
 
 namespace ag2gs {
 
+TrainConfig TrainConfig::preset(const std::string& name) {
+  TrainConfig c;
+  if (name == "paper") {
+    c.anchors.top_cells = 200;
+    c.grow_budget = 0.0;
+    c.anchors.init_layers = 1;
+    c.max_gaussians = 0;
+    c.downscales = 0;
+    c.sky_degree = -1;
+    return c;
+  }
+  if (name != "default" && name != "appearance")
+    throw std::invalid_argument("preset '" + name + "': choose default (also called appearance) or paper");
+  c.anchors.scale_cap = 64.f;
+  c.anchors.children = 2;
+  c.anchors.init_layers = 2;
+  c.grow_budget = 0.1;
+  c.anchors.init_children_at_points = true;
+  c.recycle_opacity = 0.02;
+  c.final_prune_opacity = 0.015;
+  c.prune_importance = 0.01;
+  c.offset_lr_init = 1e-2;
+  c.scaling_lr = 0.01;
+  c.grow_min_seen = 0.1;
+  c.grow_split = 4.0;
+  c.far_shell = true;
+  return c;
+}
+
 void TrainConfig::validate() const {
   auto bad = [](const std::string& what) { throw std::invalid_argument("TrainConfig: " + what); };
   anchors.validate();

@@ -179,6 +179,17 @@ struct TrainConfig {
 
   // Throws std::invalid_argument naming the first field out of range.
   void validate() const;
+  // What `ag2gs train --preset NAME` trains with when no other flag is
+  // given: "default" (or "appearance": the measured settings for
+  // photographed scenes: children that may outgrow their voxel, 2 per
+  // anchor on the SfM points, two seeded layers, growth of at most 10% of
+  // the anchors per round, split growth, the far shell, recycling and the
+  // importance prune, faster offset and scale rates) or "paper" (the
+  // method as published: 200 top-layer cells, 5 children inside their
+  // voxels, one seeded layer, no budget, no sky). The fields a preset does
+  // not name keep the defaults above. Throws std::invalid_argument for
+  // another name.
+  static TrainConfig preset(const std::string& name);
   // Every field (for the model archive and metrics).
   nlohmann::json to_json() const;
   // The inverse of to_json (sh_interval and grow_until come back as the

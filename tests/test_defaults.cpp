@@ -13,6 +13,7 @@
 #include "cli_test_util.h"
 #include "io_test_util.h"
 #include "stages/divergence_guard.h"
+#include "stages/train_config.h"
 #include "stages/voxel_rule.h"
 #include "test_util.h"
 
@@ -238,6 +239,36 @@ TEST(Defaults, BadVoxelSizeAndBudgetAreRefusedNamingTheFlag) {
     EXPECT_NE(p.output.find("--coarse-lowpass"), std::string::npos) << p.output;
   }
   EXPECT_FALSE(std::filesystem::exists(dir.file("m/model.ag2gs")));
+}
+
+}  // namespace
+}  // namespace ag2gs
+
+namespace ag2gs {
+namespace {
+
+// `ag2gs train` with no tuning flag trains with TrainConfig::preset
+// ("default"), field for field, so code using the library (a test, a Python
+// module) trains as the program does; a preset's fields yield to flags.
+TEST(Defaults, TheProgramTrainsWithTheLibrarysPreset) {
+  auto printed = [](const std::string& flags) {
+    const test::CliResult r = test::run_cli("train " + sample_scene() + " -o /nonexistent/m --print-config " + flags);
+    EXPECT_EQ(r.code, 0) << r.output;
+    return nlohmann::json::parse(r.output);  // the JSON alone: nothing else is printed
+  };
+  EXPECT_EQ(printed(""), TrainConfig::preset("default").to_json());
+  EXPECT_EQ(printed("--preset appearance"), TrainConfig::preset("default").to_json());
+  EXPECT_EQ(printed("--preset paper"), TrainConfig::preset("paper").to_json());
+  TrainConfig c = TrainConfig::preset("paper");
+  c.anchors.children = 3;
+  c.iterations = 500;
+  EXPECT_EQ(printed("--preset paper --children 3 --iters 500"), c.to_json());
+  // The library's preset differs from its plain defaults where the program's
+  // did: the defaults are the paper's method.
+  EXPECT_EQ(TrainConfig::preset("paper").anchors.children, TrainConfig{}.anchors.children);
+  EXPECT_NE(TrainConfig::preset("default").anchors.children, TrainConfig{}.anchors.children);
+  EXPECT_THROW(TrainConfig::preset("fast"), std::invalid_argument);
+  EXPECT_FALSE(std::filesystem::exists("/nonexistent/m"));
 }
 
 }  // namespace
