@@ -546,6 +546,7 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   run.write_metrics();
   if (view && !InterruptGuard::interrupted()) {
     // The final model (with stage 3's clusters): selection works again.
+    InterruptGuard::set_stop_message("\nstopping the viewer (training is done and saved)\n");
     view->live.publish(read_model_archive((fs::path(a.out) / "model.ag2gs").string()), true);
     spdlog::info("training done; the viewer keeps serving the final model at port {} until Ctrl-C", view->url_port);
     view->thread.join();

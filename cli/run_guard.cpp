@@ -4,8 +4,10 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
 #include <ctime>
 #include <filesystem>
 #include <map>
@@ -27,6 +29,9 @@ timespec g_first{};  // when the first signal came
 // twice; a user's second Ctrl-C comes later than that.
 constexpr double kRepeatWindowS = 0.5;
 
+// What the first signal's line says (a string literal: static storage).
+std::atomic<const char*> g_stop_message{"\nstopping: finishing this iteration and saving (send it again to abort)\n"};
+
 // Async-signal-safe: only clock_gettime(2), write(2) and _exit(2).
 extern "C" void on_terminate(int sig) {
   if (g_signal) {
@@ -41,8 +46,8 @@ extern "C" void on_terminate(int sig) {
   }
   clock_gettime(CLOCK_MONOTONIC, &g_first);
   g_signal = sig;
-  static const char msg[] = "\nstopping: finishing this iteration and saving (send it again to abort)\n";
-  ssize_t ignored = ::write(2, msg, sizeof msg - 1);
+  const char* msg = g_stop_message.load();
+  ssize_t ignored = ::write(2, msg, std::strlen(msg));
   (void)ignored;
 }
 
@@ -55,6 +60,10 @@ fs::path resolved(const std::string& p) {
 }
 
 }  // namespace
+
+void InterruptGuard::set_stop_message(const char* message) {
+  g_stop_message.store(message);
+}
 
 InterruptGuard::InterruptGuard() {
   g_signal = 0;

@@ -29,6 +29,9 @@ class InterruptGuard {
   static int exit_code() { return 128 + signal(); }
   // "Ctrl-C", "SIGTERM", "SIGHUP".
   static std::string signal_name();
+  // The line the first signal prints (default: "stopping: finishing this
+  // iteration and saving ..."); `message` must be a string literal.
+  static void set_stop_message(const char* message);
   // Flushes the log and the standard streams and exits with exit_code(),
   // once the caller has saved its work.
   [[noreturn]] static void exit_after_saving();

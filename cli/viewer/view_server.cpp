@@ -477,6 +477,7 @@ namespace {
 void cmd_view(const GlobalOptions& global, const ViewArgs& a) {
   if (a.options.resolution < 0) throw std::invalid_argument("-r must be >= 1 (it divides the camera resolution)");
   InterruptGuard guard;
+  InterruptGuard::set_stop_message("\nstopping the viewer\n");
   const auto t0 = std::chrono::steady_clock::now();
   Runtime rt(global.device);
   ViewSession session(rt, a.options);
