@@ -53,10 +53,11 @@ struct TrainArgs : RunArgs {
 // snapshots of the model as it trains (cli/viewer/view_server.h). Stopped
 // and joined when it goes out of scope, however the run ends.
 struct LiveView {
-  LiveView(const GlobalOptions& global, const TrainArgs& a, Trainer& trainer)
+  LiveView(const GlobalOptions& global, const TrainArgs& a, Trainer& trainer, const nlohmann::json& status)
       : rt(global.device),
         live(rt, options(a)),
         server([this]() -> ViewSession& { return live.session(); }, &live, a.serve) {
+    live.set_status(status);  // before the first request can come
     live.publish(trainer.model_archive(), false);
     url_port = server.bind(a.out + " while it trains");
     thread = std::thread([this] { server.run(); });
@@ -386,14 +387,14 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   };
   std::unique_ptr<LiveView> view;
   if (a.view) {
-    view = std::make_unique<LiveView>(global, a, trainer);
-    view->live.set_status({{"iteration", it_start},
-                           {"iterations", it_end},
-                           {"stage", it_start >= c.iterations ? 2 : 1},
-                           {"psnr", 0.0},
-                           {"anchors", trainer.anchors()},
-                           {"gaussians", trainer.gaussians()},
-                           {"eta_s", -1.0}});
+    view = std::make_unique<LiveView>(global, a, trainer,
+                                      nlohmann::json{{"iteration", it_start},
+                                                     {"iterations", it_end},
+                                                     {"stage", it_start >= c.iterations ? 2 : 1},
+                                                     {"psnr", 0.0},
+                                                     {"anchors", trainer.anchors()},
+                                                     {"gaussians", trainer.gaussians()},
+                                                     {"eta_s", -1.0}});
   }
   double eta_s = -1;  // the last progress line's ETA, for the viewer
   run.start(it_start);
