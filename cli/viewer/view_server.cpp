@@ -13,6 +13,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <filesystem>
 #include <map>
 #include <mutex>
 #include <sstream>
@@ -249,7 +250,10 @@ ViewSession& LiveTraining::session() {
     o.training = !final;
     // The server's lock is held: no request uses the old session any more.
     session_ = std::make_unique<ViewSession>(
-        rt_, o, trained_model_from_archive(std::move(*next), final ? o.model : "the model in training", false));
+        rt_, o,
+        trained_model_from_archive(
+            std::move(*next),
+            final ? (std::filesystem::path(o.model) / "model.ag2gs").string() : "the model in training", false));
   }
   if (!session_) throw std::runtime_error("the first picture of the model comes after its first iteration");
   return *session_;

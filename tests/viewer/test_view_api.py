@@ -561,6 +561,7 @@ class LiveTrainingView(unittest.TestCase):
             status, info = v.json("/api/info")
             self.assertTrue(info["queries"], info)
             self.assertGreater(info["clusters"], 0)
+            self.assertEqual(info["model"], os.path.join(out, "m", "model.ag2gs"))
             status, q = v.json("/api/query", {"view": "view_000", "x": 70, "y": 62})
             self.assertEqual(status, 200, q)
             self.assertGreater(q["anchors"], 0)
