@@ -354,6 +354,26 @@ TEST(OutputSetTest, TheNextRunFinishesAKilledCommit) {
   EXPECT_FALSE(fs::exists(dir.file("selection.json" + t)));
   EXPECT_FALSE(fs::exists(dir.file("masks/.c.png.tmp." + std::to_string(dead) + ".png")));
   EXPECT_FALSE(fs::exists(dir.file(".ag2gs-commit." + std::to_string(dead) + ".json.tmp")));
+
+  // A planted journal naming paths outside its folder moves nothing.
+  test::ScratchDir outside("output_set_outside");
+  test::write_bytes(outside.file("keep.txt"), "mine");
+  test::write_bytes(dir.file("masks/x.png"), "x");
+  const std::string planted = dir.file(".ag2gs-commit." + std::to_string(dead) + ".json");
+  const std::string escape = fs::relative(outside.file("keep.txt"), dir.str()).string();
+  for (const std::string& bad :
+       std::vector<std::string>{"[[\"masks/x.png\", \"" + escape + "\"]]", "[[\"/etc/hostname\", \"masks/y.png\"]]",
+                                "[[\"masks/x.png\"]]"}) {
+    test::write_bytes(planted, "{\"renames\": " + bad + "}");
+    try {
+      finish_interrupted_output_sets(dir.str());
+      ADD_FAILURE() << "accepted " << bad;
+    } catch (const std::runtime_error& e) {
+      EXPECT_NE(std::string(e.what()).find("not"), std::string::npos) << e.what();
+    }
+    EXPECT_EQ(test::read_bytes(outside.file("keep.txt")), "mine");
+    EXPECT_EQ(test::read_bytes(dir.file("masks/x.png")), "x");
+  }
 }
 
 }  // namespace

@@ -59,9 +59,32 @@ void write_journal(const std::string& path, const std::string& text) {
 // Renames what the journal lists (those still waiting), then removes it.
 void replay(const std::string& dir, const std::string& journal) {
   const nlohmann::json j = read_json_file(journal);
-  for (const nlohmann::json& r : j.at("renames")) {
-    const fs::path from = fs::path(dir) / r.at(0).get<std::string>();
-    const fs::path to = fs::path(dir) / r.at(1).get<std::string>();
+  // Only paths inside the folder: a planted journal must not move or delete
+  // anything else.
+  const fs::path root = normal(dir);
+  auto within = [&](const nlohmann::json& entry) {
+    const std::string rel = entry.is_string() ? entry.get<std::string>() : std::string();
+    const fs::path p = (root / rel).lexically_normal();
+    if (rel.empty() || fs::path(rel).is_absolute() || !inside(p, root))
+      throw std::runtime_error(journal + ": lists '" + entry.dump() +
+                               "', not a path inside its folder; it was not written by ag2gs: delete it");
+    return p;
+  };
+  if (!j.is_object() || !j.contains("renames") || !j["renames"].is_array())
+    throw std::runtime_error(journal + ": not a commit journal of ag2gs (no \"renames\" list): delete it");
+  // Every entry checked before anything moves.
+  std::vector<std::pair<fs::path, fs::path>> renames;
+  for (const nlohmann::json& r : j["renames"]) {
+    if (!r.is_array() || r.size() != 2)
+      throw std::runtime_error(journal + ": not a commit journal of ag2gs (a rename is not a pair): delete it");
+    renames.emplace_back(within(r[0]), within(r[1]));
+  }
+  std::vector<fs::path> removals;
+  const nlohmann::json none = nlohmann::json::array();
+  const nlohmann::json& listed = j.contains("removals") ? j["removals"] : none;
+  if (!listed.is_array()) throw std::runtime_error(journal + ": \"removals\" is not a list; delete it");
+  for (const nlohmann::json& r : listed) removals.push_back(within(r));
+  for (const auto& [from, to] : renames) {
     std::error_code ec;
     if (!fs::exists(from, ec)) continue;  // renamed before the stop
     fs::rename(from, to, ec);
@@ -69,9 +92,9 @@ void replay(const std::string& dir, const std::string& journal) {
       throw std::runtime_error(journal + ": cannot move " + from.string() + " into place: " + ec.message() +
                                "; nothing else was changed, run again to finish");
   }
-  for (const nlohmann::json& r : j.value("removals", nlohmann::json::array())) {
+  for (const fs::path& r : removals) {
     std::error_code ec;
-    fs::remove(fs::path(dir) / r.get<std::string>(), ec);
+    fs::remove(r, ec);
   }
   std::remove(journal.c_str());
 }
