@@ -557,6 +557,7 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   if (InterruptGuard::interrupted()) {
     spdlog::warn("{} during the last stage: it finished and its files are complete; exiting with status {}",
                  InterruptGuard::signal_name(), InterruptGuard::exit_code());
+    view.reset();  // the viewer's thread joined before the process exits
     InterruptGuard::exit_after_saving();
   }
 }
