@@ -62,8 +62,7 @@ void cmd_eval(const GlobalOptions& global, EvalArgs a) {
   check_model_dir_writable(out_dir.string());
 
   const ModelArchive archive = read_model_archive(model_file);
-  check_model_archive(archive);
-  const AnchorModel model = AnchorModel::from_archive(archive);
+  const AnchorModel model = check_model_archive(archive);
   if (!archive.meta.contains("clusters") || !archive.meta.contains("language"))
     throw std::runtime_error(model_file +
                              " has no clusters/language features, which the text queries need: run stage 3 on the "

@@ -255,8 +255,7 @@ TrainedModel trained_model_from_archive(ModelArchive archive, const std::string&
   t.file = file;
   t.archive = std::move(archive);
   if (t.archive.source.empty()) t.archive.source = file;
-  check_model_archive(t.archive);
-  t.model = AnchorModel::from_archive(t.archive);
+  t.model = check_model_archive(t.archive);
   const nlohmann::json train = t.archive.meta.value("train", nlohmann::json::object());
   t.sh_degree = recorded_sh_degree(train, t.model.config().sh_degree, t.file);
   t.resolution = recorded_resolution(train, t.file);

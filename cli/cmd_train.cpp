@@ -385,18 +385,14 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
       spdlog::info("removed {}: it described the model these files replace (a new one is written at the end)",
                    metrics.string());
   };
-  std::unique_ptr<LiveView> view;
-  if (a.view) {
-    view = std::make_unique<LiveView>(global, a, trainer,
-                                      nlohmann::json{{"iteration", it_start},
-                                                     {"iterations", it_end},
-                                                     {"stage", it_start >= c.iterations ? 2 : 1},
-                                                     {"psnr", 0.0},
-                                                     {"anchors", trainer.anchors()},
-                                                     {"gaussians", trainer.gaussians()},
-                                                     {"eta_s", -1.0}});
-  }
   double eta_s = -1;  // the last progress line's ETA, for the viewer
+  auto live_status = [&](int iteration, bool stage2, double psnr) {
+    return nlohmann::json{{"iteration", iteration}, {"iterations", it_end},         {"stage", stage2 ? 2 : 1},
+                          {"psnr", psnr},           {"anchors", trainer.anchors()}, {"gaussians", trainer.gaussians()},
+                          {"eta_s", eta_s}};
+  };
+  std::unique_ptr<LiveView> view;
+  if (a.view) view = std::make_unique<LiveView>(global, a, trainer, live_status(it_start, it_start >= c.iterations, 0));
   run.start(it_start);
   int skipped = 0;
   double psnr0 = NAN;
@@ -452,13 +448,7 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
     }
     if (std::isnan(psnr0)) psnr0 = st.psnr;
     if (view) {
-      view->live.set_status({{"iteration", st.iteration},
-                             {"iterations", it_end},
-                             {"stage", st.stage2 ? 2 : 1},
-                             {"psnr", st.psnr},
-                             {"anchors", trainer.anchors()},
-                             {"gaussians", trainer.gaussians()},
-                             {"eta_s", eta_s}});
+      view->live.set_status(live_status(st.iteration, st.stage2, st.psnr));
       if (view->live.snapshot_wanted() && st.iteration != it_end) view->live.publish(trainer.model_archive(), false);
       view->live.wait_while_paused();
     }

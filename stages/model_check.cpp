@@ -11,8 +11,8 @@
 
 namespace ag2gs {
 
-void check_model_archive(const ModelArchive& archive) {
-  const AnchorModel model = AnchorModel::from_archive(archive);
+AnchorModel check_model_archive(const ModelArchive& archive) {
+  AnchorModel model = AnchorModel::from_archive(archive);
   const nlohmann::json& anchors = archive.meta.at("anchors");
   if (!anchors.contains("count") || !anchors.at("count").is_number_integer() ||
       anchors.at("count").get<int64_t>() != static_cast<int64_t>(model.size()))
@@ -34,6 +34,7 @@ void check_model_archive(const ModelArchive& archive) {
     throw std::runtime_error(archive.source + ": meta 'train' is not an object; the file is damaged");
   recorded_resolution(train, archive.source);
   recorded_sh_degree(train, model.config().sh_degree, archive.source);
+  return model;
 }
 
 int recorded_resolution(const nlohmann::json& record, const std::string& file) {

@@ -9,6 +9,7 @@
 #include <string>
 
 #include "host/io/model_io.h"
+#include "stages/anchor_model.h"
 
 namespace ag2gs {
 
@@ -16,8 +17,9 @@ namespace ag2gs {
 // anchors (finite parameters, cells, the recorded count), the stage-2 graph
 // (its CSR rows and ids), the stage-3 clusters and language features (ids,
 // sizes, finite features), the sky (finite coefficients of a degree 0..3)
-// and the training record (resolution, SH degree).
-void check_model_archive(const ModelArchive& archive);
+// and the training record (resolution, SH degree). Returns the anchors it
+// read, so a caller need not read them again.
+AnchorModel check_model_archive(const ModelArchive& archive);
 
 // What a model file (or metrics.json) records of its training, checked: the
 // -r it was trained at (1 when not recorded) and the SH degree it reached

@@ -24,8 +24,7 @@ Stage3Summary run_stage3_on_model(Runtime& rt, Scene& scene, const std::string& 
   if (!fs::exists(path))
     throw std::runtime_error("no model " + path + " for stage 3; train stage 1 (and 2) into " + model_dir + " first");
   ModelArchive archive = read_model_archive(path);
-  check_model_archive(archive);
-  const AnchorModel model = AnchorModel::from_archive(archive);
+  const AnchorModel model = check_model_archive(archive);
   AnchorGraph graph;
   if (AnchorGraph::in_archive(archive)) graph = AnchorGraph::from_archive(archive);
   if (!AnchorGraph::in_archive(archive) || !graph.matches(model)) {
