@@ -228,13 +228,11 @@ void LiveTraining::set_status(const nlohmann::json& status) {
   status_ = status;
 }
 
-double LiveTraining::wait_while_paused() {
+void LiveTraining::wait_while_paused() {
   std::unique_lock<std::mutex> g(lock_);
-  if (!paused_) return 0;
-  const auto t0 = std::chrono::steady_clock::now();
+  if (!paused_) return;
   spdlog::info("paused from the viewer; resume there (or Ctrl-C to stop with a checkpoint)");
   while (paused_ && !InterruptGuard::interrupted()) changed_.wait_for(g, std::chrono::milliseconds(50));
-  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
 
 ViewSession& LiveTraining::session() {

@@ -40,8 +40,8 @@ class LiveTraining {
   // {"iteration", "iterations", "psnr", "gaussians", "eta_s", ...}.
   void set_status(const nlohmann::json& status);
   // Returns at once unless the page paused training; then when it resumes
-  // it, or a signal arrives. Returns the seconds it waited.
-  double wait_while_paused();
+  // it, or a signal arrives. (The pause counts in the run's training time.)
+  void wait_while_paused();
 
   // The server's side (one request at a time).
   ViewSession& session();   // the newest snapshot's (built here on first use)
