@@ -17,6 +17,7 @@
 #include <sstream>
 
 #include "cli/commands.h"
+#include "cli/model_render.h"
 #include "cli/render_colours.h"
 #include "cli/run_guard.h"
 #include "host/device/cl_runtime.h"
@@ -40,22 +41,6 @@ namespace fs = std::filesystem;
 
 namespace ag2gs::cli {
 namespace {
-
-void refuse_ply_of_another_model(const std::string& ply, const GaussianSet& set, const ModelArchive& archive) {
-  const AnchorModel am = AnchorModel::from_archive(archive);
-  const std::string& mf = archive.source;
-  const std::string fix = "; move it aside and train again, or render the file alone with --ply " + ply;
-  if (set.size() != am.gaussians())
-    throw std::runtime_error(ply + " holds " + std::to_string(set.size()) + " Gaussians where " + mf + " has " +
-                             std::to_string(am.gaussians()) + ": it was not written from this model" + fix);
-  // point_cloud(_objects).ply holds the model's expanded Gaussians row for
-  // row; their means are a function of the anchors and offsets alone.
-  const GaussianSet mine = expand_reference(am, 0);
-  for (size_t i = 0; i < mine.means.size(); ++i)
-    if (mine.means[i] != set.means[i])
-      throw std::runtime_error(ply + ": Gaussian " + std::to_string(i / 3) + " lies elsewhere than in " + mf +
-                               ": the file was not written from this model" + fix);
-}
 
 struct RenderArgs {
   std::string model, ply, scene, out, views, outputs = "rgb", bg = "0,0,0", sparse;
@@ -157,73 +142,18 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
       if (std::find(outputs.begin(), outputs.end(), o) == outputs.end()) outputs.push_back(o);
     }
   }
-  for (const std::string& o : outputs) {
-    if (o != "rgb" && o != "depth" && o != "alpha" && o != "feature" && o != "instance") {
-      throw std::invalid_argument("--outputs: unknown output '" + o +
-                                  "'; choose from rgb,depth,alpha,feature,instance");
-    }
-  }
-  if (outputs.empty()) throw std::invalid_argument("--outputs is empty; choose from rgb,depth,alpha,feature,instance");
+  check_render_outputs(outputs, "--outputs");
   auto wants = [&](const char* o) { return std::find(outputs.begin(), outputs.end(), o) != outputs.end(); };
-
-  std::string ply = a.ply;
-  if (!a.model.empty()) {
-    if (!ply.empty()) throw std::invalid_argument("give either MODEL_DIR or --ply, not both");
-    const fs::path candidate = fs::path(a.model) / "point_cloud.ply";
-    if (!fs::is_directory(a.model)) {
-      throw std::runtime_error(a.model + ": no such model folder (a folder written by `ag2gs train`)");
-    }
-    if (!fs::exists(candidate) && !wants("instance")) {
-      throw std::runtime_error(a.model + ": has no point_cloud.ply; is it a model folder written by `ag2gs train`?");
-    }
-    // A model with a sky: its Gaussians alone, the sky composited below
-    // (point_cloud.ply also holds the sky baked into Gaussians).
-    ply = model_objects_ply(a.model);
-  }
-  if (ply.empty()) throw std::invalid_argument("give a model folder (MODEL_DIR) or a Gaussian file (--ply FILE)");
-
-  RenderSettings settings;
-  settings.background = parse_rgb(a.bg);
-  // A model trained with a sky (host/render/sky.h) renders its rgb over
-  // it, as training saw it, unless --bg asks for a fixed background.
-  std::optional<std::vector<float>> sky_coefficients;
-  std::optional<ModelArchive> model_archive;
-  if (!a.model.empty() && fs::exists(fs::path(a.model) / "model.ag2gs"))
-    model_archive = read_model_archive((fs::path(a.model) / "model.ag2gs").string());
-  if (model_archive) check_model_archive(*model_archive);
-  if (model_archive && !a.bg_given) sky_coefficients = sky_from_archive(*model_archive);
-  GaussianSet set;
-  // Instance maps need the anchors' clusters: the model's Gaussians are then
-  // expanded from model.ag2gs (row g = anchor g / K, the same Gaussians as
-  // its point_cloud.ply) instead of read from the PLY.
-  std::vector<int32_t> anchor_cluster;
-  int children = 0;
-  if (wants("instance")) {
-    if (a.model.empty())
-      throw std::invalid_argument("--outputs instance needs a model folder with clusters (stage 3), not --ply");
-    const std::string mf = (fs::path(a.model) / "model.ag2gs").string();
-    if (!model_archive) throw std::runtime_error(a.model + ": no model.ag2gs, which --outputs instance needs");
-    const ModelArchive& archive = *model_archive;
-    if (!archive.meta.contains("clusters"))
-      throw std::runtime_error(mf +
-                               " has no clusters, which --outputs instance needs: run stage 3 "
-                               "(`ag2gs train SCENE_DIR -o MODEL_DIR --stages 3`)");
-    const AnchorModel am = AnchorModel::from_archive(archive);
-    const nlohmann::json tr = archive.meta.value("train", nlohmann::json::object());
-    const int sh = recorded_sh_degree(tr, am.config().sh_degree, mf);
-    set = expand_reference(am, sh);
-    anchor_cluster = clustering_from_archive(archive, am.size()).anchor_cluster;
-    children = am.config().children;
-  } else {
-    size_t dropped = 0;
-    set = read_ply(ply, PlyValues::activated, a.drop_invalid ? InvalidGaussians::drop : InvalidGaussians::reject,
-                   &dropped);
-    if (dropped > 0) spdlog::warn("{}: left out {} Gaussians with invalid numbers (--drop-invalid)", ply, dropped);
-    // The folder's PLY must be its model's: a file copied in from another
-    // model, or left from an earlier one, would render another scene under
-    // this model's name (and over its sky).
-    if (model_archive && dropped == 0) refuse_ply_of_another_model(ply, set, *model_archive);
-  }
+  ModelRenderOptions mo;
+  mo.model = a.model;
+  mo.ply = a.ply;
+  mo.outputs = outputs;
+  if (a.bg_given) mo.background = parse_rgb(a.bg);
+  mo.drop_invalid = a.drop_invalid;
+  // Checks the model or the .ply before the scene, on its own device queue.
+  Runtime rt(global.device);
+  ModelRender model_render(rt, mo);
+  const std::string& ply = model_render.ply();
   if (!fs::is_directory(a.scene))
     throw std::runtime_error(a.scene +
                              ": no such scene directory; --scene names the folder holding the COLMAP model "
@@ -240,20 +170,9 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
       render_resolution(a.resolution, !a.model.empty() ? a.model : fs::path(ply).parent_path().string());
   spdlog::info("cameras from {}; rendering at 1/{} resolution: {}", sparse, resolution, why);
 
-  Runtime rt(global.device);
-  spdlog::info("device [{}] {}; {} Gaussians (SH degree {}), {} views", rt.info().index, rt.info().name, set.size(),
-               set.sh_degree, cams.size());
-  Renderer renderer(rt);
-  DeviceGaussians dg(rt);
-  dg.upload(set);
-  Sky sky(rt);
-  if (sky_coefficients) {
-    sky.set(sky_degree_for(sky_coefficients->size()), *sky_coefficients);
-    settings.background = {0.f, 0.f, 0.f};
-    spdlog::info("rgb over the model's learned sky (SH degree {}); --bg R,G,B for a fixed background", sky.degree());
-  }
-  InstanceMapper mapper(rt);
-  if (wants("instance")) mapper.set_clusters(anchor_cluster, children);
+  spdlog::info("device [{}] {}; {} Gaussians (SH degree {}), {} views", rt.info().index, rt.info().name,
+               model_render.gaussians(), model_render.sh_degree(), cams.size());
+  if (model_render.has_sky()) spdlog::info("rgb over the model's learned sky; --bg R,G,B for a fixed background");
   fs::path out_dir(a.out);
   std::vector<std::string> names;
   for (const Camera& c : cams) names.push_back(c.name);
@@ -270,19 +189,14 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
   auto t0 = std::chrono::steady_clock::now();
   for (size_t i = 0; i < cams.size(); ++i) {
     Camera cam = scale_camera(cams[i], resolution);
-    renderer.forward(dg, cam, settings);
-    RenderOutput out = renderer.download_output();
-    if (sky.enabled() && wants("rgb")) composite_sky(renderer, sky, cam, out);
+    const ModelFrame out = model_render.render(cam);
     const std::string& stem = stems[i];
     const int w = out.width, h = out.height;
     auto file = [&](const char* o, const char* ext) { return (out_dir / o / (stem + ext)).string(); };
     if (wants("rgb")) write_rgb_png(file("rgb", ".png"), out.rgb, w, h);
     if (wants("depth")) {
-      // Mean depth along the ray (sum w z / alpha; 0 where nothing was hit).
-      std::vector<float> depth(out.depth.size());
-      for (size_t p = 0; p < depth.size(); ++p) depth[p] = out.alpha[p] > 1e-6f ? out.depth[p] / out.alpha[p] : 0.f;
-      write_gray16_png(file("depth", ".png"), depth, w, h, 1000.f);
-      write_npy(file("depth", ".npy"), depth, {h, w});
+      write_gray16_png(file("depth", ".png"), out.depth, w, h, 1000.f);
+      write_npy(file("depth", ".npy"), out.depth, {h, w});
     }
     if (wants("alpha")) {
       write_gray16_png(file("alpha", ".png"), out.alpha, w, h, 65535.f);
@@ -293,17 +207,13 @@ void cmd_render(const GlobalOptions& global, const RenderArgs& a) {
       write_npy(file("feature", ".npy"), out.feature, {h, w, 3});
     }
     if (wants("instance")) {
-      // Cluster ids (-1 = none): the pixels where one cluster holds more
-      // than half of the blending weight (stages/instance_map.h).
-      mapper.compute(renderer);
-      const InstanceMap im = mapper.download();
-      write_rgb_png(file("instance", ".png"), instance_colours(im.ids), w, h);
-      write_npy(file("instance", ".npy"), std::vector<float>(im.ids.begin(), im.ids.end()), {h, w});
+      write_rgb_png(file("instance", ".png"), instance_colours(out.instance), w, h);
+      write_npy(file("instance", ".npy"), std::vector<float>(out.instance.begin(), out.instance.end()), {h, w});
     }
     const double el = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     const double eta = el / (i + 1) * (cams.size() - i - 1);
     spdlog::info("[{}/{}] {} {}x{}  {} intersections  {:.1f} s elapsed, ETA {:.1f} s", i + 1, cams.size(), cam.name, w,
-                 h, renderer.stats().n_intersections, el, eta);
+                 h, out.intersections, el, eta);
   }
   written.commit();
   const double total = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();

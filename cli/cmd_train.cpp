@@ -453,6 +453,13 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
       view->live.wait_while_paused();
     }
     run.add_sample(st.loss - (st.with_offset_loss ? c.w_offset * st.offset_reg : 0), st.psnr, st.l1, st.ssim);
+    if (const TrainProgressHook& hook = train_progress_hook()) {
+      nlohmann::json progress = live_status(st.iteration, st.stage2, st.psnr);
+      progress["loss"] = st.loss;
+      progress["l1"] = st.l1;
+      progress["ssim"] = st.ssim;
+      if (!hook(progress)) InterruptGuard::request_stop();
+    }
     sum_dist += st.distortion;
     sum_isect += static_cast<double>(st.intersections);
     if (st.with_masks) {

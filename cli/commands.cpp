@@ -10,6 +10,8 @@
 #include <cstdlib>
 #include <map>
 
+#include "cli/run_guard.h"
+
 namespace ag2gs::cli {
 
 namespace {
@@ -101,6 +103,75 @@ CLI::Validator seed_number() {
         return {};
       },
       "0..2^64-1", "seed");
+}
+
+void build_app(CLI::App& app, GlobalOptions& global) {
+  app.require_subcommand(1);
+  app.fallthrough();  // global options also after the subcommand: `ag2gs render ... --device 1`
+  app.add_option("--device", global.device,
+                 "OpenCL device index (see `ag2gs devices`); default $AG2GS_DEVICE, "
+                 "else the first GPU, else the CPU")
+      ->check(non_negative_number());
+  app.add_flag("-v,--verbose", global.verbose, "Log more detail");
+  app.add_flag("-q,--quiet", global.quiet, "Log only warnings and errors");
+  register_commands(app, global);
+}
+
+void run_command(const std::vector<std::string>& args) {
+  CLI::App app{"ag2gs"};
+  GlobalOptions global;
+  build_app(app, global);
+  // However it ends, this app's actions leave the table with it.
+  struct Forget {
+    CLI::App& app;
+    ~Forget() {
+      for (CLI::App* sub : app.get_subcommands({})) actions().erase(sub);
+    }
+  } forget{app};
+  std::vector<std::string> reversed(args.rbegin(), args.rend());  // CLI11 takes them last first
+  try {
+    app.parse(reversed);
+  } catch (const CLI::ParseError& e) {
+    if (e.get_exit_code() == 0) {  // --help: printed as the program prints it
+      app.exit(e);
+      return;
+    }
+    std::string what = e.what();
+    if (what.empty()) what = "invalid command line";
+    throw std::invalid_argument(what);
+  }
+  // The command logs as the program does; the caller's level comes back after.
+  struct Restore {
+    spdlog::level::level_enum level = spdlog::get_level();
+    ~Restore() {
+      InterruptGuard::set_throw_on_exit(false);
+      spdlog::set_level(level);
+    }
+  } restore;
+  spdlog::set_level(global.verbose ? spdlog::level::debug : global.quiet ? spdlog::level::warn : spdlog::level::info);
+  spdlog::set_pattern("%^%l%$: %v");
+  InterruptGuard::set_throw_on_exit(true);
+  for (auto* sub : app.get_subcommands()) {
+    auto it = actions().find(sub);
+    if (it == actions().end()) continue;
+    it->second();
+    return;
+  }
+  throw std::invalid_argument("no command given");
+}
+
+namespace {
+TrainProgressHook& progress_hook() {
+  static TrainProgressHook hook;
+  return hook;
+}
+}  // namespace
+
+void set_train_progress_hook(TrainProgressHook hook) {
+  progress_hook() = std::move(hook);
+}
+const TrainProgressHook& train_progress_hook() {
+  return progress_hook();
 }
 
 void set_action(CLI::App* sub, std::function<void()> action) {

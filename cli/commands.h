@@ -37,6 +37,24 @@ CLI::Validator output_path();
 
 // Adds every subcommand; each stores its action for run_selected().
 void register_commands(CLI::App& app, GlobalOptions& global);
+// The program's whole command line as main() builds it: the global options
+// (--device, -v, -q) and every subcommand.
+void build_app(CLI::App& app, GlobalOptions& global);
+
+// One command line (the words after `ag2gs`) run in this process, as the
+// program runs it, for the Python module: a parse error throws
+// std::invalid_argument with CLI11's message, a command's error propagates
+// as thrown, and a run stopped by a signal or by the progress hook below
+// throws StoppedAfterSaving once its checkpoint is written.
+void run_command(const std::vector<std::string>& args);
+
+// Training progress for a library caller, called after every training
+// iteration with {"iteration", "iterations", "stage", "loss", "psnr", "l1",
+// "ssim", "anchors", "gaussians"}; returning false stops the run as Ctrl-C
+// does (it finishes the iteration and writes its checkpoint). Empty = none.
+using TrainProgressHook = std::function<bool(const nlohmann::json&)>;
+void set_train_progress_hook(TrainProgressHook hook);
+const TrainProgressHook& train_progress_hook();
 // Stores the action run when `sub` is the selected subcommand.
 void set_action(CLI::App* sub, std::function<void()> action);
 

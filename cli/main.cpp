@@ -11,16 +11,8 @@
 
 int main(int argc, char** argv) {
   CLI::App app{"ag2gs: anchor-graph structured Gaussian splatting on any OpenCL device"};
-  app.require_subcommand(1);
-  app.fallthrough();  // global options also after the subcommand: `ag2gs render ... --device 1`
   ag2gs::cli::GlobalOptions global;
-  app.add_option("--device", global.device,
-                 "OpenCL device index (see `ag2gs devices`); default $AG2GS_DEVICE, "
-                 "else the first GPU, else the CPU")
-      ->check(ag2gs::cli::non_negative_number());
-  app.add_flag("-v,--verbose", global.verbose, "Log more detail");
-  app.add_flag("-q,--quiet", global.quiet, "Log only warnings and errors");
-  ag2gs::cli::register_commands(app, global);
+  ag2gs::cli::build_app(app, global);
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {

@@ -88,10 +88,25 @@ std::string InterruptGuard::signal_name() {
   }
 }
 
+namespace {
+std::atomic<bool> g_throw_on_exit{false};
+}
+
+void InterruptGuard::set_throw_on_exit(bool on) {
+  g_throw_on_exit = on;
+}
+
+void InterruptGuard::request_stop() {
+  if (g_signal) return;
+  clock_gettime(CLOCK_MONOTONIC, &g_first);
+  g_signal = SIGINT;
+}
+
 void InterruptGuard::exit_after_saving() {
   spdlog::default_logger()->flush();
   std::fflush(stdout);
   std::fflush(stderr);
+  if (g_throw_on_exit) throw StoppedAfterSaving("stopped (" + signal_name() + ") after saving", exit_code());
   std::exit(exit_code());
 }
 

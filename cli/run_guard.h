@@ -4,6 +4,7 @@
 #pragma once
 
 #include <csignal>
+#include <stdexcept>
 #include <string>
 #include <vector>
 
@@ -15,6 +16,12 @@ namespace ag2gs::cli {
 // 128 + the signal's number (130, 143, 129). A second signal ends the
 // process at once with that status. The previous handlers come back on
 // destruction.
+// What exit_after_saving throws for a library caller.
+struct StoppedAfterSaving : std::runtime_error {
+  StoppedAfterSaving(const std::string& what, int code) : std::runtime_error(what), exit_code(code) {}
+  int exit_code;
+};
+
 class InterruptGuard {
  public:
   InterruptGuard();
@@ -34,7 +41,13 @@ class InterruptGuard {
   static void set_stop_message(const char* message);
   // Flushes the log and the standard streams and exits with exit_code(),
   // once the caller has saved its work.
+  // Or, after set_throw_on_exit(true) (a library caller: the Python
+  // module), throws StoppedAfterSaving instead of exiting.
   [[noreturn]] static void exit_after_saving();
+  static void set_throw_on_exit(bool on);
+  // A stop asked for by the program itself (a library caller's progress
+  // hook), handled as a first Ctrl-C.
+  static void request_stop();
 
  private:
   struct sigaction old_[3];

@@ -9,13 +9,16 @@ PACKAGES=(
   libeigen3-dev libopencv-dev libspdlog-dev libgtest-dev
   libcli11-dev nlohmann-json3-dev libcpp-httplib-dev
   colmap
+  python3-dev pybind11-dev python3-numpy
 )
 # --test: also what the test suite needs beyond the build: clang with its
 # libFuzzer and sanitizer runtimes (the fuzz smoke test), Oclgrind (the
 # simulated GPU the oclgrind tests run every kernel on), and headless
-# Chromium with its WebDriver and Selenium (the viewer's browser test).
+# Chromium with its WebDriver and Selenium (the viewer's browser test), and
+# pytest (the Python module's test). The build itself includes the Python
+# module (pybind11, Python's headers, NumPy for its arrays).
 if [ "${1:-}" = "--test" ]; then
-  PACKAGES+=(clang libclang-rt-14-dev oclgrind chromium chromium-driver python3-selenium)
+  PACKAGES+=(clang libclang-rt-14-dev oclgrind chromium chromium-driver python3-selenium python3-pytest)
 fi
 
 missing=()

@@ -4,6 +4,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <chrono>
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
@@ -322,7 +323,17 @@ void Runtime::launch(const std::string& label, cl::Kernel& k, const cl::NDRange&
   if (profiling_)
     pending_events_.push_back({label, by_kernel_ ? k.getInfo<CL_KERNEL_FUNCTION_NAME>() : std::string(), ev});
   if (launch_log_) {
-    std::fprintf(launch_log_, "%s vw=%d\n", k.getInfo<CL_KERNEL_FUNCTION_NAME>().c_str(), vector_width_);
+    // The kernel, then its work-item count: a simulator's time is about
+    // proportional to the latter (tests/oclgrind/run_oclgrind.sh reads $1).
+    size_t items = 1;
+    for (cl_uint i = 0; i < g.dimensions(); ++i) items *= g.get()[i];
+    // The log waits for each launch, so that its wall time (s=) is the
+    // kernel's own: slower, but the bits are the same.
+    const auto t0 = std::chrono::steady_clock::now();
+    queue_.finish();
+    const auto t1 = std::chrono::steady_clock::now();
+    std::fprintf(launch_log_, "%s vw=%d items=%zu label=%s s=%.4f\n", k.getInfo<CL_KERNEL_FUNCTION_NAME>().c_str(),
+                 vector_width_, items, label.c_str(), std::chrono::duration<double>(t1 - t0).count());
     std::fflush(launch_log_);
   }
 }
