@@ -160,6 +160,21 @@ void run_command(const std::vector<std::string>& args) {
   throw std::invalid_argument("no command given");
 }
 
+std::string command_help(const std::string& command) {
+  CLI::App app{"ag2gs"};
+  GlobalOptions global;
+  build_app(app, global);
+  struct Forget {
+    CLI::App& app;
+    ~Forget() {
+      for (CLI::App* sub : app.get_subcommands({})) actions().erase(sub);
+    }
+  } forget{app};
+  for (CLI::App* sub : app.get_subcommands({}))
+    if (sub->get_name() == command) return sub->help("ag2gs " + command);
+  throw std::invalid_argument("no command '" + command + "'; see `ag2gs --help`");
+}
+
 namespace {
 TrainProgressHook& progress_hook() {
   static TrainProgressHook hook;

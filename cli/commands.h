@@ -47,6 +47,8 @@ void build_app(CLI::App& app, GlobalOptions& global);
 // as thrown, and a run stopped by a signal or by the progress hook below
 // throws StoppedAfterSaving once its checkpoint is written.
 void run_command(const std::vector<std::string>& args);
+// `ag2gs COMMAND --help`'s text (the Python module's docstrings).
+std::string command_help(const std::string& command);
 
 // Training progress for a library caller, called after every training
 // iteration with {"iteration", "iterations", "stage", "loss", "psnr", "l1",

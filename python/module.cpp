@@ -331,6 +331,7 @@ PYBIND11_MODULE(_ag2gs, m) {
   });
   m.def("read_image", &read_image, py::arg("path"), "An image file as HxWx3 uint8 RGB.");
   m.def("devices", &devices, "The OpenCL devices, as `ag2gs devices` lists them.");
+  m.def("command_help", &command_help, py::arg("command"), "`ag2gs COMMAND --help`'s text.");
   m.def("run", &run, py::arg("args"), py::arg("callback") = py::none(),
         "Runs one ag2gs command line in this process; returns 0 or a stopped run's status.");
   py::class_<PyScene>(m, "_Scene")

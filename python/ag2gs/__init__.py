@@ -222,6 +222,19 @@ def train(scene: Union[Scene, str, os.PathLike], out: Union[str, os.PathLike],
     return Model.load(out, device=device)
 
 
+def _with_help(doc: Optional[str], command: str, how: str) -> str:
+    """A docstring followed by the program's --help of `command`, whose flags are the keywords."""
+    try:
+        text = _ag2gs.command_help(command)
+    except Exception:  # the docstring must never stop the import
+        return doc or ""
+    return (doc or "") + f"\n\n    {how}\n\n" + "\n".join("    " + line for line in text.splitlines())
+
+
+train.__doc__ = _with_help(train.__doc__, "train",
+                           "The settings: every flag below as a keyword (--iters 2000 is iters=2000).")
+
+
 class Selection:
     """Anchors of a model chosen by a query: ids, and masks in any camera."""
 
@@ -376,3 +389,8 @@ class Model:
 
     def __repr__(self) -> str:
         return f"Model({self.path!r})"
+
+
+Model.remove.__doc__ = _with_help(Model.remove.__doc__, "remove", "Keywords: the flags of `ag2gs remove` below.")
+Model.simulate.__doc__ = _with_help(Model.simulate.__doc__, "simulate",
+                                    "Keywords: the flags of `ag2gs simulate` below.")

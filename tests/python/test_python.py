@@ -171,3 +171,9 @@ def test_training_is_deterministic_across_thread_counts(tmp_path):
                            capture_output=True, text=True)
         assert r.returncode == 0, r.stderr
     assert (tmp_path / "t1" / "model.ag2gs").read_bytes() == (tmp_path / "t2" / "model.ag2gs").read_bytes()
+
+
+def test_docstrings_carry_the_programs_help():
+    assert "--iters" in ag2gs.train.__doc__ and "--seed" in ag2gs.train.__doc__
+    assert "--material" in ag2gs.Model.simulate.__doc__ or "--frames" in ag2gs.Model.simulate.__doc__
+    assert "--selection" in ag2gs.Model.remove.__doc__
