@@ -117,17 +117,25 @@ void build_app(CLI::App& app, GlobalOptions& global) {
   register_commands(app, global);
 }
 
-void run_command(const std::vector<std::string>& args) {
+namespace {
+
+// The whole command line built for one in-process call; however the call
+// ends, its subcommands' actions leave the table with it.
+struct ScopedApp {
   CLI::App app{"ag2gs"};
   GlobalOptions global;
-  build_app(app, global);
-  // However it ends, this app's actions leave the table with it.
-  struct Forget {
-    CLI::App& app;
-    ~Forget() {
-      for (CLI::App* sub : app.get_subcommands({})) actions().erase(sub);
-    }
-  } forget{app};
+  ScopedApp() { build_app(app, global); }
+  ~ScopedApp() {
+    for (CLI::App* sub : app.get_subcommands({})) actions().erase(sub);
+  }
+};
+
+}  // namespace
+
+void run_command(const std::vector<std::string>& args) {
+  ScopedApp scoped;
+  CLI::App& app = scoped.app;
+  const GlobalOptions& global = scoped.global;
   std::vector<std::string> reversed(args.rbegin(), args.rend());  // CLI11 takes them last first
   try {
     app.parse(reversed);
@@ -161,16 +169,8 @@ void run_command(const std::vector<std::string>& args) {
 }
 
 std::string command_help(const std::string& command) {
-  CLI::App app{"ag2gs"};
-  GlobalOptions global;
-  build_app(app, global);
-  struct Forget {
-    CLI::App& app;
-    ~Forget() {
-      for (CLI::App* sub : app.get_subcommands({})) actions().erase(sub);
-    }
-  } forget{app};
-  for (CLI::App* sub : app.get_subcommands({}))
+  ScopedApp scoped;
+  for (CLI::App* sub : scoped.app.get_subcommands({}))
     if (sub->get_name() == command) return sub->help("ag2gs " + command);
   throw std::invalid_argument("no command '" + command + "'; see `ag2gs --help`");
 }

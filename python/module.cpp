@@ -42,6 +42,15 @@ py::array_t<T> to_array(const std::vector<T>& values, std::vector<py::ssize_t> s
   return a;
 }
 
+// [H,W,3] uint8 from floats in [0,1] read from an 8-bit file (exact).
+py::array_t<uint8_t> to_uint8(const std::vector<float>& rgb, int width, int height) {
+  py::array_t<uint8_t> a({static_cast<py::ssize_t>(height), static_cast<py::ssize_t>(width), py::ssize_t{3}});
+  uint8_t* p = a.mutable_data();
+  for (size_t i = 0; i < rgb.size(); ++i)
+    p[i] = static_cast<uint8_t>(std::lround(std::min(1.f, std::max(0.f, rgb[i])) * 255.f));
+  return a;
+}
+
 py::dict camera_dict(const Camera& c) {
   py::dict d;
   d["width"] = c.width;
@@ -118,11 +127,7 @@ class PyScene {
       py::gil_scoped_release release;
       im = scene_->image(view);
     }
-    py::array_t<uint8_t> a({static_cast<py::ssize_t>(im->height), static_cast<py::ssize_t>(im->width), py::ssize_t{3}});
-    uint8_t* p = a.mutable_data();
-    for (size_t i = 0; i < im->rgb.size(); ++i)
-      p[i] = static_cast<uint8_t>(std::lround(std::min(1.f, std::max(0.f, im->rgb[i])) * 255.f));
-    return a;
+    return to_uint8(im->rgb, im->width, im->height);
   }
   int semantics() const { return static_cast<int>(scene_->semantics()); }
   const Scene& scene() const { return *scene_; }
@@ -275,11 +280,7 @@ int run(const std::vector<std::string>& args, py::object callback) {
 py::array_t<uint8_t> read_image(const std::string& path) {
   int w = 0, h = 0;
   const std::vector<float> rgb = read_rgb(path, w, h);
-  py::array_t<uint8_t> a({static_cast<py::ssize_t>(h), static_cast<py::ssize_t>(w), py::ssize_t{3}});
-  uint8_t* p = a.mutable_data();
-  for (size_t i = 0; i < rgb.size(); ++i)
-    p[i] = static_cast<uint8_t>(std::lround(std::min(1.f, std::max(0.f, rgb[i])) * 255.f));
-  return a;
+  return to_uint8(rgb, w, h);
 }
 
 py::list devices() {

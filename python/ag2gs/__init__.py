@@ -360,25 +360,26 @@ class Model:
         sel.save(path)
         return path
 
-    def remove(self, sel: Selection, scene: Union[Scene, str, os.PathLike], out: Union[str, os.PathLike],
-               **settings: Any) -> "Model":
-        """`ag2gs remove`: the model without the selection (holes filled), written to out."""
+    def _apply(self, command: str, sel: Selection, scene: Union[Scene, str, os.PathLike],
+               out: Union[str, os.PathLike], settings: Dict[str, Any]) -> str:
+        """Runs remove or simulate on the selection (written to a temporary selection.json)."""
         path, _ = _scene_args(scene)
         with tempfile.TemporaryDirectory() as tmp:
             f = self._selection_file(sel, tmp)
-            self._run(["remove", self.path, "--scene", path, "-o", os.fspath(out), "--selection", f] +
+            self._run([command, self.path, "--scene", path, "-o", os.fspath(out), "--selection", f] +
                       _settings(settings))
-        return Model.load(out, self.device if self.device >= 0 else None)
+        return os.fspath(out)
+
+    def remove(self, sel: Selection, scene: Union[Scene, str, os.PathLike], out: Union[str, os.PathLike],
+               **settings: Any) -> "Model":
+        """`ag2gs remove`: the model without the selection (holes filled), written to out."""
+        return Model.load(self._apply("remove", sel, scene, out, settings),
+                          self.device if self.device >= 0 else None)
 
     def simulate(self, sel: Selection, scene: Union[Scene, str, os.PathLike], out: Union[str, os.PathLike],
                  **settings: Any) -> str:
         """`ag2gs simulate`: the selection as a physical object (frames=30, material=..., as the flags)."""
-        path, _ = _scene_args(scene)
-        with tempfile.TemporaryDirectory() as tmp:
-            f = self._selection_file(sel, tmp)
-            self._run(["simulate", self.path, "--scene", path, "-o", os.fspath(out), "--selection", f] +
-                      _settings(settings))
-        return os.fspath(out)
+        return self._apply("simulate", sel, scene, out, settings)
 
     def _run(self, args: List[str]) -> None:
         if self.device >= 0:
