@@ -183,7 +183,11 @@ void register_baseline(CLI::App& app, GlobalOptions& global) {
                   "After the first opacity reset, remove Gaussians larger than this x extent (default 0.1; 0 = off)")
       ->check(non_negative_number());
   add_progress_options(sub, *a);
-  set_action(sub, [&global, a] { cmd_baseline(global, *a); });
+  auto print_config = add_print_config_flag(sub, "train with");
+  set_action(sub, [&global, a, print_config] {
+    if (*print_config) return print_config_json(a->config);
+    cmd_baseline(global, *a);
+  });
 }
 
 }  // namespace ag2gs::cli

@@ -511,7 +511,11 @@ void register_query(CLI::App& app, GlobalOptions& global) {
   q->add_option("-r,--resolution", a->resolution, "Divide the cameras by R (default: the model's training -r)")
       ->check(CLI::Range(1, 64));
   add_query_config_options(q, a->config);
-  set_action(q, [&global, a] { cmd_query(global, *a); });
+  auto print_config = add_print_config_flag(q, "query");
+  set_action(q, [&global, a, print_config] {
+    if (*print_config) return print_config_json(a->config);
+    cmd_query(global, *a);
+  });
 }
 
 }  // namespace ag2gs::cli

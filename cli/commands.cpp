@@ -105,6 +105,14 @@ CLI::Validator seed_number() {
       "0..2^64-1", "seed");
 }
 
+std::shared_ptr<bool> add_print_config_flag(CLI::App* sub, const std::string& verb) {
+  auto flag = std::make_shared<bool>(false);
+  sub->add_flag("--print-config", *flag,
+                "Print the settings this command would " + verb +
+                    " (the defaults, then the flags given; JSON) and exit without reading anything");
+  return flag;
+}
+
 void build_app(CLI::App& app, GlobalOptions& global) {
   app.require_subcommand(1);
   app.fallthrough();  // global options also after the subcommand: `ag2gs render ... --device 1`

@@ -1,7 +1,9 @@
 #pragma once
 
 #include <CLI/CLI.hpp>
+#include <cstdio>
 #include <functional>
+#include <memory>
 #include <nlohmann/json.hpp>
 #include <string>
 #include <vector>
@@ -34,6 +36,16 @@ CLI::Validator finite_range(double lo, double hi);
 CLI::Validator seed_number();
 // An output path: not empty (`-o ''` wrote into the current folder).
 CLI::Validator output_path();
+
+// --print-config: "Print the settings this command would <verb> ... and
+// exit"; the flag's value lives as long as the action holding it.
+std::shared_ptr<bool> add_print_config_flag(CLI::App* sub, const std::string& verb);
+// Validates `config` and prints its to_json() alone on stdout (2-space JSON).
+template <typename Config>
+void print_config_json(const Config& config) {
+  config.validate();
+  std::printf("%s\n", config.to_json().dump(2).c_str());
+}
 
 // Adds every subcommand; each stores its action for run_selected().
 void register_commands(CLI::App& app, GlobalOptions& global);

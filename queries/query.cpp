@@ -22,6 +22,19 @@ namespace {
 
 // ------------------------------------------------------------------ config
 
+nlohmann::json QueryConfig::to_json() const {
+  return {{"graph_cell_scale", graph_cell_scale},
+          {"tau", tau},
+          {"min_weight", min_weight},
+          {"text_margin", text_margin},
+          {"min_click_alpha", min_click_alpha},
+          {"mask_threshold", mask_threshold},
+          {"click_candidates", click_candidates},
+          {"click_dominant", click_dominant},
+          {"click_front_weight", click_front_weight},
+          {"grow", grow}};
+}
+
 void QueryConfig::validate() const {
   auto bad = [](const std::string& what) { throw std::invalid_argument("query config: " + what); };
   if (graph_cell_scale < 1 || graph_cell_scale > 1024) bad("graph_cell_scale must lie in 1..1024");

@@ -56,6 +56,7 @@
 #include <Eigen/Core>
 #include <cstdint>
 #include <memory>
+#include <nlohmann/json.hpp>
 #include <optional>
 #include <string>
 #include <vector>
@@ -99,6 +100,8 @@ struct QueryConfig {
   bool grow = true;
   // Throws std::invalid_argument naming the field out of range.
   void validate() const;
+  // Every field by name (`query --print-config`, selection.json's thresholds).
+  nlohmann::json to_json() const;
   // tau * sqrt(-2 ln min_weight): the feature distance below which an edge passes.
   double equivalent_distance() const;
 };

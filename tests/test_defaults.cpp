@@ -12,7 +12,9 @@
 
 #include "cli_test_util.h"
 #include "io_test_util.h"
+#include "queries/query.h"
 #include "stages/divergence_guard.h"
+#include "stages/free_trainer.h"
 #include "stages/train_config.h"
 #include "stages/voxel_rule.h"
 #include "test_util.h"
@@ -269,6 +271,34 @@ TEST(Defaults, TheProgramTrainsWithTheLibrarysPreset) {
   EXPECT_NE(TrainConfig::preset("default").anchors.children, TrainConfig{}.anchors.children);
   EXPECT_THROW(TrainConfig::preset("fast"), std::invalid_argument);
   EXPECT_FALSE(std::filesystem::exists("/nonexistent/m"));
+}
+
+// The same for `baseline` (FreeTrainConfig) and `query` (QueryConfig): with
+// no flag the program uses the library's defaults, field for field, and a
+// flag changes its field alone.
+TEST(Defaults, BaselineAndQueryUseTheLibrarysDefaults) {
+  auto printed = [](const std::string& command) {
+    const test::CliResult r = test::run_cli(command + " --print-config");
+    EXPECT_EQ(r.code, 0) << r.output;
+    return nlohmann::json::parse(r.output);
+  };
+  const std::string baseline = "baseline " + sample_scene() + " -o /nonexistent/b";
+  EXPECT_EQ(printed(baseline), FreeTrainConfig{}.to_json());
+  FreeTrainConfig f;
+  f.iterations = 700;
+  EXPECT_EQ(printed(baseline + " --iters 700"), f.to_json());
+  const std::string query =
+      "query /nonexistent/m --scene " + sample_scene() + " -o /nonexistent/q --text mug --vocab v.json";
+  EXPECT_EQ(printed(query), QueryConfig{}.to_json());
+  QueryConfig q;
+  q.tau = 0.125f;
+  EXPECT_EQ(printed(query + " --tau 0.125"), q.to_json());
+  // An out-of-range value is refused by its flag before anything is printed.
+  const test::CliResult bad = test::run_cli(query + " --tau -1 --print-config");
+  EXPECT_NE(bad.code, 0);
+  EXPECT_NE(bad.output.find("--tau"), std::string::npos) << bad.output;
+  EXPECT_FALSE(std::filesystem::exists("/nonexistent/b"));
+  EXPECT_FALSE(std::filesystem::exists("/nonexistent/q"));
 }
 
 }  // namespace
