@@ -326,9 +326,9 @@ class ViewBrowser(unittest.TestCase):
         d.find_element(By.ID, "show").click()
         self.wait_for("show", lambda: self.v.json("/api/info")[1]["visibility"] == "show")
 
-        # Frames per second while the camera moves (previews: sized to take
-        # about 16 ms, quality 40; one request in flight), for the record: the page orbits
-        # a little every animation frame for 3 s.
+        # Frames per second while the camera moves (previews sized to arrive
+        # about 16 ms apart, quality 40, two requests in flight), for the
+        # record: the page orbits a little every animation frame for 3 s.
         r = d.execute_async_script("""
           const done = arguments[0], s = window.ag2gs, f0 = s.frames, t0 = performance.now();
           s.moving = true;
