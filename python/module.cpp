@@ -330,6 +330,15 @@ PYBIND11_MODULE(_ag2gs, m) {
         PyErr_SetString(PyExc_RuntimeError, w.c_str());
     }
   });
+  m.def(
+      "scale_camera", [](const py::object& c, int factor) { return camera_dict(scale_camera(camera_from(c), factor)); },
+      py::arg("camera"), py::arg("factor"), "The camera at 1/factor resolution, as -r scales it.");
+  m.def(
+      "resize_camera",
+      [](const py::object& c, int width, int height) {
+        return camera_dict(resize_camera(camera_from(c), width, height));
+      },
+      py::arg("camera"), py::arg("width"), py::arg("height"), "The same view at another image size.");
   m.def("read_image", &read_image, py::arg("path"), "An image file as HxWx3 uint8 RGB.");
   m.def("devices", &devices, "The OpenCL devices, as `ag2gs devices` lists them.");
   m.def("command_help", &command_help, py::arg("command"), "`ag2gs COMMAND --help`'s text.");

@@ -95,6 +95,14 @@ class Camera:
         """The camera's position in world coordinates (-R^T t)."""
         return -np.asarray(self.R).T @ np.asarray(self.t)
 
+    def scaled(self, factor: int) -> "Camera":
+        """The camera at 1/factor resolution, as `-r factor` scales the scene's cameras."""
+        return Camera._from(_ag2gs.scale_camera(self, int(factor)))
+
+    def resized(self, width: int, height: int) -> "Camera":
+        """The same view rendered at width x height pixels (intrinsics scaled with the size)."""
+        return Camera._from(_ag2gs.resize_camera(self, int(width), int(height)))
+
     @staticmethod
     def _from(d: Dict[str, Any]) -> "Camera":
         return Camera(d["width"], d["height"], d["fx"], d["fy"], d["cx"], d["cy"], np.asarray(d["R"]),

@@ -177,3 +177,16 @@ def test_docstrings_carry_the_programs_help():
     assert "--iters" in ag2gs.train.__doc__ and "--seed" in ag2gs.train.__doc__
     assert "--material" in ag2gs.Model.simulate.__doc__ or "--frames" in ag2gs.Model.simulate.__doc__
     assert "--selection" in ag2gs.Model.remove.__doc__
+
+
+def test_cameras_scale_as_the_program_scales_them(model):
+    full = ag2gs.Scene(SAMPLE).views[3].camera
+    half = ag2gs.Scene(SAMPLE, resolution=2).views[3].camera
+    mine = full.scaled(2)
+    for f in ("width", "height", "fx", "fy", "cx", "cy", "name"):
+        assert getattr(mine, f) == getattr(half, f), f
+    assert np.array_equal(mine.R, half.R) and np.array_equal(mine.t, half.t)
+    big = full.resized(2 * full.width, 2 * full.height)
+    assert model.render(big)["rgb"].shape == (2 * full.height, 2 * full.width, 3)
+    with pytest.raises(ValueError, match="vanishes"):
+        full.scaled(10000)
