@@ -551,7 +551,9 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
     spdlog::info("stopped ({})", InterruptGuard::signal_name());
     return;  // training completed: status 0
   }
-  if (InterruptGuard::interrupted()) {
+  // A stop the caller asked for at the last iteration came after the work
+  // was done: the run ends as a finished one. A signal still sets the status.
+  if (InterruptGuard::signalled()) {
     spdlog::warn("{} during the last stage: it finished and its files are complete; exiting with status {}",
                  InterruptGuard::signal_name(), InterruptGuard::exit_code());
     view.reset();  // the viewer's thread joined before the process exits

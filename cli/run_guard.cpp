@@ -22,7 +22,8 @@ namespace {
 
 constexpr int kSignals[3] = {SIGINT, SIGTERM, SIGHUP};
 volatile std::sig_atomic_t g_signal = 0;
-timespec g_first{};  // when the first signal came
+bool g_requested = false;  // g_signal came from request_stop(), not from a signal
+timespec g_first{};        // when the first signal came
 
 // The same signal again within this window is one request: `timeout` and
 // job schedulers signal the process and its group, so one SIGTERM arrives
@@ -67,6 +68,7 @@ void InterruptGuard::set_stop_message(const char* message) {
 
 InterruptGuard::InterruptGuard() {
   g_signal = 0;
+  g_requested = false;
   struct sigaction sa {};
   sa.sa_handler = on_terminate;
   sigemptyset(&sa.sa_mask);
@@ -99,7 +101,12 @@ void InterruptGuard::set_throw_on_exit(bool on) {
 void InterruptGuard::request_stop() {
   if (g_signal) return;
   clock_gettime(CLOCK_MONOTONIC, &g_first);
+  g_requested = true;
   g_signal = SIGINT;
+}
+
+bool InterruptGuard::signalled() {
+  return g_signal != 0 && !g_requested;
 }
 
 void InterruptGuard::exit_after_saving() {

@@ -48,6 +48,9 @@ class InterruptGuard {
   // A stop asked for by the program itself (a library caller's progress
   // hook), handled as a first Ctrl-C.
   static void request_stop();
+  // A signal came (not request_stop()): a run that finished its work anyway
+  // still exits with the signal's status.
+  static bool signalled();
 
  private:
   struct sigaction old_[3];

@@ -190,3 +190,9 @@ def test_cameras_scale_as_the_program_scales_them(model):
     assert model.render(big)["rgb"].shape == (2 * full.height, 2 * full.width, 3)
     with pytest.raises(ValueError, match="vanishes"):
         full.scaled(10000)
+
+
+def test_a_stop_asked_at_the_last_iteration_ends_a_finished_run(tmp_path):
+    model = ag2gs.train(SAMPLE, tmp_path / "m", callback=lambda it, m: it < m["iterations"], iters=10, stages=(1,),
+                        seed=1, quiet=True)
+    assert (tmp_path / "m" / "model.ag2gs").exists() and model.metrics["iterations"] == 10
