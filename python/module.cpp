@@ -321,6 +321,8 @@ PYBIND11_MODULE(_ag2gs, m) {
   py::register_exception_translator([](std::exception_ptr p) {
     try {
       if (p) std::rethrow_exception(p);
+    } catch (const py::builtin_exception& e) {  // value_error, index_error, ...: their own kinds
+      e.set_error();
     } catch (const std::runtime_error& e) {
       const std::string w = e.what();
       if (w.find("no such") != std::string::npos || w.find("does not exist") != std::string::npos ||

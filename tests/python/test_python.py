@@ -159,6 +159,11 @@ def test_bad_inputs_raise_with_the_programs_messages(tmp_path, model, scene):
         model.query(text="blue mug", scene=scene)
     with pytest.raises(ValueError, match="--iters"):
         ag2gs.train(SAMPLE, tmp_path / "m", iters=-5)
+    model.query(click=("view_000", 70, 62), scene=scene)  # the scene for masks
+    with pytest.raises(ValueError, match="is not one of the model's"):
+        ag2gs.Selection(model, [10 ** 7]).mask(scene.views[0].camera)
+    with pytest.raises(IndexError):
+        scene._core.image(len(scene.views))
     with pytest.raises(ValueError, match="resolution must be >= 1"):
         ag2gs.Scene(SAMPLE, resolution=0)
 
