@@ -175,17 +175,13 @@ def _flag(name: str) -> str:
 
 def _settings(settings: Dict[str, Any]) -> List[str]:
     """Keyword settings as the program's flags: iters=2000 -> --iters 2000,
-    far_shell=False -> --far-shell false, eval=True -> --eval."""
+    far_shell=False -> --far-shell=false, eval=True -> --eval=true, stages=(1, 2) -> --stages 1,2."""
     args: List[str] = []
     for k, v in settings.items():
         if v is None:
             continue
-        if isinstance(v, bool):
-            if k in ("eval", "force", "resume", "profile", "init_children_at_points", "quiet", "verbose"):
-                if v:
-                    args.append(_flag(k))
-            else:
-                args += [_flag(k), "true" if v else "false"]
+        if isinstance(v, bool):  # flags and true/false options alike take --name=true|false
+            args.append(f"{_flag(k)}={'true' if v else 'false'}")
         elif isinstance(v, (list, tuple)):
             args += [_flag(k), ",".join(str(x) for x in v)]
         else:

@@ -201,3 +201,15 @@ def test_a_stop_asked_at_the_last_iteration_ends_a_finished_run(tmp_path):
     model = ag2gs.train(SAMPLE, tmp_path / "m", callback=lambda it, m: it < m["iterations"], iters=10, stages=(1,),
                         seed=1, quiet=True)
     assert (tmp_path / "m" / "model.ag2gs").exists() and model.metrics["iterations"] == 10
+
+
+def test_keywords_become_the_programs_flags(capfd):
+    flags = ag2gs._settings({"far_shell": False, "init_children_at_points": True, "iters": 300, "stages": (1, 2),
+                             "eval": True, "seed": None})
+    assert flags == ["--far-shell=false", "--init-children-at-points=true", "--iters", "300", "--stages", "1,2",
+                     "--eval=true"]
+    capfd.readouterr()
+    assert ag2gs.run("train", SAMPLE, "-o", "/nonexistent/m", *flags, "--print-config") == 0
+    config = json.loads(capfd.readouterr().out)
+    assert config["far_shell"] is False and config["anchors"]["init_children_at_points"] is True
+    assert config["iterations"] == 300
