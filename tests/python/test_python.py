@@ -155,6 +155,9 @@ def test_bad_inputs_raise_with_the_programs_messages(tmp_path, model, scene):
     bad = ag2gs.Camera(0, bad.height, bad.fx, bad.fy, bad.cx, bad.cy, bad.R, bad.t, bad.name)
     with pytest.raises(ValueError):
         model.render(bad)
+    c = scene.views[0].camera
+    with pytest.raises(ValueError, match="not a rotation"):
+        model.render(ag2gs.Camera(c.width, c.height, c.fx, c.fy, c.cx, c.cy, 2 * c.R, c.t, c.name))
     with pytest.raises(ValueError, match="--text needs --vocab"):
         model.query(text="blue mug", scene=scene)
     with pytest.raises(ValueError, match="--iters"):
