@@ -256,9 +256,18 @@ class Selection:
         record = dict(self.record)
         record["anchors"] = self.anchors.tolist()
         record.setdefault("model", os.path.join(self.model.path, "model.ag2gs"))
-        with open(path, "w") as f:
-            json.dump(record, f)
-        return os.fspath(path)
+        # Whole or not at all, as the program writes its files: a temporary
+        # name beside the target, renamed into place.
+        path = os.fspath(path)
+        tmp = f"{path}.tmp.{os.getpid()}"
+        try:
+            with open(tmp, "w") as f:
+                json.dump(record, f)
+            os.replace(tmp, path)
+        finally:
+            if os.path.exists(tmp):
+                os.remove(tmp)
+        return path
 
     def __len__(self) -> int:
         return len(self.anchors)

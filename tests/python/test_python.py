@@ -138,6 +138,10 @@ def test_queries_select_the_programs_anchors(model, scene):
 
 def test_remove_and_simulate_write_what_the_program_writes(tmp_path, model, scene):
     sel = model.query(click=("view_000", 70, 62), scene=scene)
+    saved = sel.save(tmp_path / "selection.json")
+    with open(saved) as f:
+        assert json.load(f)["anchors"] == sel.anchors.tolist()
+    assert os.listdir(tmp_path) == ["selection.json"]  # no temporary file left beside it
     removed = model.remove(sel, scene, tmp_path / "removed")
     assert os.path.exists(os.path.join(removed.path, "model.ag2gs"))
     out = model.simulate(sel, scene, tmp_path / "sim", frames=2, fps=50)
