@@ -272,3 +272,155 @@ void blend_bwd(int width, int height, int tiles_x,
   }
 }
 #endif
+
+// Blend weights: for every (Gaussian, tile) intersection, the sum over the
+// tile's pixels of the Gaussian's blending weight w = alpha T, written to the
+// slot's G2_FEAT value (every other value 0), so project_bwd's feature
+// gradient is each Gaussian's summed weight. It is blend_bwd of an upstream
+// gradient of 1 on feature channel 0 and nothing else, without the forward
+// pass and the rest of the vector-Jacobian product: each pixel keeps its
+// transmittance and stop as blend_fwd does (a Gaussian that would take T
+// below T_MIN stops the pixel and is not blended), so the weights are
+// blend_fwd's, and they are summed in blend_bwd's order (CPU layout: rows in
+// order per lane, then lanes; GPU layout: the plan's VW, work-items and SEG),
+// which makes the sums equal blend_bwd's bit for bit. For the importance
+// prune (host/render/importance.h), which needs nothing else.
+#if NO_STAGING
+__kernel __attribute__((reqd_work_group_size(1, 1, 1)))
+void blend_weights(int width, int height, int tiles_x,
+                   __global const int2* ranges,       // [tiles]
+                   __global const uint* isect_vals,   // [M] sorted: intersection slot
+                   __global const uint* isect_gid,    // [M] by slot: Gaussian id
+                   __global const float* records,     // [N,REC_SIZE]
+                   __global float* isect_grads) {     // [M,G2_SIZE] by slot
+  const int tile = get_group_id(0);
+  int2 range = ranges[tile];
+  const int n = range.y - range.x;
+  __global const uint* vals = isect_vals + range.x;
+
+  vfloat Ts[WG_SIZE], pxs[WG_SIZE];
+  vint dones[WG_SIZE];
+  float pys[WG_SIZE], dx0s[WG_SIZE], dx1s[WG_SIZE];
+  int live = 0;  // rows with a pixel still blending
+  for (int row = 0; row < WG_SIZE; ++row) {
+    PixelRow pr = pixel_row_of(tile, row, tiles_x, width, height);
+    pxs[row] = pr.px;
+    pys[row] = pr.py;
+    dx0s[row] = -(pr.x0 + 0.5f);
+    dx1s[row] = -(pr.x0 + (VW - 0.5f));
+    Ts[row] = 1.f;
+    dones[row] = NOT(pr.inside);
+    if (ANY(NOT(dones[row]))) ++live;
+  }
+
+  for (int j = 0; j < n; ++j) {
+    __global float* o2 = isect_grads + (size_t)vals[j] * G2_SIZE;
+    vfloat s_w = 0.f;
+    if (live > 0) {
+      __global const float* q = records + (size_t)isect_gid[vals[j]] * REC_SIZE;
+      const float u = q[REC_U], v = q[REC_V];
+      for (int row = 0; row < WG_SIZE; ++row) {
+        if (!ANY(NOT(dones[row]))) continue;
+        const float dy = v - pys[row];
+        if (row_culled(q, dy, u + dx0s[row], u + dx1s[row])) continue;
+        const vfloat sigma = blend_sigma(q[REC_CA], q[REC_CB], q[REC_CC], u - pxs[row], dy);
+        const vfloat alpha = fmin(q[REC_OPACITY] * blend_falloff(sigma), ALPHA_MAX);
+        vint ok = NOT(dones[row]) & (sigma >= 0.f) & (alpha >= ALPHA_MIN);
+        if (!ANY(ok)) continue;
+        const vfloat T = Ts[row];
+        const vfloat Tn = T * (1.f - alpha);
+        const vint stop = ok & (Tn < T_MIN);
+        dones[row] = dones[row] | stop;
+        ok = ok & NOT(stop);
+        s_w += select((vfloat)0.f, alpha * T, ok);
+        Ts[row] = select(T, Tn, ok);
+        if (!ANY(NOT(dones[row]))) --live;
+      }
+    }
+    for (int c = 0; c < G2_SIZE; ++c) o2[c] = 0.f;
+    o2[G2_FEAT] = HSUM(s_w);
+  }
+}
+#else
+__kernel __attribute__((reqd_work_group_size(WG_SIZE, 1, 1)))
+void blend_weights(int width, int height, int tiles_x,
+                   __global const int2* ranges,       // [tiles]
+                   __global const uint* isect_vals,   // [M] sorted: intersection slot
+                   __global const uint* isect_gid,    // [M] by slot: Gaussian id
+                   __global const float* records,     // [N,REC_SIZE]
+                   __global float* isect_grads) {     // [M,G2_SIZE] by slot
+  __local float s_rec[BATCH * REC_SIZE];
+  __local uint s_slot[BATCH];
+  __local float s_part[BATCH * PSTRIDE];
+#if SEG > 1
+  __local float s_seg[BATCH * SEG];
+#endif
+  __local int s_alive;
+  const int lid = get_local_id(0);
+  PixelRow pr = pixel_row(tiles_x, width, height);
+  int2 range = ranges[pr.tile];
+  const int n = range.y - range.x;
+
+  vfloat T = 1.f;
+  vint done = NOT(pr.inside);
+  int b0 = 0;
+  for (; b0 < n; b0 += BATCH) {
+    const int nb = min(BATCH, n - b0);
+    barrier(CLK_LOCAL_MEM_FENCE);
+    if (lid == 0) s_alive = 0;
+    for (int i = lid; i < nb; i += WG_SIZE) {
+      uint slot = isect_vals[range.x + b0 + i];
+      s_slot[i] = slot;
+      uint gid = isect_gid[slot];
+      for (int c = 0; c < REC_SIZE; ++c) s_rec[i * REC_SIZE + c] = records[(size_t)gid * REC_SIZE + c];
+    }
+    barrier(CLK_LOCAL_MEM_FENCE);
+    if (ANY(NOT(done))) atomic_or(&s_alive, 1);
+    barrier(CLK_LOCAL_MEM_FENCE);
+    if (!s_alive) break;  // every pixel of the tile stopped: the rest get zeros below
+    for (int j = 0; j < nb; ++j) {
+      __local const float* q = s_rec + j * REC_SIZE;
+      const vfloat sigma = blend_sigma(q[REC_CA], q[REC_CB], q[REC_CC], q[REC_U] - pr.px, q[REC_V] - pr.py);
+      const vfloat alpha = fmin(q[REC_OPACITY] * blend_falloff(sigma), ALPHA_MAX);
+      vint ok = NOT(done) & (sigma >= 0.f) & (alpha >= ALPHA_MIN);
+      const vfloat Tn = T * (1.f - alpha);
+      const vint stop = ok & (Tn < T_MIN);
+      done = done | stop;
+      ok = ok & NOT(stop);
+      s_part[j * PSTRIDE + lid] = HSUM(select((vfloat)0.f, alpha * T, ok));
+      T = select(T, Tn, ok);
+    }
+    barrier(CLK_LOCAL_MEM_FENCE);
+    // One value per Gaussian, summed over the work-items as blend_bwd sums.
+#if SEG == 1
+    for (int r = lid; r < nb; r += WG_SIZE) {
+      __local const float* p = s_part + r * PSTRIDE;
+      float s = 0.f;
+      for (int l = 0; l < WG_SIZE; ++l) s += p[l];
+      __global float* o2 = isect_grads + (size_t)s_slot[r] * G2_SIZE;
+      for (int c = 0; c < G2_SIZE; ++c) o2[c] = 0.f;
+      o2[G2_FEAT] = s;
+    }
+#else
+    for (int k = lid; k < nb * SEG; k += WG_SIZE) {
+      __local const float* p = s_part + (k / SEG) * PSTRIDE + k % SEG;
+      float s = 0.f;
+      for (int l = 0; l < WG_SIZE / SEG; ++l) s += p[l * SEG];
+      s_seg[k] = s;
+    }
+    barrier(CLK_LOCAL_MEM_FENCE);
+    for (int r = lid; r < nb; r += WG_SIZE) {
+      float s = 0.f;
+      for (int g = 0; g < SEG; ++g) s += s_seg[r * SEG + g];
+      __global float* o2 = isect_grads + (size_t)s_slot[r] * G2_SIZE;
+      for (int c = 0; c < G2_SIZE; ++c) o2[c] = 0.f;
+      o2[G2_FEAT] = s;
+    }
+#endif
+  }
+  for (int k = b0 + lid; k < n; k += WG_SIZE) {
+    __global float* o2 = isect_grads + (size_t)isect_vals[range.x + k] * G2_SIZE;
+    for (int c = 0; c < G2_SIZE; ++c) o2[c] = 0.f;
+  }
+}
+#endif

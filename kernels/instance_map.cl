@@ -59,6 +59,7 @@ void instance_map(int width, int height, int tiles_x, int children,
   vint cand = -1;
   vfloat surplus = 0.f;
   vint last_cand = -1;  // last list entry that added to the final candidate
+  vint contested = 0;   // another cluster voted: walk 2 must sum the candidate
 #if WITH_IMAGES
   vfloat f0 = 0.f, f1 = 0.f, f2 = 0.f;
 #endif
@@ -75,6 +76,7 @@ void instance_map(int width, int height, int tiles_x, int children,
         vint wins = NOT(same) & (w > surplus);
         vfloat next = select(select(surplus - w, w - surplus, wins), surplus + w, same);
         surplus = select(surplus, next, ok);
+        contested = contested | (ok & NOT(same) & (cand >= 0));
         cand = select(cand, (vint)k, ok & wins);
         last_cand = select(last_cand, (vint)j, ok & (same | wins));
       }
@@ -83,21 +85,26 @@ void instance_map(int width, int height, int tiles_x, int children,
   }
   // Walk 2: the candidate's total weight, summed in blending order. After
   // the final candidate took over, each of its contributions moved
-  // last_cand, so nothing of it lies beyond: the walk ends there.
+  // last_cand, so nothing of it lies beyond: the walk ends there. A pixel
+  // where no other cluster ever voted needs no walk 2: its surplus is
+  // 0 + w_1 + w_2 + ... over the candidate's Gaussians in blending order
+  // (the first vote gives w_1 - 0), the very sum walk 2 would make, bit for
+  // bit; only contested pixels walk again (at an object's edge, say).
+  const vint again = contested & (cand >= 0) & pr.inside;
   int end = 0;
 #if VW == 1
-  end = last_cand + 1;
+  end = again ? last_cand + 1 : 0;
 #else
   {
     int lc[VW];
-    VSTORE(last_cand, lc);
+    VSTORE(select((vint)-1, last_cand, again), lc);
     for (int l = 0; l < VW; ++l) end = max(end, lc[l] + 1);
   }
 #endif
-  vfloat weight = 0.f;
+  vfloat weight = select((vfloat)0.f, surplus, (cand >= 0) & NOT(again));
   {
     vfloat T = 1.f;  // walk 2's own (walk 1's T gives the alpha below)
-    vint done = NOT(pr.inside) | (cand < 0);
+    vint done = NOT(again);
     for (int j = 0; j < end; ++j) {
       INSTANCE_STEP
       weight += select((vfloat)0.f, w, ok & (cand == k));

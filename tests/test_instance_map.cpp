@@ -301,6 +301,60 @@ TEST(InstanceMap, OneWalkGivesTheForwardPassFeatureAndAlphaBitForBit) {
   }
 }
 
+// A pixel that no other cluster voted on takes its vote's surplus as the
+// candidate's weight instead of walking its list again: the same sum, bit for
+// bit. Checked through the feature planes of the same walk: with channel 0 = 1
+// on cluster c's Gaussians and 0 elsewhere, the blended channel 0 is c's
+// weights summed in blending order (w * 1 = w; w * 0 = 0 adds nothing), so at
+// every pixel whose id is c the map's weight equals it. Channel 1 = 1 on the
+// other clusters' Gaussians tells the contested pixels (another cluster drew
+// there, walk 2 runs) from the rest (it does not); both must occur.
+TEST(InstanceMap, WeightIsTheWinnersBlendedShareBitForBit) {
+  size_t contested = 0, alone = 0;
+  for (int scene = 0; scene < 3; ++scene) {
+    std::vector<int32_t> ac;
+    const int K = 2;
+    GaussianSet g = clustered_scene(150, K, 31 + scene, ac);
+    if (scene == 2)  // an opaque stack along the view axis: pixels stop early
+      for (size_t i = 0; i < g.size(); ++i) {
+        g.means[3 * i] *= 0.2f;
+        g.means[3 * i + 1] *= 0.2f;
+        g.opacities[i] = 0.3f + 0.6f * static_cast<float>(i % 7) / 6.f;
+      }
+    const Camera cam = test::look_at_origin(53 + 4 * scene, 41 + 3 * scene);
+    const size_t npix = static_cast<size_t>(cam.width) * cam.height;
+    for (int c = 0; c < 6; ++c) {
+      for (size_t i = 0; i < g.size(); ++i) {
+        const int k = ac[i / K];
+        g.features[3 * i] = k == c ? 1.f : 0.f;
+        g.features[3 * i + 1] = k >= 0 && k != c ? 1.f : 0.f;
+        g.features[3 * i + 2] = 0.f;
+      }
+      DeviceGaussians dg(test::runtime());
+      dg.upload(g);
+      RenderSettings settings;
+      settings.sh_degree = 0;
+      Renderer r(test::runtime());
+      r.bin(dg, cam, settings);
+      InstanceMapper mapper(test::runtime());
+      mapper.set_clusters(ac, K);
+      mapper.compute_with_images(r);
+      const InstanceMap m = mapper.download();
+      std::vector<float> f;
+      mapper.device_feature().download(f, npix * 3);
+      for (size_t p = 0; p < npix; ++p) {
+        if (m.ids[p] != c) continue;
+        ASSERT_EQ(0, std::memcmp(&m.weight[p], &f[p], 4))
+            << "scene " << scene << " cluster " << c << " pixel " << p << ": " << m.weight[p] << " vs " << f[p];
+        (f[npix + p] > 0.f ? contested : alone) += 1;
+      }
+    }
+  }
+  std::printf("pixels with an id: %zu contested, %zu with one cluster only\n", contested, alone);
+  EXPECT_GT(contested, 50u);
+  EXPECT_GT(alone, 50u);
+}
+
 TEST(InstanceMap, DeterministicAndValidated) {
   std::vector<int32_t> ac;
   const GaussianSet g = clustered_scene(100, 3, 2, ac);

@@ -302,4 +302,77 @@ TEST(RenderBackward, BlendWeightSumsAreEachGaussiansWeightsSummedOverThePixels) 
   EXPECT_EQ(blend_weight_sums(r, dg, cams, settings), sums);
 }
 
+// Renderer::blend_weights (one walk, no forward pass) against the backward of
+// an upstream gradient of 1 on feature channel 0, which it replaces in the
+// importance prune: equal bit for bit, in the layout this run uses and in
+// several GPU-layout plans (batches, segments, pixels per work-item). Opaque
+// Gaussians, so pixels stop (T below T_MIN) inside and across batches, on an
+// odd-sized image whose edge tiles are partly outside.
+TEST(RenderBackward, BlendWeightsEqualTheFeatureBackwardBitForBit) {
+  const GaussianSet dense = test::random_scene(crowded_spec(0.3, 0.99), 23);
+  test::SceneSpec spread;
+  spread.n = 300;
+  spread.sh_degree = 1;
+  spread.opacity_lo = 0.2;
+  spread.opacity_hi = 0.99;
+  const GaussianSet wide = test::random_scene(spread, 24);
+  Camera cam = test::look_at_origin(37, 23);
+  cam.cx = 24.0;
+  cam.cy = 8.0;
+  const std::vector<Camera> cams = {cam, test::look_at_origin(53, 41)};
+  auto check = [&](const char* layout) {
+    SCOPED_TRACE(layout);
+    Runtime& rt = test::runtime();
+    size_t opaque = 0;
+    for (const GaussianSet* g : {&dense, &wide}) {
+      DeviceGaussians dg(rt);
+      dg.upload(*g);
+      Renderer r(rt);
+      RenderSettings settings;
+      for (const Camera& c : cams) {
+        r.forward(dg, c, settings);
+        const size_t npix = static_cast<size_t>(c.width) * c.height;
+        std::vector<float> up(3 * npix, 0.f);
+        std::fill(up.begin(), up.begin() + static_cast<std::ptrdiff_t>(npix), 1.f);
+        DeviceBuffer upstream(&rt);
+        upstream.upload(up);
+        Renderer::DeviceOutputGrads og;
+        og.feature = &upstream;
+        r.backward(og);
+        std::vector<float> via_backward, via_walk;
+        r.device_grads().features->download(via_backward, 3 * g->size());
+        r.bin(dg, c, settings);
+        r.blend_weights();
+        r.device_grads().features->download(via_walk, 3 * g->size());
+        size_t drawn = 0;
+        for (size_t i = 0; i < g->size(); ++i) {
+          ASSERT_EQ(via_walk[3 * i], via_backward[3 * i]) << "Gaussian " << i << " at " << c.width << "x" << c.height;
+          ASSERT_EQ(via_walk[3 * i + 1], 0.f);
+          ASSERT_EQ(via_walk[3 * i + 2], 0.f);
+          drawn += via_walk[3 * i] > 0.5f;
+        }
+        EXPECT_GT(drawn, g->size() / 10) << "the scene should draw for the test to mean anything";
+        // Pixels nearly opaque (T < 1e-3, ten times T_MIN): where the stop rule acts.
+        const RenderOutput out = r.render(*g, c, settings);
+        opaque +=
+            static_cast<size_t>(std::count_if(out.alpha.begin(), out.alpha.end(), [](float a) { return a > 0.999f; }));
+      }
+    }
+    EXPECT_GT(opaque, 20u) << "too few nearly opaque pixels to test where pixels stop";
+  };
+  check("this run's layout");
+  const char* old = std::getenv("AG2GS_BLEND_STAGING");
+  const std::string saved = old ? old : "";
+  setenv("AG2GS_BLEND_STAGING", "1", 1);
+  for (const char* plan : {"1:2:1", "1:3:2", "4:8:2", "4:7:64", "8:1:32", "16:3:16"}) {
+    setenv("AG2GS_BLEND_BWD", plan, 1);
+    check(plan);
+  }
+  unsetenv("AG2GS_BLEND_BWD");
+  if (old)
+    setenv("AG2GS_BLEND_STAGING", saved.c_str(), 1);
+  else
+    unsetenv("AG2GS_BLEND_STAGING");
+}
+
 }  // namespace ag2gs

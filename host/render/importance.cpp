@@ -8,26 +8,13 @@
 namespace ag2gs {
 
 std::vector<double> blend_weight_sums(Renderer& renderer, const DeviceGaussians& g, const std::vector<Camera>& cameras,
-                                      RenderSettings settings) {
-  settings.features = true;
+                                      const RenderSettings& settings) {
   std::vector<double> sums(g.n, 0.0);
   if (g.n == 0) return sums;
-  DeviceBuffer upstream(&renderer.runtime());
-  size_t upstream_pixels = 0;
-  std::vector<float> host, grads;
+  std::vector<float> grads;
   for (const Camera& cam : cameras) {
-    renderer.forward(g, cam, settings);
-    const size_t npix = static_cast<size_t>(cam.width) * static_cast<size_t>(cam.height);
-    if (npix != upstream_pixels) {
-      // Planar [3,H,W]: 1 on channel 0, 0 on the others.
-      host.assign(3 * npix, 0.f);
-      std::fill(host.begin(), host.begin() + static_cast<std::ptrdiff_t>(npix), 1.f);
-      upstream.upload(host);
-      upstream_pixels = npix;
-    }
-    Renderer::DeviceOutputGrads og;
-    og.feature = &upstream;
-    renderer.backward(og);
+    renderer.bin(g, cam, settings);
+    renderer.blend_weights();
     renderer.device_grads().features->download(grads, 3 * g.n);
     for (size_t i = 0; i < g.n; ++i) sums[i] += static_cast<double>(grads[3 * i]);
   }

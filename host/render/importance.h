@@ -5,12 +5,14 @@
 // rule of LightGaussian and Mini-Splatting, here per anchor (the trainer
 // sums the children).
 //
-// The weights come from the blend backward, not from a kernel of their own:
-// a rendered feature channel is sum_i w_i f_i, so with an upstream gradient
-// of 1 on channel 0 of every pixel (and 0 elsewhere), the gradient of f_i's
-// channel 0 is exactly sum over pixels of w_i. The backward sums per
-// Gaussian without atomics, so the result has the same bits on every run
-// and thread count; views are added on the host in double, in order.
+// The weights come from one walk of each view's depth-sorted tile lists
+// (Renderer::blend_weights, kernels/blend_bwd.cl): blend_fwd's weights,
+// summed per Gaussian in the blend backward's fixed order, without atomics,
+// so the result has the same bits on every run and thread count, and equals
+// the backward of an upstream gradient of 1 on feature channel 0 (a rendered
+// feature channel is sum_i w_i f_i, so that gradient of f_i is sum w_i);
+// tests/test_importance.cpp checks both. Views are added on the host in
+// double, in order.
 #pragma once
 
 #include <cstdint>
@@ -23,9 +25,9 @@ namespace ag2gs {
 
 // One entry per Gaussian of `g` (g.n), in pixels: the sum of its blending
 // weights over every pixel of every camera. The renderer's frame state is
-// replaced (as by a forward()); `settings.features` is forced on.
+// replaced (as by a forward()).
 std::vector<double> blend_weight_sums(Renderer& renderer, const DeviceGaussians& g, const std::vector<Camera>& cameras,
-                                      RenderSettings settings);
+                                      const RenderSettings& settings);
 
 // The importance prune's choice: with the weight sums of A anchors' K
 // children each (per_child, [A*K]), keep[a] = 0 for the anchors that draw

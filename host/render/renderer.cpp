@@ -333,31 +333,47 @@ void Renderer::backward_from(const DeviceBuffer& g_rgb, const DeviceBuffer& g_fe
                              const DeviceBuffer& g_alpha, const DeviceBuffer& g_dist,
                              const GradsPresent& present) {
   if (present.feature && !frame_features_)
-    throw std::logic_error("render backward: a feature gradient for a frame rendered without features "
-                           "(RenderSettings::features false)");
-  const DeviceGaussians& g = *gaussians_;
-  const size_t M = stats_.n_intersections;
-  isect_grads_.reserve(std::max<size_t>(M, 1) * G2_SIZE * 4);
-  const int ntiles = tiles_x_ * tiles_y_;
-  // GPUs: the plan's work-groups of a tile's pixels; CPUs: one work-item per
-  // tile at the runtime's vector width, see blend_bwd.cl.
-  const int wg = staged_ ? kTile * kTile / bwd_plan_.vector_width : 1;
+    throw std::logic_error(
+        "render backward: a feature gradient for a frame rendered without features "
+        "(RenderSettings::features false)");
   auto flag = [](bool b) { return std::string(b ? "1" : "0"); };
-  std::map<std::string, std::string> defs{
-      {"NO_STAGING", staged_ ? "0" : "1"},  {"GRAD_RGB", flag(present.rgb)},
-      {"GRAD_FEAT", flag(present.feature)}, {"GRAD_DEPTH", flag(present.depth)},
-      {"GRAD_ALPHA", flag(present.alpha)},  {"GRAD_DIST", flag(present.distortion)}};
-  if (staged_) {
-    defs["VW"] = std::to_string(bwd_plan_.vector_width);
-    defs["BATCH"] = std::to_string(bwd_plan_.batch);
-    defs["SEG"] = std::to_string(bwd_plan_.seg);
-  }
+  std::map<std::string, std::string> defs{{"GRAD_RGB", flag(present.rgb)},
+                                          {"GRAD_FEAT", flag(present.feature)},
+                                          {"GRAD_DEPTH", flag(present.depth)},
+                                          {"GRAD_ALPHA", flag(present.alpha)},
+                                          {"GRAD_DIST", flag(present.distortion)}};
+  const cl::NDRange local = blend_bwd_layout(defs);
   cl::Kernel blend = rt_.kernel("blend_bwd.cl", "blend_bwd", defs);
   set_kernel_args(blend, cam_.width, cam_.height, tiles_x_, cam_buf_, ranges_, *sorted_isect_vals_, isect_gid_,
                   records_, out_rgb_, out_feat_, out_depth_, out_aux_, out_last_, g_rgb, g_feat, g_depth, g_alpha,
                   g_dist, isect_grads_);
-  rt_.launch("blend_bwd", blend, cl::NDRange(static_cast<size_t>(ntiles) * wg), cl::NDRange(wg));
+  rt_.launch("blend_bwd", blend, cl::NDRange(static_cast<size_t>(tiles_x_) * tiles_y_ * local[0]), local);
+  project_backward();
+}
 
+void Renderer::blend_weights() {
+  if (!have_frame_) throw std::logic_error("blend_weights() before bin() or forward()");
+  std::map<std::string, std::string> defs;
+  const cl::NDRange local = blend_bwd_layout(defs);
+  cl::Kernel weights = rt_.kernel("blend_bwd.cl", "blend_weights", defs);
+  set_kernel_args(weights, cam_.width, cam_.height, tiles_x_, ranges_, *sorted_isect_vals_, isect_gid_, records_,
+                  isect_grads_);
+  rt_.launch("blend_weights", weights, cl::NDRange(static_cast<size_t>(tiles_x_) * tiles_y_ * local[0]), local);
+  project_backward();
+}
+
+cl::NDRange Renderer::blend_bwd_layout(std::map<std::string, std::string>& defs) {
+  isect_grads_.reserve(std::max<size_t>(stats_.n_intersections, 1) * G2_SIZE * 4);
+  defs["NO_STAGING"] = staged_ ? "0" : "1";
+  if (!staged_) return cl::NDRange(1);
+  defs["VW"] = std::to_string(bwd_plan_.vector_width);
+  defs["BATCH"] = std::to_string(bwd_plan_.batch);
+  defs["SEG"] = std::to_string(bwd_plan_.seg);
+  return cl::NDRange(static_cast<size_t>(kTile * kTile / bwd_plan_.vector_width));
+}
+
+void Renderer::project_backward() {
+  const DeviceGaussians& g = *gaussians_;
   const size_t n = std::max<size_t>(g.n, 1);
   const int K = sh_coeffs_for_degree(g.sh_degree);
   v_means_.reserve(n * 12);

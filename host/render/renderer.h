@@ -94,6 +94,12 @@ class Renderer {
     const DeviceBuffer* distortion = nullptr;  // [H,W]
   };
   void backward(const DeviceOutputGrads& grads);
+  // After bin() or forward(): each Gaussian's blending weights w = alpha T
+  // summed over the frame's pixels, in device_grads().features channel 0 (the
+  // other gradients are zero). Equal bit for bit to forward() and backward()
+  // with an upstream gradient of 1 on feature channel 0 and none other, at
+  // the cost of one walk (kernels/blend_bwd.cl, blend_weights).
+  void blend_weights();
 
   // The blending inputs of the last forward(), read-only, for kernels that
   // walk the same depth-ordered per-tile lists as blend_fwd.cl (instance
@@ -139,6 +145,11 @@ class Renderer {
   void upload_plane(DeviceBuffer& buf, const std::vector<float>& host_hwc, int channels, const char* what);
   // Which upstream gradients were given (the others are zero buffers): the
   // CPU blend kernel leaves the terms of absent ones out.
+  // The blend backward's layout: its defines (staging, the plan) and work-group
+  // size (GPUs: the plan's work-items per tile; CPUs: one work-item per tile at
+  // the runtime's vector width, see blend_bwd.cl); sizes the slots' gradients.
+  cl::NDRange blend_bwd_layout(std::map<std::string, std::string>& defs);
+  void project_backward();  // isect_grads_ -> the Gaussians' gradients
   struct GradsPresent {
     bool rgb = true, feature = true, depth = true, alpha = true, distortion = true;
   };
