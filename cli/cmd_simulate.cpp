@@ -17,6 +17,7 @@
 #include <string>
 #include <system_error>
 
+#include "apps/removal/fill.h"
 #include "cli/commands.h"
 #include "cli/object_selection.h"
 #include "cli/run_driver.h"
@@ -31,7 +32,6 @@
 #include "host/scene/scene_up.h"
 #include "queries/query.h"
 #include "stages/anchor_model.h"
-#include "stages/removal_fill.h"
 #include "stages/simulation.h"
 #include "stages/train_common.h"
 #include "stages/train_config.h"
@@ -174,7 +174,7 @@ void cmd_simulate(const GlobalOptions& global, SimulateArgs a) {
   std::vector<Camera> cameras;
   for (int v : scene->train_views()) cameras.push_back(scene->views()[v].camera);
   // Kept anchors inside the object that the photos saw only through it
-  // (stages/removal_fill.h, as `remove` takes them): left in place they
+  // (apps/removal/fill.h, as `remove` takes them): left in place they
   // would show where the object stood once it moves.
   std::vector<int> hidden;
   if (a.move_hidden) {

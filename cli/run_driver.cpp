@@ -77,18 +77,6 @@ void log_run_scene(const Scene& scene, const Runtime& rt, int resolution) {
                scene.views()[0].camera.height, resolution, scene.points().size());
 }
 
-std::string fmt_duration(double s) {
-  if (!std::isfinite(s) || s < 0) return "?";
-  char buf[32];
-  if (s >= 3600)
-    std::snprintf(buf, sizeof buf, "%dh%02dm", static_cast<int>(s / 3600), static_cast<int>(s / 60) % 60);
-  else if (s >= 60)
-    std::snprintf(buf, sizeof buf, "%dm%02ds", static_cast<int>(s / 60), static_cast<int>(s) % 60);
-  else
-    std::snprintf(buf, sizeof buf, "%.1fs", s);
-  return buf;
-}
-
 RunDriver::RunDriver(const RunArgs& args, const Scene& scene, const std::string& model, uint64_t seed, int iterations)
     : args_(args),
       metrics_({{"scene", scene.dir()},

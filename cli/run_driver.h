@@ -14,6 +14,7 @@
 #include <string>
 #include <vector>
 
+#include "host/core/timing.h"  // fmt_duration
 #include "host/device/cl_runtime.h"
 #include "host/scene/scene.h"
 #include "stages/eta.h"
@@ -45,9 +46,6 @@ void add_progress_options(CLI::App* sub, RunArgs& a);
 std::unique_ptr<Scene> open_run_scene(RunArgs& a);
 // The device and scene lines every run prints first.
 void log_run_scene(const Scene& scene, const Runtime& rt, int resolution);
-
-// "1h02m", "3m05s", "12.5s"; "?" when unknown.
-std::string fmt_duration(double seconds);
 
 class RunDriver {
  public:

@@ -1,9 +1,9 @@
-// Holes of an object removal (stages/removal_holes.h) on a constructed scene:
+// Holes of an object removal (apps/removal/holes.h) on a constructed scene:
 // a box standing on a textured floor that has no Gaussians under the box (no
 // view saw that ground), seen from four sides. The hole of each view must be
 // the box's footprint as the view's rays meet the floor plane, within a pixel;
 // the rest of the box's silhouette shows floor the model knows. The fill
-// (stages/removal_fill.h) must then find the footprint in 3D: on the floor
+// (apps/removal/fill.h) must then find the footprint in 3D: on the floor
 // plane, inside the box's base, and place anchors there only.
 #include <gtest/gtest.h>
 
@@ -14,8 +14,8 @@
 #include <set>
 #include <string>
 
-#include "stages/removal_fill.h"
-#include "stages/removal_holes.h"
+#include "apps/removal/fill.h"
+#include "apps/removal/holes.h"
 #include "test_util.h"
 
 namespace ag2gs {

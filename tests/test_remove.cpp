@@ -17,11 +17,14 @@
 #include <set>
 #include <string>
 
+#include "apps/removal/removal.h"
 #include "cli_test_util.h"
 #include "host/io/colmap_reader.h"
 #include "host/io/colmap_writer.h"
+#include "host/io/image_io.h"
 #include "host/io/model_io.h"
 #include "stages/anchor_model.h"
+#include "test_util.h"
 
 namespace fs = std::filesystem;
 using nlohmann::json;
@@ -505,6 +508,91 @@ TEST(Remove, HostileFilesAreRefusedWithoutACrash) {
   }
   EXPECT_FALSE(fs::exists(f.scene / "sel"));
   for (const auto& [path, bytes] : scene_files) EXPECT_EQ(test::read_file(path), bytes) << path;
+}
+
+// The library's entry point called directly (apps/removal/removal.h), as the
+// viewer or a script would: the same model bytes and the same holes and
+// targets as `ag2gs remove` with the same selection and settings, its
+// views reported in order, a stop request that stops it, and requests it
+// must refuse.
+TEST(Remove, TheLibraryCallGivesWhatTheProgramWrites) {
+  const fs::path out = fresh("library_vs_program"), sel = fixture().root / "selection_library.json";
+  const ModelArchive in = read_model_archive((fixture().model / "model.ag2gs").string());
+  const AnchorModel model = AnchorModel::from_archive(in);
+  std::vector<int> chosen;
+  std::vector<uint8_t> selected(model.size(), 0);
+  for (int a = 5; a < static_cast<int>(model.size()); a += 6) {
+    chosen.push_back(a);
+    selected[a] = 1;
+  }
+  write_selection(sel, chosen);
+  const auto r = test::run_cli(remove_cmd(out.string(), "--selection " + sel.string() + " --iters 12 --seed 7"));
+  ASSERT_EQ(r.code, 0) << r.output;
+
+  SceneOptions so;
+  so.resolution = 1;
+  so.eval = true;
+  std::unique_ptr<Scene> scene = Scene::open(fixture().scene.string(), so);
+  RemovalRequest req;
+  req.model_file = (fixture().model / "model.ag2gs").string();
+  req.archive = &in;
+  req.model = &model;
+  req.sh_degree = in.meta["train"].value("sh_degree", 3);
+  req.scene = scene.get();
+  req.selected = selected;
+  req.settings.iters = 12;
+  req.settings.seed = 7;
+  std::vector<size_t> seen;
+  req.on_view = [&](size_t i, const ViewHole& h, const std::vector<float>& target) {
+    seen.push_back(i);
+    const std::string stem = train_stems().at(i);
+    int w = 0, hh = 0;
+    const std::vector<float> written = read_rgb((out / "targets" / (stem + ".png")).string(), w, hh);
+    ASSERT_EQ(written.size(), target.size());
+    for (size_t k = 0; k < target.size(); ++k)  // the PNG holds the target to 1/255
+      ASSERT_NEAR(written[k], target[k], 0.5 / 255 + 1e-6) << stem;
+    const cv::Mat hole = cv::imread((out / "holes" / (stem + ".png")).string(), cv::IMREAD_GRAYSCALE);
+    ASSERT_EQ(static_cast<size_t>(cv::countNonZero(hole)), h.hole_pixels) << stem;
+  };
+  Runtime& rt = test::runtime();
+  const RemovalResult res = remove_object(rt, req);
+  EXPECT_EQ(seen, std::vector<size_t>({0, 1, 2, 3, 4, 5, 6}));
+  const fs::path mine = fixture().root / "library_model.ag2gs";
+  write_model_archive(mine.string(), res.archive);
+  EXPECT_EQ(test::read_file(mine), test::read_file(out / "model.ag2gs"))
+      << "the library's model differs from the program's";
+  const json report = json::parse(std::ifstream(out / "removal.json"));
+  for (const char* key : {"anchors_removed", "anchors_kept", "anchors_added", "hidden_anchors_removed",
+                          "stray_children_cleared", "fill", "holes", "iterations"})
+    EXPECT_EQ(res.report.at(key), report.at(key)) << key;
+  EXPECT_EQ(res.model.size(), res.kept_anchors + res.added_anchors);
+  EXPECT_GT(res.report["iterations"].get<int>(), 0);
+
+  // A stop request during the hole search ends the call at that view.
+  RemovalRequest stopped = req;
+  stopped.on_view = nullptr;
+  int calls = 0;
+  stopped.check_stop = [&](const std::string& during) {
+    if (++calls == 3) throw std::runtime_error("stopped during " + during);
+  };
+  EXPECT_THROW(remove_object(rt, stopped), std::runtime_error);
+  EXPECT_EQ(calls, 3);
+
+  // Refused: a selection of another size, every anchor, a fine-tune without a fill.
+  RemovalRequest bad = req;
+  bad.on_view = nullptr;
+  bad.selected.pop_back();
+  EXPECT_THROW(remove_object(rt, bad), std::invalid_argument);
+  bad.selected.assign(model.size(), 1);
+  EXPECT_THROW(remove_object(rt, bad), std::runtime_error);
+  bad.selected = selected;
+  bad.settings.fill_holes = false;
+  try {
+    remove_object(rt, bad);
+    ADD_FAILURE() << "a fine-tune without a fill was accepted";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("--no-fill"), std::string::npos) << e.what();
+  }
 }
 
 }  // namespace

@@ -1,4 +1,4 @@
-#include "stages/removal_holes.h"
+#include "apps/removal/holes.h"
 
 #include <algorithm>
 #include <cmath>

@@ -16,6 +16,7 @@
 #include <string>
 #include <vector>
 
+#include "apps/removal/holes.h"
 #include "host/device/cl_runtime.h"
 #include "host/render/adam.h"
 #include "host/render/image_loss.h"
@@ -25,7 +26,6 @@
 #include "stages/anchor_model.h"
 #include "stages/expander.h"
 #include "stages/param_groups.h"
-#include "stages/removal_holes.h"
 
 namespace ag2gs {
 

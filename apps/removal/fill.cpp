@@ -1,4 +1,4 @@
-#include "stages/removal_fill.h"
+#include "apps/removal/fill.h"
 
 #include <algorithm>
 #include <cmath>
@@ -15,10 +15,7 @@
 #include "stages/train_common.h"
 
 namespace ag2gs {
-namespace {
-
-
-}  // namespace
+namespace {}  // namespace
 
 void FillSettings::validate() const {
   if (min_views < 1) throw std::invalid_argument("fill: min_views must be >= 1, got " + std::to_string(min_views));
