@@ -19,25 +19,53 @@
 // blend_fwd does (same weights, same order, so the same bits): a view needs
 // Renderer::bin() alone instead of a whole forward pass before this kernel.
 //
-// Defines: MIN_FRACTION (float literal), WITH_IMAGES (0 or 1).
+// GPU layout (NO_STAGING 0): the work-group stages each batch of BATCH
+// records and their clusters through local memory, as blend_fwd does, so a
+// record is read from global memory once per tile, not once per pixel. The
+// CPU layout (NO_STAGING 1) reads them from cache. Same arithmetic per pixel
+// either way, so the same bits.
+//
+// Defines: MIN_FRACTION (float literal), WITH_IMAGES (0 or 1), NO_STAGING,
+// BATCH (with staging).
 
-// Gaussian id of list entry j of this tile and its cluster (children inherit
-// their anchor's cluster: anchor = gid / children).
-#define INSTANCE_STEP                                                                  \
-  uint gid = isect_gid[isect_vals[range.x + j]];                                       \
-  __global const float* q = records + (size_t)gid * REC_SIZE;                          \
-  const int k = anchor_cluster[gid / (uint)children];                                  \
-  vfloat dx = q[REC_U] - pr.px;                                                        \
-  float dy = q[REC_V] - pr.py;                                                         \
-  vfloat sigma = blend_sigma(q[REC_CA], q[REC_CB], q[REC_CC], dx, dy);                 \
-  vfloat alpha = fmin(q[REC_OPACITY] * blend_falloff(sigma), ALPHA_MAX);               \
-  vint ok = NOT(done) & (sigma >= 0.f) & (alpha >= ALPHA_MIN);                         \
-  vfloat Tn = T * (1.f - alpha);                                                       \
-  vint stop = ok & (Tn < T_MIN);                                                       \
-  done = done | stop;                                                                  \
-  ok = ok & NOT(stop);                                                                 \
-  vfloat w = select((vfloat)0.f, alpha * T, ok);                                       \
-  T = select(T, Tn, ok);
+// One list entry at this work-item's pixels, as blend_fwd blends it: the
+// weight w (0 where the entry does not blend), with T and done advanced.
+inline vfloat instance_weight(PixelRow pr, float u, float v, float cA, float cB, float cC, float o, vfloat* T,
+                              vint* done, vint* okp) {
+  const vfloat sigma = blend_sigma(cA, cB, cC, u - pr.px, v - pr.py);
+  const vfloat alpha = fmin(o * blend_falloff(sigma), ALPHA_MAX);
+  vint ok = NOT(*done) & (sigma >= 0.f) & (alpha >= ALPHA_MIN);
+  const vfloat Tn = *T * (1.f - alpha);
+  const vint stop = ok & (Tn < T_MIN);
+  *done = *done | stop;
+  ok = ok & NOT(stop);
+  const vfloat w = select((vfloat)0.f, alpha * *T, ok);
+  *T = select(*T, Tn, ok);
+  *okp = ok;
+  return w;
+}
+#define INSTANCE_WEIGHT(q, T, done, ok) \
+  instance_weight(pr, (q)[REC_U], (q)[REC_V], (q)[REC_CA], (q)[REC_CB], (q)[REC_CC], (q)[REC_OPACITY], &(T), &(done), &(ok))
+
+// Walk 1's weighted majority vote. Against a different cluster the heavier
+// side keeps the surplus; a tie leaves surplus 0, and the next vote wins.
+typedef struct {
+  vint cand;       // -1: none yet
+  vfloat surplus;
+  vint last_cand;  // last list entry that added to the final candidate
+  vint contested;  // another cluster voted: walk 2 must sum the candidate
+} Vote;
+
+inline void vote(Vote* s, int k, vfloat w, vint ok, int j) {
+  if (k < 0) return;  // unclustered: occludes, does not vote
+  const vint same = s->cand == k;
+  const vint wins = NOT(same) & (w > s->surplus);
+  const vfloat next = select(select(s->surplus - w, w - s->surplus, wins), s->surplus + w, same);
+  s->contested = s->contested | (ok & NOT(same) & (s->cand >= 0));
+  s->surplus = select(s->surplus, next, ok);
+  s->cand = select(s->cand, (vint)k, ok & wins);
+  s->last_cand = select(s->last_cand, (vint)j, ok & (same | wins));
+}
 
 __kernel __attribute__((reqd_work_group_size(WG_SIZE, 1, 1)))
 void instance_map(int width, int height, int tiles_x, int children,
@@ -53,34 +81,63 @@ void instance_map(int width, int height, int tiles_x, int children,
   PixelRow pr = pixel_row(tiles_x, width, height);
   const int2 range = ranges[pr.tile];
   const int n = range.y - range.x;
+#if !NO_STAGING
+  __local float s_rec[BATCH * REC_SIZE];
+  __local int s_k[BATCH];
+  __local int s_alive, s_end;
+  const int lid = get_local_id(0);
+  // Stage entries [b0, b0 + nb) of the tile's list; s_alive = 1 when a pixel
+  // of the group still blends (alive: this work-item's).
+#define STAGE_BATCH(b0, nb, alive)                                                                          \
+  barrier(CLK_LOCAL_MEM_FENCE);                                                                            \
+  if (lid == 0) s_alive = 0;                                                                               \
+  for (int i = lid; i < (nb); i += WG_SIZE) {                                                              \
+    const uint gid = isect_gid[isect_vals[range.x + (b0) + i]];                                            \
+    for (int c = 0; c < REC_SIZE; ++c) s_rec[i * REC_SIZE + c] = records[(size_t)gid * REC_SIZE + c];      \
+    s_k[i] = anchor_cluster[gid / (uint)children];                                                         \
+  }                                                                                                        \
+  barrier(CLK_LOCAL_MEM_FENCE);                                                                            \
+  if (alive) atomic_or(&s_alive, 1);                                                                       \
+  barrier(CLK_LOCAL_MEM_FENCE);
+#endif
 
-  // Walk 1: weighted majority vote. Against a different cluster the heavier
-  // side keeps the surplus; a tie leaves surplus 0, and the next vote wins.
-  vint cand = -1;
-  vfloat surplus = 0.f;
-  vint last_cand = -1;  // last list entry that added to the final candidate
-  vint contested = 0;   // another cluster voted: walk 2 must sum the candidate
+  // Walk 1: the vote, and with WITH_IMAGES the feature planes as blend_fwd
+  // sums them (same weights, same order).
+  Vote s;
+  s.cand = -1;
+  s.surplus = 0.f;
+  s.last_cand = -1;
+  s.contested = 0;
 #if WITH_IMAGES
   vfloat f0 = 0.f, f1 = 0.f, f2 = 0.f;
 #endif
   vfloat T = 1.f;
   {
-    vint done = NOT(pr.inside);
+    vint done = NOT(pr.inside), ok;
+#if NO_STAGING
     for (int j = 0; j < n; ++j) {
-      INSTANCE_STEP
-#if WITH_IMAGES
-      f0 += w * q[REC_FEAT]; f1 += w * q[REC_FEAT + 1]; f2 += w * q[REC_FEAT + 2];
+      const uint gid = isect_gid[isect_vals[range.x + j]];
+      __global const float* q = records + (size_t)gid * REC_SIZE;
+      const int k = anchor_cluster[gid / (uint)children];
+      {
+#else
+    for (int b0 = 0; b0 < n; b0 += BATCH) {
+      const int nb = min(BATCH, n - b0);
+      STAGE_BATCH(b0, nb, ANY(NOT(done)))
+      if (!s_alive) break;
+      if (!ANY(NOT(done))) continue;
+      for (int jj = 0; jj < nb; ++jj) {
+        const int j = b0 + jj;
+        __local const float* q = s_rec + jj * REC_SIZE;
+        const int k = s_k[jj];
 #endif
-      if (k >= 0) {
-        vint same = cand == k;
-        vint wins = NOT(same) & (w > surplus);
-        vfloat next = select(select(surplus - w, w - surplus, wins), surplus + w, same);
-        surplus = select(surplus, next, ok);
-        contested = contested | (ok & NOT(same) & (cand >= 0));
-        cand = select(cand, (vint)k, ok & wins);
-        last_cand = select(last_cand, (vint)j, ok & (same | wins));
+        const vfloat w = INSTANCE_WEIGHT(q, T, done, ok);
+#if WITH_IMAGES
+        f0 += w * q[REC_FEAT]; f1 += w * q[REC_FEAT + 1]; f2 += w * q[REC_FEAT + 2];
+#endif
+        vote(&s, k, w, ok, j);
+        if (!ANY(NOT(done))) break;
       }
-      if (!ANY(NOT(done))) break;
     }
   }
   // Walk 2: the candidate's total weight, summed in blending order. After
@@ -90,28 +147,50 @@ void instance_map(int width, int height, int tiles_x, int children,
   // 0 + w_1 + w_2 + ... over the candidate's Gaussians in blending order
   // (the first vote gives w_1 - 0), the very sum walk 2 would make, bit for
   // bit; only contested pixels walk again (at an object's edge, say).
-  const vint again = contested & (cand >= 0) & pr.inside;
+  const vint again = s.contested & (s.cand >= 0) & pr.inside;
   int end = 0;
 #if VW == 1
-  end = again ? last_cand + 1 : 0;
+  end = again ? s.last_cand + 1 : 0;
 #else
   {
     int lc[VW];
-    VSTORE(select((vint)-1, last_cand, again), lc);
+    VSTORE(select((vint)-1, s.last_cand, again), lc);
     for (int l = 0; l < VW; ++l) end = max(end, lc[l] + 1);
   }
 #endif
-  vfloat weight = select((vfloat)0.f, surplus, (cand >= 0) & NOT(again));
+  vfloat weight = select((vfloat)0.f, s.surplus, (s.cand >= 0) & NOT(again));
   {
-    vfloat T = 1.f;  // walk 2's own (walk 1's T gives the alpha below)
-    vint done = NOT(again);
+    vfloat T2 = 1.f;  // walk 2's own (walk 1's T gives the alpha below)
+    vint done = NOT(again), ok;
+#if NO_STAGING
     for (int j = 0; j < end; ++j) {
-      INSTANCE_STEP
-      weight += select((vfloat)0.f, w, ok & (cand == k));
-      if (!ANY(NOT(done))) break;
+      const uint gid = isect_gid[isect_vals[range.x + j]];
+      __global const float* q = records + (size_t)gid * REC_SIZE;
+      const int k = anchor_cluster[gid / (uint)children];
+      {
+#else
+    barrier(CLK_LOCAL_MEM_FENCE);
+    if (lid == 0) s_end = 0;
+    barrier(CLK_LOCAL_MEM_FENCE);
+    atomic_max(&s_end, end);
+    barrier(CLK_LOCAL_MEM_FENCE);
+    const int group_end = s_end;
+    for (int b0 = 0; b0 < group_end; b0 += BATCH) {
+      const int nb = min(BATCH, group_end - b0);
+      STAGE_BATCH(b0, nb, b0 < end && ANY(NOT(done)))
+      if (!s_alive) break;
+      if (b0 >= end || !ANY(NOT(done))) continue;
+      for (int jj = 0; jj < min(nb, end - b0); ++jj) {
+        __local const float* q = s_rec + jj * REC_SIZE;
+        const int k = s_k[jj];
+#endif
+        const vfloat w = INSTANCE_WEIGHT(q, T2, done, ok);
+        weight += select((vfloat)0.f, w, ok & (s.cand == k));
+        if (!ANY(NOT(done))) break;
+      }
     }
   }
-  vint id = select((vint)-1, cand, (cand >= 0) & (weight > MIN_FRACTION));
+  vint id = select((vint)-1, s.cand, (s.cand >= 0) & (weight > MIN_FRACTION));
   store_row_int(id, out_id, pr, width);
   store_row(weight, out_weight, pr, width);
 #if WITH_IMAGES

@@ -1,5 +1,6 @@
 #include "stages/instance_map.h"
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <stdexcept>
@@ -51,9 +52,13 @@ void InstanceMapper::run(const Renderer& renderer, bool with_images) {
   // Without images the kernel writes neither plane: small placeholders.
   feat_.reserve(with_images ? npix * 12 : 4);
   alpha_.reserve(with_images ? npix * 4 : 4);
-  cl::Kernel k =
-      rt_.kernel("instance_map.cl", "instance_map", {{"MIN_FRACTION", frac}, {"WITH_IMAGES", with_images ? "1" : "0"}});
   const int wg = 256 / rt_.vector_width();
+  // The renderer's layout: records staged through local memory on GPUs.
+  cl::Kernel k = rt_.kernel("instance_map.cl", "instance_map",
+                            {{"MIN_FRACTION", frac},
+                             {"WITH_IMAGES", with_images ? "1" : "0"},
+                             {"NO_STAGING", renderer.staged() ? "0" : "1"},
+                             {"BATCH", std::to_string(std::max(64, wg))}});
   const int ntiles = f.tiles_x * f.tiles_y;
   set_kernel_args(k, f.width, f.height, f.tiles_x, children_, *f.ranges, *f.isect_vals, *f.isect_gid, *f.records,
                   anchor_cluster_, ids_, weights_, feat_, alpha_);

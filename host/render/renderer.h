@@ -137,6 +137,9 @@ class Renderer {
   const FrameStats& stats() const { return stats_; }
   // The blend backward's plan ("VW:BATCH:SEG"), or "cpu" for the CPU layout.
   std::string blend_bwd_plan() const { return staged_ ? bwd_plan_.describe() : "cpu"; }
+  // Whether blending stages records through local memory (the GPU layout,
+  // device_policy.h); kernels that walk the same lists follow it.
+  bool staged() const { return staged_; }
   Runtime& runtime() { return rt_; }
 
  private:
