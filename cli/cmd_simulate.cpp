@@ -1,9 +1,8 @@
-// simulate: select an object as `query` does and let it move in an MLS-MPM
-// simulation (stages/simulation.h), rendering the scene frame by frame
-// (docs/design.md, "Physics").
+// simulate: select an object as `query` does, let it move in an MLS-MPM
+// simulation (apps/simulation/simulate.h) and write the frames each view
+// shows, PLYs and simulation.json (docs/design.md, "Physics").
 
 #include <spdlog/spdlog.h>
-#include <unistd.h>
 
 #include <chrono>
 #include <cmath>
@@ -12,12 +11,10 @@
 #include <nlohmann/json.hpp>
 #include <opencv2/imgproc.hpp>
 #include <opencv2/videoio.hpp>
-#include <optional>
 #include <sstream>
 #include <string>
-#include <system_error>
 
-#include "apps/removal/fill.h"
+#include "apps/simulation/simulate.h"
 #include "cli/commands.h"
 #include "cli/object_selection.h"
 #include "cli/run_driver.h"
@@ -26,15 +23,7 @@
 #include "host/io/atomic_file.h"
 #include "host/io/image_io.h"
 #include "host/io/ply_io.h"
-#include "host/render/renderer.h"
-#include "host/render/sky.h"
 #include "host/scene/scene.h"
-#include "host/scene/scene_up.h"
-#include "queries/query.h"
-#include "stages/anchor_model.h"
-#include "stages/simulation.h"
-#include "stages/train_common.h"
-#include "stages/train_config.h"
 
 namespace fs = std::filesystem;
 
@@ -102,12 +91,32 @@ std::pair<int, int> parse_frames(const std::string& text) {
   }
 }
 
+// The views to render: --views names (image names or stems), else the
+// first training view.
+std::vector<int> render_views(const Scene& scene, const std::string& list, const std::string& scene_dir) {
+  std::vector<int> views;
+  if (list.empty()) return {scene.train_views().at(0)};
+  std::stringstream vs(list);
+  std::string name;
+  while (std::getline(vs, name, ',')) {
+    int found = -1;
+    for (const SceneView& v : scene.views())
+      if (v.name == name || v.stem == name) found = v.index;
+    if (found < 0)
+      throw std::invalid_argument("--views: no view named '" + name + "' in " + scene_dir +
+                                  " (give image names or stems, e.g. " + scene.views()[0].stem + ")");
+    views.push_back(found);
+  }
+  return views;
+}
+
 void cmd_simulate(const GlobalOptions& global, SimulateArgs a) {
   const auto t_start = std::chrono::steady_clock::now();
   // ---- everything that can be checked before any work
   check_selection_request(a.request, a.selection);
   a.config.validate();
-  SimulationSettings ss;
+  SimulationRequest req;
+  SimulationSettings& ss = req.settings;
   ss.object.kind = parse_material(a.material);
   ss.object.E = a.E;
   ss.object.nu = a.nu;
@@ -127,8 +136,8 @@ void cmd_simulate(const GlobalOptions& global, SimulateArgs a) {
   ss.friction = a.friction;
   ss.damping = a.damping;
   ss.min_opacity = a.min_opacity;
-  if (!a.force.empty()) ss.force = parse_vector(a.force, "--force");
-  const auto [force_from, force_to] = parse_frames(a.force_frames);
+  if (!a.force.empty()) req.force = parse_vector(a.force, "--force");
+  req.force_frames = parse_frames(a.force_frames);
   if (!(a.fps > 0) || !std::isfinite(a.fps)) throw std::invalid_argument("--fps must be a number > 0");
   ss.validate();
   const fs::path out = check_new_output_folder(a.out, a.model);
@@ -141,24 +150,7 @@ void cmd_simulate(const GlobalOptions& global, SimulateArgs a) {
   so.eval = tm.eval_split;
   so.sparse = a.sparse;
   std::unique_ptr<Scene> scene = Scene::open(a.scene, so);
-  // The views to render: --views names (image names or stems), else the
-  // first training view.
-  std::vector<int> views;
-  if (a.views.empty()) {
-    views.push_back(scene->train_views().at(0));
-  } else {
-    std::stringstream vs(a.views);
-    std::string name;
-    while (std::getline(vs, name, ',')) {
-      int found = -1;
-      for (const SceneView& v : scene->views())
-        if (v.name == name || v.stem == name) found = v.index;
-      if (found < 0)
-        throw std::invalid_argument("--views: no view named '" + name + "' in " + a.scene +
-                                    " (give image names or stems, e.g. " + scene->views()[0].stem + ")");
-      views.push_back(found);
-    }
-  }
+  req.views = render_views(*scene, a.views, a.scene);
   std::vector<float> embedding;
   if (by_text) embedding = load_query_embedding(a.request, tm.file, tm.language.dim);
 
@@ -169,183 +161,76 @@ void cmd_simulate(const GlobalOptions& global, SimulateArgs a) {
   report["resolution"] = a.resolution;
   const SelectedObject sel =
       select_object(rt, tm, *scene, a.request, a.selection, a.config, embedding, a.resolution, report, "simulate");
-  const int K = tm.model.children();
-  const GaussianSet gaussians = expand_reference(tm.model, tm.sh_degree);
-  std::vector<Camera> cameras;
-  for (int v : scene->train_views()) cameras.push_back(scene->views()[v].camera);
-  // Kept anchors inside the object that the photos saw only through it
-  // (apps/removal/fill.h, as `remove` takes them): left in place they
-  // would show where the object stood once it moves.
-  std::vector<int> hidden;
-  if (a.move_hidden) {
-    Renderer seen_renderer(rt);
-    hidden = hidden_anchors(seen_renderer, tm.model, tm.sh_degree, sel.anchors, cameras, RenderSettings{});
-    if (!hidden.empty())
-      spdlog::info("{} kept anchors inside the object are seen only through it: they move with it", hidden.size());
-  }
-  report["hidden_anchors_moved"] = hidden;
-  std::vector<uint8_t> in_object = sel.anchors;
-  for (int h : hidden) in_object[h] = 1;
-  std::vector<uint8_t> selected(gaussians.size(), 0);
-  for (size_t g = 0; g < selected.size(); ++g) selected[g] = in_object[g / K];
-  // The default push: along the first rendered view's right, across up; for
-  // a photo stored sideways (its x axis nearer up than its y axis), the right
-  // of the photo turned upright: forward x up.
-  if (a.force.empty()) {
-    const Eigen::Vector3d up = ss.up ? ss.up->normalized() : scene_up(cameras, scene->points()).up;
-    const Camera& cam = scene->views()[views[0]].camera;
-    const Eigen::Vector3d right = cam.R.row(0).transpose(), down = cam.R.row(1).transpose();
-    const Eigen::Vector3d across = std::abs(right.dot(up)) <= std::abs(down.dot(up))
-                                       ? Eigen::Vector3d(right - right.dot(up) * up)
-                                       : Eigen::Vector3d(cam.R.row(2).transpose().cross(up));
-    if (across.norm() > 1e-6) ss.force = a.push * across.normalized();
-  }
-  spdlog::info("selected {} of {} anchors ({} Gaussians) to simulate as {}", sel.count, tm.model.size(),
-               sel.count * static_cast<size_t>(K), a.material);
-  Simulation sim(rt, gaussians, selected, cameras, scene->points(), ss);
-  const double dt_rest = sim.describe()["max_stable_dt_at_rest"].get<double>();
-  spdlog::info(
-      "simulation: {} particles ({} of the object's Gaussians, {} filling its solid, {}), grid {}^3, up ({:.3f}, "
-      "{:.3f}, {:.3f}), ground at {:.4g}; stable substep at rest {:.3g} s",
-      sim.particles(), sim.object_gaussians(), sim.fill_particles(),
-      a.background ? fmt::format("{} background Gaussians", sim.background_gaussians())
-                   : std::string("the rest of the scene still"),
-      a.grid, sim.frame().up(0), sim.frame().up(1), sim.frame().up(2), sim.frame().ground_world, dt_rest);
-
-  // The substeps the run needs at least (the stable substep only shrinks as
-  // things move): refuse up front what would run for hours or days.
-  {
-    const double step = sim.dt() > 0 ? sim.dt() : dt_rest;
-    const double least = a.frames / a.fps / step;
-    if (!(least <= a.max_substeps))
-      throw std::invalid_argument(fmt::format(
-          "simulate: {} frames at {} fps need at least {:.3g} substeps of {:.3g} s (the stable substep of --E {:g} "
-          "on a grid of {}); more than --max-substeps {:g}: lower --E, simulate fewer --frames, use a coarser "
-          "--grid, or raise --max-substeps",
-          a.frames, a.fps, least, step, a.E, a.grid, a.max_substeps));
-  }
-
-  TrainConfig tc;
-  if (tm.archive.meta.contains("train") && tm.archive.meta["train"].contains("config")) {
-    try {
-      tc = TrainConfig::from_json(tm.archive.meta["train"]["config"]);
-    } catch (const std::exception& e) {
-      spdlog::warn("{}: its training config cannot be read ({}); rendering over a black background", tm.file, e.what());
-    }
-  }
-  Sky sky(rt);
-  const std::optional<std::vector<float>> sky_coefficients = sky_from_archive(tm.archive);
-  if (sky_coefficients) sky.set(sky_degree_for(sky_coefficients->size()), *sky_coefficients);
-  RenderSettings rs;
-  const float bg = tc.white_background && !sky.enabled() ? 1.f : 0.f;
-  rs.background = {bg, bg, bg};
-  rs.features = false;
-  Renderer renderer(rt);
+  req.model_file = tm.file;
+  req.archive = &tm.archive;
+  req.model = &tm.model;
+  req.sh_degree = tm.sh_degree;
+  req.scene = scene.get();
+  req.selected = sel.anchors;
+  req.push = a.push;
+  req.move_hidden = a.move_hidden;
+  req.frames = a.frames;
+  req.fps = a.fps;
+  req.max_substeps = a.max_substeps;
+  req.material = a.material;
 
   InterruptGuard interrupts;
   StagedFolder staged(out, a.out);
   const fs::path& tmp = staged.path();
-  {
-    std::vector<std::unique_ptr<cv::VideoWriter>> videos;
-    // a/1.jpg and b/1.jpg: frames/a_1/ and frames/b_1/.
-    std::vector<std::string> names;
-    for (int v : views) names.push_back(scene->views()[v].name);
-    const std::vector<std::string> stems = output_stems(names);
-    for (size_t i = 0; i < views.size(); ++i) {
-      const SceneView& sv = scene->views()[views[i]];
-      fs::create_directories(tmp / "frames" / stems[i]);
-      auto w = std::make_unique<cv::VideoWriter>();
-      w->open((tmp / "frames" / (stems[i] + ".avi")).string(), cv::CAP_OPENCV_MJPEG,
-              cv::VideoWriter::fourcc('M', 'J', 'P', 'G'), a.fps, cv::Size(sv.camera.width, sv.camera.height));
-      if (!w->isOpened()) {
-        spdlog::warn("OpenCV cannot write a video here; the frames are PNG only");
-        w.reset();
-      }
-      videos.push_back(std::move(w));
+  // a/1.jpg and b/1.jpg: frames/a_1/ and frames/b_1/.
+  std::vector<std::string> names;
+  for (int v : req.views) names.push_back(scene->views()[v].name);
+  const std::vector<std::string> stems = output_stems(names);
+  std::vector<std::unique_ptr<cv::VideoWriter>> videos;
+  for (size_t i = 0; i < req.views.size(); ++i) {
+    const Camera& cam = scene->views()[req.views[i]].camera;
+    fs::create_directories(tmp / "frames" / stems[i]);
+    auto w = std::make_unique<cv::VideoWriter>();
+    w->open((tmp / "frames" / (stems[i] + ".avi")).string(), cv::CAP_OPENCV_MJPEG,
+            cv::VideoWriter::fourcc('M', 'J', 'P', 'G'), a.fps, cv::Size(cam.width, cam.height));
+    if (!w->isOpened()) {
+      spdlog::warn("OpenCV cannot write a video here; the frames are PNG only");
+      w.reset();
     }
-    if (a.ply_every > 0) fs::create_directories(tmp / "ply");
-    char name[32];
-    auto write_frame = [&](int f) {
-      for (size_t i = 0; i < views.size(); ++i) {
-        const SceneView& sv = scene->views()[views[i]];
-        const GaussianSet g = sim.gaussians(sv.camera.center());
-        RenderOutput o = renderer.render(g, sv.camera, rs);
-        if (sky.enabled()) composite_sky(renderer, sky, sv.camera, o);
-        std::snprintf(name, sizeof name, "%04d.png", f);
-        write_rgb_png((tmp / "frames" / stems[i] / name).string(), o.rgb, sv.camera.width, sv.camera.height);
-        if (videos[i]) {
-          cv::Mat img(sv.camera.height, sv.camera.width, CV_32FC3, o.rgb.data());
-          cv::Mat bgr;
-          img.convertTo(bgr, CV_8UC3, 255.0);
-          cv::cvtColor(bgr, bgr, cv::COLOR_RGB2BGR);
-          videos[i]->write(bgr);
-        }
-      }
-      if (a.ply_every > 0 && f % a.ply_every == 0) {
-        std::snprintf(name, sizeof name, "frame_%04d.ply", f);
-        write_ply((tmp / "ply" / name).string(), sim.gaussians(Eigen::Vector3d::Zero(), false), true,
-                  PlyValues::activated);
-      }
-    };
-    auto frame_json = [](const SimFrameStats& s) {
-      auto arr = [](const std::array<double, 3>& v) { return nlohmann::json::array({v[0], v[1], v[2]}); };
-      return nlohmann::json{{"frame", s.frame},
-                            {"time", s.time},
-                            {"substeps", s.substeps},
-                            {"wall_seconds", s.wall_s},
-                            {"kinetic_energy", s.all.kinetic},
-                            {"momentum", arr(s.all.momentum)},
-                            {"object_kinetic_energy", s.object.kinetic},
-                            {"object_momentum", arr(s.object.momentum)},
-                            {"object_centre_of_mass", arr(s.object_centre)},
-                            {"max_strain", s.all.max_strain},
-                            {"object_max_strain", s.object.max_strain}};
-    };
-    nlohmann::json frames = nlohmann::json::array();
-    frames.push_back(frame_json(sim.stats()));
-    write_frame(0);
-    double sim_s = 0;
-    int substeps_total = 0;
-    for (int f = 1; f <= a.frames; ++f) {
-      // Frame f covers the substeps from frame f-1 to f: the force acts in
-      // frames [A, B) of --force-frames.
-      const bool forces_on = f - 1 >= force_from && f - 1 < force_to;
-      const SimFrameStats st = sim.advance(forces_on);
-      sim_s += st.wall_s;
-      substeps_total += st.substeps;
-      write_frame(f);
-      frames.push_back(frame_json(st));
-      spdlog::info(
-          "frame {:3d}/{}  {} substeps of {:.3g} s{}  kinetic {:.4g} J  object centre ({:.4g}, {:.4g}, {:.4g})  max "
-          "|F - I| {:.3g}  {:.2f} s  ETA {}",
-          f, a.frames, st.substeps, sim.dt(), forces_on ? "  force on" : "", st.all.kinetic, st.object_centre[0],
-          st.object_centre[1], st.object_centre[2], st.all.max_strain, st.wall_s,
-          fmt_duration(sim_s / f * (a.frames - f)));
-      staged.stop_if_interrupted("the simulation");
-    }
-    for (auto& v : videos)
-      if (v) v->release();
-    report["simulation"] = sim.describe();
-    report["material"] = a.material;
-    report["frames"] = a.frames;
-    report["fps"] = a.fps;
-    report["force_frames"] = {force_from, force_to};
-    report["dt"] = a.dt > 0 ? nlohmann::json(a.dt) : nlohmann::json("automatic");
-    report["substeps"] = substeps_total;
-    report["views"] = nlohmann::json::array();
-    for (int v : views) report["views"].push_back(scene->views()[v].name);
-    report["ply_every"] = a.ply_every;
-    report["per_frame"] = frames;
-    report["seconds"] = {{"query", sel.query_ms / 1000.0},
-                         {"simulation", sim_s},
-                         {"total", std::chrono::duration<double>(std::chrono::steady_clock::now() - t_start).count()}};
-    AtomicFile jf((tmp / "simulation.json").string());
-    jf.write(report.dump(2) + "\n");
-    jf.commit();
-    staged.commit();
-    spdlog::info("wrote {}: frames/ ({} views x {} frames), {}simulation.json ({:.1f} s simulating, {} substeps)",
-                 a.out, views.size(), a.frames + 1, a.ply_every > 0 ? "ply/, " : "", sim_s, substeps_total);
+    videos.push_back(std::move(w));
   }
+  if (a.ply_every > 0) fs::create_directories(tmp / "ply");
+  char name[32];
+  req.on_render = [&](int f, size_t i, const RenderOutput& o) {
+    std::snprintf(name, sizeof name, "%04d.png", f);
+    write_rgb_png((tmp / "frames" / stems[i] / name).string(), o.rgb, o.width, o.height);
+    if (videos[i]) {
+      cv::Mat img(o.height, o.width, CV_32FC3, const_cast<float*>(o.rgb.data()));
+      cv::Mat bgr;
+      img.convertTo(bgr, CV_8UC3, 255.0);
+      cv::cvtColor(bgr, bgr, cv::COLOR_RGB2BGR);
+      videos[i]->write(bgr);
+    }
+  };
+  req.on_frame = [&](int f, Simulation& sim) {
+    if (a.ply_every > 0 && f % a.ply_every == 0) {
+      std::snprintf(name, sizeof name, "frame_%04d.ply", f);
+      write_ply((tmp / "ply" / name).string(), sim.gaussians(Eigen::Vector3d::Zero(), false), true,
+                PlyValues::activated);
+    }
+  };
+  req.check_stop = [&](const std::string& during) { staged.stop_if_interrupted(during); };
+  const SimulationResult result = simulate_object(rt, req);
+  for (auto& v : videos)
+    if (v) v->release();
+  report.update(result.report);
+  report["views"] = nlohmann::json::array();
+  for (int v : req.views) report["views"].push_back(scene->views()[v].name);
+  report["ply_every"] = a.ply_every;
+  report["seconds"] = {{"query", sel.query_ms / 1000.0},
+                       {"simulation", result.simulate_s},
+                       {"total", std::chrono::duration<double>(std::chrono::steady_clock::now() - t_start).count()}};
+  AtomicFile jf((tmp / "simulation.json").string());
+  jf.write(report.dump(2) + "\n");
+  jf.commit();
+  staged.commit();
+  spdlog::info("wrote {}: frames/ ({} views x {} frames), {}simulation.json ({:.1f} s simulating, {} substeps)", a.out,
+               req.views.size(), a.frames + 1, a.ply_every > 0 ? "ply/, " : "", result.simulate_s, result.substeps);
 }
 
 }  // namespace

@@ -1,5 +1,5 @@
 // Up and the main plane of a capture (host/scene/scene_up.h), and the ground
-// under an object (stages/simulation.h support_height), on constructed
+// under an object (apps/simulation/simulation.h support_height), on constructed
 // point sets and camera rigs whose true up is known.
 #include <gtest/gtest.h>
 
@@ -8,8 +8,8 @@
 #include <random>
 #include <vector>
 
+#include "apps/simulation/simulation.h"
 #include "host/scene/scene_up.h"
-#include "stages/simulation.h"
 #include "tests/test_util.h"
 
 namespace ag2gs {

@@ -16,7 +16,11 @@
 #include <opencv2/imgcodecs.hpp>
 #include <string>
 
+#include "apps/simulation/simulate.h"
 #include "cli_test_util.h"
+#include "host/io/image_io.h"
+#include "host/io/model_io.h"
+#include "test_util.h"
 
 namespace fs = std::filesystem;
 using nlohmann::json;
@@ -273,6 +277,86 @@ TEST(Simulate, BadInputIsRefusedBeforeAnythingIsWritten) {
   EXPECT_NE(r.output.find("lower --E"), std::string::npos) << r.output;
   EXPECT_LT(std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count(), 60.0);
   EXPECT_FALSE(fs::exists(out));
+}
+
+// The library's entry point called directly (apps/simulation/simulate.h):
+// the frames it hands over are the ones `ag2gs simulate` writes with the same
+// selection and settings (PNG to 1/255), its per-frame record is the
+// program's (but wall times), the frame callback runs once per frame, a stop
+// request stops it, and requests it must refuse are refused.
+TEST(Simulate, TheLibraryCallGivesWhatTheProgramWrites) {
+  const Fixture& f = fixture();
+  const fs::path out = fresh("library_vs_program");
+  const auto r = test::run_cli(simulate_cmd(out, "--frames 3 --fps 100 --ply-every 0"));
+  ASSERT_EQ(r.code, 0) << r.output;
+  const json program = json::parse(std::ifstream(out / "simulation.json"));
+
+  const ModelArchive archive = read_model_archive((f.model / "model.ag2gs").string());
+  const AnchorModel model = AnchorModel::from_archive(archive);
+  SceneOptions so;
+  so.eval = true;
+  std::unique_ptr<Scene> scene = Scene::open(f.scene.string(), so);
+  SimulationRequest req;
+  req.model_file = (f.model / "model.ag2gs").string();
+  req.archive = &archive;
+  req.model = &model;
+  req.sh_degree = archive.meta["train"].value("sh_degree", 3);
+  req.scene = scene.get();
+  req.selected.assign(model.size(), 0);
+  const json selection = json::parse(std::ifstream(f.selection));
+  for (const auto& a : selection["anchors"]) req.selected[a.get<int>()] = 1;
+  req.views = {scene->train_views().at(0)};
+  req.settings.object.kind = parse_material("jelly");
+  req.settings.object.E = 1e5;
+  req.settings.object.nu = 0.4;
+  req.settings.background.kind = MaterialKind::kMetal;
+  req.settings.background.E = 2e6;
+  req.settings.background.nu = 0.3;
+  req.settings.with_background = false;
+  req.settings.grid = 16;
+  req.frames = 3;
+  req.fps = 100;
+  int frames_seen = 0;
+  req.on_render = [&](int frame, size_t view, const RenderOutput& o) {
+    ASSERT_EQ(view, 0u);
+    char name[32];
+    std::snprintf(name, sizeof name, "%04d.png", frame);
+    int w = 0, h = 0;
+    const std::vector<float> written = read_rgb((out / "frames" / "view_001" / name).string(), w, h);
+    ASSERT_EQ(written.size(), o.rgb.size()) << name;
+    for (size_t k = 0; k < written.size(); ++k)
+      ASSERT_NEAR(written[k], std::clamp(o.rgb[k], 0.f, 1.f), 0.5 / 255 + 1e-6) << name << " value " << k;
+  };
+  req.on_frame = [&](int frame, Simulation&) { EXPECT_EQ(frame, frames_seen++); };
+  Runtime& rt = test::runtime();
+  SimulationResult res = simulate_object(rt, req);
+  EXPECT_EQ(frames_seen, 4);
+  for (json* j : {&res.report, const_cast<json*>(&program)})
+    for (auto& fr : (*j)["per_frame"]) fr.erase("wall_seconds");
+  for (const char* key : {"per_frame", "simulation", "hidden_anchors_moved", "substeps", "force_frames", "dt"})
+    EXPECT_EQ(res.report.at(key), program.at(key)) << key;
+
+  SimulationRequest stopped = req;
+  stopped.on_render = nullptr;
+  stopped.on_frame = nullptr;
+  stopped.check_stop = [](const std::string& during) { throw std::runtime_error("stopped during " + during); };
+  EXPECT_THROW(simulate_object(rt, stopped), std::runtime_error);
+
+  SimulationRequest bad = stopped;
+  bad.check_stop = nullptr;
+  bad.views.clear();
+  EXPECT_THROW(simulate_object(rt, bad), std::invalid_argument);
+  bad.views = req.views;
+  bad.selected.pop_back();
+  EXPECT_THROW(simulate_object(rt, bad), std::invalid_argument);
+  bad.selected = req.selected;
+  bad.max_substeps = 1;
+  try {
+    simulate_object(rt, bad);
+    ADD_FAILURE() << "a run over --max-substeps was accepted";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("--max-substeps"), std::string::npos) << e.what();
+  }
 }
 
 }  // namespace

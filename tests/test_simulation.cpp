@@ -1,4 +1,4 @@
-// The simulation stage (stages/simulation.h): interior filling, the ground
+// The simulation stage (apps/simulation/simulation.h): interior filling, the ground
 // under an object, the up direction, and the Gaussians that follow their
 // particles (kernels/mpm.cl, mpm_gaussians) against a double-precision
 // reference of F Sigma F^T and of the SH colour at the turned view direction.
@@ -9,7 +9,7 @@
 #include <random>
 #include <vector>
 
-#include "stages/simulation.h"
+#include "apps/simulation/simulation.h"
 #include "tests/reference/reference_renderer.h"
 #include "tests/test_util.h"
 

@@ -9,6 +9,7 @@
 #include <stdexcept>
 #include <utility>
 
+#include "apps/backdrop.h"
 #include "host/core/timing.h"
 #include "host/render/renderer.h"
 #include "host/render/sky.h"
@@ -25,39 +26,26 @@ constexpr float kClearedLogit = -30.f;
 
 double seconds_since(std::chrono::steady_clock::time_point t0) { return ms_since(t0) / 1000.0; }
 
-// The training settings the fine-tune continues with: the model's own when
-// its archive records them.
-TrainConfig training_config(const ModelArchive& archive, const std::string& name) {
-  TrainConfig tc;
-  if (archive.meta.contains("train") && archive.meta["train"].contains("config")) {
-    try {
-      tc = TrainConfig::from_json(archive.meta["train"]["config"]);
-    } catch (const std::exception& e) {
-      spdlog::warn("{}: its training config cannot be read ({}); the fine-tune uses the default rates", name,
-                   e.what());
-    }
-  }
-  return tc;
-}
-
-// What every step of a removal reads.
+// What every step of a removal reads. The fine-tune continues with the
+// model's own training settings when its archive records them.
 struct Context {
   const RemovalRequest& req;
   const RemovalSettings& s;
   Renderer renderer;
-  Sky sky;
-  std::optional<std::vector<float>> sky_coefficients;
-  RenderSettings render_settings;
-  TrainConfig tc;
+  ModelBackdrop look;
+  Sky& sky;
+  const RenderSettings& render_settings;
+  const TrainConfig& tc;
   std::function<void(const std::string&)> check_stop;
 
   Context(Runtime& rt, const RemovalRequest& r)
-      : req(r), s(r.settings), renderer(rt), sky(rt), tc(training_config(*r.archive, r.model_file)) {
-    // The model's sky shows in the renders after deletion, as in training.
-    sky_coefficients = sky_from_archive(*r.archive);
-    if (sky_coefficients) sky.set(sky_degree_for(sky_coefficients->size()), *sky_coefficients);
-    const float bg = tc.white_background && !sky.enabled() ? 1.f : 0.f;
-    render_settings.background = {bg, bg, bg};
+      : req(r),
+        s(r.settings),
+        renderer(rt),
+        look(rt, *r.archive, r.model_file, "the fine-tune uses the default rates"),
+        sky(look.sky),
+        render_settings(look.settings),
+        tc(look.train) {
     check_stop = r.check_stop ? r.check_stop : [](const std::string&) {};
   }
 };
@@ -145,7 +133,7 @@ std::pair<int, double> fine_tune(Runtime& rt, Context& c, AnchorModel& result, c
           for (int ch = 0; ch < 3; ++ch) t[3 * p + ch] = o.rgb[3 * p + ch];
     }
   }
-  FillTuner tuner(rt, result, trainable, fc, c.sky_coefficients ? &*c.sky_coefficients : nullptr);
+  FillTuner tuner(rt, result, trainable, fc, c.look.sky_coefficients ? &*c.look.sky_coefficients : nullptr);
   for (auto& [cam, t] : h.tune_targets) tuner.add_target(cam, std::move(t));
   h.tune_targets.clear();
   const auto t0 = std::chrono::steady_clock::now();

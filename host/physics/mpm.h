@@ -11,7 +11,7 @@
 //
 // Units: the solver works in a box [0, 1]^3 metres with +z up; the grid has
 // `grid` cells per side, dx = 1 / grid. The caller maps its world into that
-// box (stages/simulation.h). Particles must stay within the box; the walls
+// box (apps/simulation/simulation.h). Particles must stay within the box; the walls
 // (3 cells) and the ground plane keep them there.
 #pragma once
 

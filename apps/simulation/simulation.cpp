@@ -1,4 +1,4 @@
-#include "stages/simulation.h"
+#include "apps/simulation/simulation.h"
 
 #include <spdlog/spdlog.h>
 
