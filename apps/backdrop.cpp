@@ -3,8 +3,16 @@
 #include <spdlog/spdlog.h>
 
 #include <exception>
+#include <stdexcept>
 
 namespace ag2gs {
+
+void ObjectInModel::check(const std::string& who) const {
+  if (!model || !archive || !scene) throw std::invalid_argument(who + ": no model or no scene");
+  if (selected.size() != model->size())
+    throw std::invalid_argument(who + ": a selection of " + std::to_string(selected.size()) +
+                                " anchors for a model of " + std::to_string(model->size()));
+}
 
 ModelBackdrop::ModelBackdrop(Runtime& rt, const ModelArchive& archive, const std::string& name,
                              const std::string& without_config)

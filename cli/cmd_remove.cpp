@@ -74,7 +74,6 @@ std::vector<std::string> train_view_stems(const Scene& scene) {
 void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
   const auto t_start = std::chrono::steady_clock::now();
   // ---- everything that can be checked before any work
-  const bool by_selection = !a.selection.empty();
   check_selection_request(a.request, a.selection);
   RemovalSettings& rs = a.settings;
   rs.inpaint = parse_inpaint_method(a.inpaint);
@@ -87,16 +86,9 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
   if (!a.inpainted.empty() && !fs::is_directory(a.inpainted))
     throw std::invalid_argument("--inpainted " + a.inpainted + " is not a folder");
 
-  const bool by_text = !by_selection && a.request.by_text();
-  const TrainedModel tm = load_trained_model(a.model, by_text);
-  if (a.resolution == 0) a.resolution = tm.resolution;
-  SceneOptions so;
-  so.resolution = a.resolution;
-  so.eval = tm.eval_split;
-  so.sparse = a.sparse;
-  std::unique_ptr<Scene> scene = Scene::open(a.scene, so);
-  std::vector<float> embedding;
-  if (by_text) embedding = load_query_embedding(a.request, tm.file, tm.language.dim);
+  const OpenedModel opened = open_model_and_scene(a.model, a.scene, a.resolution, a.sparse, a.request, a.selection);
+  const TrainedModel& tm = opened.tm;
+  Scene* scene = opened.scene.get();
   // The training views' names in holes/, targets/ and --inpainted (a/1.jpg
   // and b/1.jpg: a_1.png and b_1.png).
   const std::vector<std::string> stems = train_view_stems(*scene);
@@ -112,7 +104,7 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
   report["scene"] = a.scene;
   report["resolution"] = a.resolution;
   const SelectedObject sel =
-      select_object(rt, tm, *scene, a.request, a.selection, a.config, embedding, a.resolution, report, "remove");
+      select_object(rt, tm, *scene, a.request, a.selection, a.config, opened.embedding, a.resolution, report, "remove");
   if (sel.count == tm.model.size())
     throw std::runtime_error("the query selected all " + std::to_string(tm.model.size()) +
                              " anchors: removing them would leave an empty model");
@@ -126,12 +118,7 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
   fs::create_directories(tmp / "holes");
   fs::create_directories(tmp / "targets");
   RemovalRequest req;
-  req.model_file = tm.file;
-  req.archive = &tm.archive;
-  req.model = &tm.model;
-  req.sh_degree = tm.sh_degree;
-  req.scene = scene.get();
-  req.selected = sel.anchors;
+  req.object = object_in_model(opened, sel);
   req.settings = rs;
   if (!a.inpainted.empty())
     req.inpainted = [&](size_t i) { return read_inpainted(a.inpainted, scene->views()[train_views[i]], stems[i]); };

@@ -142,31 +142,19 @@ void cmd_simulate(const GlobalOptions& global, SimulateArgs a) {
   ss.validate();
   const fs::path out = check_new_output_folder(a.out, a.model);
 
-  const bool by_text = a.selection.empty() && a.request.by_text();
-  const TrainedModel tm = load_trained_model(a.model, by_text);
-  if (a.resolution == 0) a.resolution = tm.resolution;
-  SceneOptions so;
-  so.resolution = a.resolution;
-  so.eval = tm.eval_split;
-  so.sparse = a.sparse;
-  std::unique_ptr<Scene> scene = Scene::open(a.scene, so);
+  const OpenedModel opened = open_model_and_scene(a.model, a.scene, a.resolution, a.sparse, a.request, a.selection);
+  const TrainedModel& tm = opened.tm;
+  const Scene* scene = opened.scene.get();
   req.views = render_views(*scene, a.views, a.scene);
-  std::vector<float> embedding;
-  if (by_text) embedding = load_query_embedding(a.request, tm.file, tm.language.dim);
 
   Runtime rt(global.device);
   nlohmann::json report;
   report["model"] = tm.file;
   report["scene"] = a.scene;
   report["resolution"] = a.resolution;
-  const SelectedObject sel =
-      select_object(rt, tm, *scene, a.request, a.selection, a.config, embedding, a.resolution, report, "simulate");
-  req.model_file = tm.file;
-  req.archive = &tm.archive;
-  req.model = &tm.model;
-  req.sh_degree = tm.sh_degree;
-  req.scene = scene.get();
-  req.selected = sel.anchors;
+  const SelectedObject sel = select_object(rt, tm, *scene, a.request, a.selection, a.config, opened.embedding,
+                                           a.resolution, report, "simulate");
+  req.object = object_in_model(opened, sel);
   req.push = a.push;
   req.move_hidden = a.move_hidden;
   req.frames = a.frames;

@@ -157,4 +157,31 @@ SelectedObject select_object(Runtime& rt, const TrainedModel& tm, const Scene& s
   return out;
 }
 
+OpenedModel open_model_and_scene(const std::string& model_dir, const std::string& scene_dir, int& resolution,
+                                 const std::string& sparse, const QueryRequest& request,
+                                 const std::string& selection_file) {
+  const bool by_text = selection_file.empty() && request.by_text();
+  OpenedModel o;
+  o.tm = load_trained_model(model_dir, by_text);
+  if (resolution == 0) resolution = o.tm.resolution;
+  SceneOptions so;
+  so.resolution = resolution;
+  so.eval = o.tm.eval_split;
+  so.sparse = sparse;
+  o.scene = Scene::open(scene_dir, so);
+  if (by_text) o.embedding = load_query_embedding(request, o.tm.file, o.tm.language.dim);
+  return o;
+}
+
+ObjectInModel object_in_model(const OpenedModel& opened, const SelectedObject& sel) {
+  ObjectInModel o;
+  o.model_file = opened.tm.file;
+  o.archive = &opened.tm.archive;
+  o.model = &opened.tm.model;
+  o.sh_degree = opened.tm.sh_degree;
+  o.scene = opened.scene.get();
+  o.selected = sel.anchors;
+  return o;
+}
+
 }  // namespace ag2gs::cli

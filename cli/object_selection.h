@@ -5,10 +5,12 @@
 
 #include <cstdint>
 #include <filesystem>
+#include <memory>
 #include <nlohmann/json.hpp>
 #include <string>
 #include <vector>
 
+#include "apps/backdrop.h"
 #include "cli/commands.h"
 
 namespace ag2gs::cli {
@@ -69,5 +71,22 @@ SelectedObject select_object(Runtime& rt, const TrainedModel& tm, const Scene& s
                              const std::string& selection_file, const QueryConfig& config,
                              const std::vector<float>& embedding, int resolution, nlohmann::json& report,
                              const std::string& action);
+
+// What remove and simulate open before selecting: the model (with stage 3's
+// clusters and language features for a text query), the scene it was
+// trained on at -r `resolution` (0: the model's training -r, and `resolution`
+// is set to it) with the model's train/test split, and a text query's
+// embedding. Each refusal names the file or flag and the fix.
+struct OpenedModel {
+  TrainedModel tm;
+  std::unique_ptr<Scene> scene;
+  std::vector<float> embedding;  // a text query's (not by a selection file)
+};
+OpenedModel open_model_and_scene(const std::string& model_dir, const std::string& scene_dir, int& resolution,
+                                 const std::string& sparse, const QueryRequest& request,
+                                 const std::string& selection_file);
+// The model, its scene and the selection as the applications take them
+// (apps/backdrop.h); `opened` must outlive the result.
+ObjectInModel object_in_model(const OpenedModel& opened, const SelectedObject& sel);
 
 }  // namespace ag2gs::cli

@@ -534,12 +534,12 @@ TEST(Remove, TheLibraryCallGivesWhatTheProgramWrites) {
   so.eval = true;
   std::unique_ptr<Scene> scene = Scene::open(fixture().scene.string(), so);
   RemovalRequest req;
-  req.model_file = (fixture().model / "model.ag2gs").string();
-  req.archive = &in;
-  req.model = &model;
-  req.sh_degree = in.meta["train"].value("sh_degree", 3);
-  req.scene = scene.get();
-  req.selected = selected;
+  req.object.model_file = (fixture().model / "model.ag2gs").string();
+  req.object.archive = &in;
+  req.object.model = &model;
+  req.object.sh_degree = in.meta["train"].value("sh_degree", 3);
+  req.object.scene = scene.get();
+  req.object.selected = selected;
   req.settings.iters = 12;
   req.settings.seed = 7;
   std::vector<size_t> seen;
@@ -581,11 +581,11 @@ TEST(Remove, TheLibraryCallGivesWhatTheProgramWrites) {
   // Refused: a selection of another size, every anchor, a fine-tune without a fill.
   RemovalRequest bad = req;
   bad.on_view = nullptr;
-  bad.selected.pop_back();
+  bad.object.selected.pop_back();
   EXPECT_THROW(remove_object(rt, bad), std::invalid_argument);
-  bad.selected.assign(model.size(), 1);
+  bad.object.selected.assign(model.size(), 1);
   EXPECT_THROW(remove_object(rt, bad), std::runtime_error);
-  bad.selected = selected;
+  bad.object.selected = selected;
   bad.settings.fill_holes = false;
   try {
     remove_object(rt, bad);

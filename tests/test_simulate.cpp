@@ -297,14 +297,14 @@ TEST(Simulate, TheLibraryCallGivesWhatTheProgramWrites) {
   so.eval = true;
   std::unique_ptr<Scene> scene = Scene::open(f.scene.string(), so);
   SimulationRequest req;
-  req.model_file = (f.model / "model.ag2gs").string();
-  req.archive = &archive;
-  req.model = &model;
-  req.sh_degree = archive.meta["train"].value("sh_degree", 3);
-  req.scene = scene.get();
-  req.selected.assign(model.size(), 0);
+  req.object.model_file = (f.model / "model.ag2gs").string();
+  req.object.archive = &archive;
+  req.object.model = &model;
+  req.object.sh_degree = archive.meta["train"].value("sh_degree", 3);
+  req.object.scene = scene.get();
+  req.object.selected.assign(model.size(), 0);
   const json selection = json::parse(std::ifstream(f.selection));
-  for (const auto& a : selection["anchors"]) req.selected[a.get<int>()] = 1;
+  for (const auto& a : selection["anchors"]) req.object.selected[a.get<int>()] = 1;
   req.views = {scene->train_views().at(0)};
   req.settings.object.kind = parse_material("jelly");
   req.settings.object.E = 1e5;
@@ -347,9 +347,9 @@ TEST(Simulate, TheLibraryCallGivesWhatTheProgramWrites) {
   bad.views.clear();
   EXPECT_THROW(simulate_object(rt, bad), std::invalid_argument);
   bad.views = req.views;
-  bad.selected.pop_back();
+  bad.object.selected.pop_back();
   EXPECT_THROW(simulate_object(rt, bad), std::invalid_argument);
-  bad.selected = req.selected;
+  bad.object.selected = req.object.selected;
   bad.max_substeps = 1;
   try {
     simulate_object(rt, bad);

@@ -42,7 +42,7 @@ struct Context {
       : req(r),
         s(r.settings),
         renderer(rt),
-        look(rt, *r.archive, r.model_file, "the fine-tune uses the default rates"),
+        look(rt, *r.object.archive, r.object.model_file, "the fine-tune uses the default rates"),
         sky(look.sky),
         render_settings(look.settings),
         tc(look.train) {
@@ -63,7 +63,7 @@ struct Holes {
 
 Holes find_holes(Context& c, HoleFinder& holes, HoleFootprint& footprint) {
   Holes out;
-  Scene& scene = *c.req.scene;
+  Scene& scene = *c.req.object.scene;
   const std::vector<int> train_views = scene.train_views();
   const auto t0 = std::chrono::steady_clock::now();
   for (size_t i = 0; i < train_views.size(); ++i) {
@@ -104,11 +104,11 @@ Holes find_holes(Context& c, HoleFinder& holes, HoleFootprint& footprint) {
 std::pair<int, double> fine_tune(Runtime& rt, Context& c, AnchorModel& result, const std::vector<uint8_t>& trainable,
                                  Holes& h) {
   const RemovalSettings& s = c.s;
-  const Scene& scene = *c.req.scene;
+  const Scene& scene = *c.req.object.scene;
   FineTuneConfig fc;
   fc.iterations = s.iters;
   fc.seed = s.seed;
-  fc.sh_degree = c.req.sh_degree;
+  fc.sh_degree = c.req.object.sh_degree;
   fc.background = c.render_settings.background;
   fc.lambda_ssim = c.tc.lambda_ssim;
   const double extent =
@@ -123,7 +123,7 @@ std::pair<int, double> fine_tune(Runtime& rt, Context& c, AnchorModel& result, c
     // The holes' targets are the filled model's own render: one colour per
     // voxel, agreed by the views, so the fine-tune fits the seams around the
     // holes to the photos without undoing the fill.
-    const GaussianSet filled = expand_reference(result, c.req.sh_degree);
+    const GaussianSet filled = expand_reference(result, c.req.object.sh_degree);
     for (size_t i = 0; i < h.tune_targets.size(); ++i) {
       auto& [cam, t] = h.tune_targets[i];
       RenderOutput o = c.renderer.render(filled, cam, c.render_settings);
@@ -199,20 +199,18 @@ void RemovalSettings::validate() const {
 }
 
 RemovalResult remove_object(Runtime& rt, const RemovalRequest& req) {
-  if (!req.model || !req.archive || !req.scene) throw std::invalid_argument("remove_object: no model or no scene");
+  req.object.check("remove_object");
   const RemovalSettings& s = req.settings;
   s.validate();
-  const AnchorModel& model = *req.model;
-  if (req.selected.size() != model.size())
-    throw std::invalid_argument("remove_object: a selection of " + std::to_string(req.selected.size()) +
-                                " anchors for a model of " + std::to_string(model.size()));
-  const size_t n_sel = static_cast<size_t>(std::count(req.selected.begin(), req.selected.end(), uint8_t{1}));
+  const AnchorModel& model = *req.object.model;
+  const size_t n_sel =
+      static_cast<size_t>(std::count(req.object.selected.begin(), req.object.selected.end(), uint8_t{1}));
   if (n_sel == 0) throw std::invalid_argument("remove_object: nothing is selected");
   if (n_sel == model.size())
     throw std::runtime_error("the query selected all " + std::to_string(model.size()) +
                              " anchors: removing them would leave an empty model");
   Context c(rt, req);
-  const std::vector<uint8_t>& in_sel = req.selected;
+  const std::vector<uint8_t>& in_sel = req.object.selected;
 
   // Anchors the object hid from every photo go with it; children of kept
   // anchors that show the object are cleared (opacity 0).
@@ -220,10 +218,10 @@ RemovalResult remove_object(Runtime& rt, const RemovalRequest& req) {
   const auto t_hidden = std::chrono::steady_clock::now();
   if (s.clear_hidden) {
     std::vector<Camera> cameras;
-    for (int v : req.scene->train_views()) cameras.push_back(req.scene->views()[v].camera);
+    for (int v : req.object.scene->train_views()) cameras.push_back(req.object.scene->views()[v].camera);
     spdlog::info("which kept anchors near the object do the {} training views see? (two renders a view)",
                  cameras.size());
-    hidden = hidden_anchors(c.renderer, model, req.sh_degree, in_sel, cameras, c.render_settings, s.stray_reach,
+    hidden = hidden_anchors(c.renderer, model, req.object.sh_degree, in_sel, cameras, c.render_settings, s.stray_reach,
                             s.hidden_fraction);
     spdlog::info("{} kept anchors near the object are seen only through it: removed with it ({:.1f} s)",
                  hidden.size(), seconds_since(t_hidden));
@@ -239,8 +237,8 @@ RemovalResult remove_object(Runtime& rt, const RemovalRequest& req) {
   if (!strays.empty())
     spdlog::info("{} children of kept anchors sit among the object's Gaussians with its colour: cleared",
                  strays.size());
-  const GaussianSet removed = gaussians_of_anchors(model, req.sh_degree, in_sel, true);
-  const GaussianSet kept = gaussians_of_anchors(cleaned, req.sh_degree, gone, false);
+  const GaussianSet removed = gaussians_of_anchors(model, req.object.sh_degree, in_sel, true);
+  const GaussianSet kept = gaussians_of_anchors(cleaned, req.object.sh_degree, gone, false);
   HoleFinder holes(kept, removed);
   std::vector<uint8_t> keep(model.size());
   for (size_t k = 0; k < keep.size(); ++k) keep[k] = !gone[k];
@@ -274,7 +272,7 @@ RemovalResult remove_object(Runtime& rt, const RemovalRequest& req) {
     spdlog::info("fine-tune: nothing to tune (no fill anchor and no kept anchor near the holes)");
   out.added_anchors = drop_empty_fill(out.model, fill, s.fill.prune_opacity, source);
   const double fill_s = seconds_since(t_fill);
-  out.archive = archive_after_removal(*req.archive, out.model, source);
+  out.archive = archive_after_removal(*req.object.archive, out.model, source);
 
   // ---- the record
   // The kept anchors the fine-tune may change (their ids in the new model;

@@ -17,6 +17,7 @@
 #include <string>
 #include <vector>
 
+#include "apps/backdrop.h"
 #include "apps/removal/fill.h"
 #include "apps/removal/holes.h"
 #include "host/device/cl_runtime.h"
@@ -52,12 +53,7 @@ struct RemovalSettings {
 };
 
 struct RemovalRequest {
-  std::string model_file;                 // MODEL_DIR/model.ag2gs, for messages
-  const ModelArchive* archive = nullptr;  // the trained model's archive (its sky and training config)
-  const AnchorModel* model = nullptr;
-  int sh_degree = 0;                      // the SH degree training reached
-  Scene* scene = nullptr;                 // at the resolution the holes are found at
-  std::vector<uint8_t> selected;          // [anchors]: 1 = the object's
+  ObjectInModel object;  // the model, its scene (at the resolution used) and the selection
   RemovalSettings settings;
   // An external inpainter's image for training view i (scene->train_views()[i]),
   // [H,W,3] in 0..1 at the view's size; empty function: settings.inpaint.

@@ -22,7 +22,7 @@ namespace {
 // photo stored sideways (its x axis nearer up than its y axis), the right of
 // the photo turned upright: forward x up.
 std::optional<Eigen::Vector3d> default_push(const SimulationRequest& req, const std::vector<Camera>& cameras) {
-  const Scene& scene = *req.scene;
+  const Scene& scene = *req.object.scene;
   const std::optional<Eigen::Vector3d>& given_up = req.settings.up;
   const Eigen::Vector3d up = given_up ? given_up->normalized() : scene_up(cameras, scene.points()).up;
   const Camera& cam = scene.views()[req.views[0]].camera;
@@ -50,13 +50,10 @@ nlohmann::json frame_json(const SimFrameStats& s) {
 }
 
 void check_request(const SimulationRequest& req) {
-  if (!req.model || !req.archive || !req.scene) throw std::invalid_argument("simulate_object: no model or no scene");
-  if (req.selected.size() != req.model->size())
-    throw std::invalid_argument("simulate_object: a selection of " + std::to_string(req.selected.size()) +
-                                " anchors for a model of " + std::to_string(req.model->size()));
+  req.object.check("simulate_object");
   if (req.views.empty()) throw std::invalid_argument("simulate_object: no view to render");
   for (int v : req.views)
-    if (v < 0 || static_cast<size_t>(v) >= req.scene->views().size())
+    if (v < 0 || static_cast<size_t>(v) >= req.object.scene->views().size())
       throw std::invalid_argument("simulate_object: view index " + std::to_string(v) + " out of range");
   if (req.frames < 1) throw std::invalid_argument("--frames must be at least 1");
   if (!(req.fps > 0) || !std::isfinite(req.fps)) throw std::invalid_argument("--fps must be a number > 0");
@@ -71,9 +68,9 @@ void check_request(const SimulationRequest& req) {
 
 SimulationResult simulate_object(Runtime& rt, const SimulationRequest& req) {
   check_request(req);
-  const Scene& scene = *req.scene;
-  const int K = req.model->children();
-  const GaussianSet gaussians = expand_reference(*req.model, req.sh_degree);
+  const Scene& scene = *req.object.scene;
+  const int K = req.object.model->children();
+  const GaussianSet gaussians = expand_reference(*req.object.model, req.object.sh_degree);
   std::vector<Camera> cameras;
   for (int v : scene.train_views()) cameras.push_back(scene.views()[v].camera);
   SimulationResult out;
@@ -84,12 +81,13 @@ SimulationResult simulate_object(Runtime& rt, const SimulationRequest& req) {
   std::vector<int> hidden;
   if (req.move_hidden) {
     Renderer seen_renderer(rt);
-    hidden = hidden_anchors(seen_renderer, *req.model, req.sh_degree, req.selected, cameras, RenderSettings{});
+    hidden = hidden_anchors(seen_renderer, *req.object.model, req.object.sh_degree, req.object.selected, cameras,
+                            RenderSettings{});
     if (!hidden.empty())
       spdlog::info("{} kept anchors inside the object are seen only through it: they move with it", hidden.size());
   }
   report["hidden_anchors_moved"] = hidden;
-  std::vector<uint8_t> in_object = req.selected;
+  std::vector<uint8_t> in_object = req.object.selected;
   for (int h : hidden) in_object[h] = 1;
   std::vector<uint8_t> selected(gaussians.size(), 0);
   for (size_t g = 0; g < selected.size(); ++g) selected[g] = in_object[g / K];
@@ -100,8 +98,9 @@ SimulationResult simulate_object(Runtime& rt, const SimulationRequest& req) {
   } else if (const std::optional<Eigen::Vector3d> push = default_push(req, cameras)) {
     ss.force = *push;
   }
-  const size_t count = static_cast<size_t>(std::count(req.selected.begin(), req.selected.end(), uint8_t{1}));
-  spdlog::info("selected {} of {} anchors ({} Gaussians) to simulate as {}", count, req.model->size(),
+  const size_t count =
+      static_cast<size_t>(std::count(req.object.selected.begin(), req.object.selected.end(), uint8_t{1}));
+  spdlog::info("selected {} of {} anchors ({} Gaussians) to simulate as {}", count, req.object.model->size(),
                count * static_cast<size_t>(K), req.material);
   Simulation sim(rt, gaussians, selected, cameras, scene.points(), ss);
   const double dt_rest = sim.describe()["max_stable_dt_at_rest"].get<double>();
@@ -124,7 +123,7 @@ SimulationResult simulate_object(Runtime& rt, const SimulationRequest& req) {
         "--grid, or raise --max-substeps",
         req.frames, fps, least, step, ss.object.E, ss.grid, req.max_substeps));
 
-  ModelBackdrop look(rt, *req.archive, req.model_file, "rendering over a black background");
+  ModelBackdrop look(rt, *req.object.archive, req.object.model_file, "rendering over a black background");
   RenderSettings rs = look.settings;
   rs.features = false;
   Renderer renderer(rt);

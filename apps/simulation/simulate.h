@@ -11,12 +11,13 @@
 
 #include <cstdint>
 #include <functional>
-#include <optional>
 #include <nlohmann/json.hpp>
+#include <optional>
 #include <string>
 #include <utility>
 #include <vector>
 
+#include "apps/backdrop.h"
 #include "apps/simulation/simulation.h"
 #include "host/device/cl_runtime.h"
 #include "host/io/model_io.h"
@@ -26,12 +27,7 @@
 namespace ag2gs {
 
 struct SimulationRequest {
-  std::string model_file;                 // MODEL_DIR/model.ag2gs, for messages
-  const ModelArchive* archive = nullptr;  // the trained model's archive (its sky and background)
-  const AnchorModel* model = nullptr;
-  int sh_degree = 0;         // the SH degree training reached
-  Scene* scene = nullptr;    // at the resolution the frames are rendered at
-  std::vector<uint8_t> selected;  // [anchors]: 1 = the object's
+  ObjectInModel object;      // the model, its scene (at the resolution used) and the selection
   std::vector<int> views;    // scene views rendered every frame (at least one)
   SimulationSettings settings;  // the solver's (settings.force is replaced by the force below)
   // The acceleration on the object during force_frames (m/s^2, world frame);
