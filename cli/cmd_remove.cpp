@@ -36,14 +36,11 @@ double seconds_since(std::chrono::steady_clock::time_point t0) {
 }
 
 struct RemoveArgs {
-  QueryRequest request;
-  std::string model, scene, selection, out, inpaint = "telea", inpainted, sparse;
+  ObjectArgs obj;
+  std::string inpaint = "telea", inpainted;
   std::string tune_targets = "inpainted";
   bool no_fill = false;
-  int iters = -1;      // -1: the library's default
-  int resolution = 0;  // 0 = the model's training -r
   RemovalSettings settings;
-  QueryConfig config;
 };
 
 // The image an external inpainter wrote for `view`: DIR/<stem>.png (`stem`:
@@ -71,22 +68,27 @@ std::vector<std::string> train_view_stems(const Scene& scene) {
   return output_stems(names);
 }
 
+// The settings of the flags that are not RemovalSettings' own fields.
+void fold_flags(RemoveArgs& a) {
+  a.settings.inpaint = parse_inpaint_method(a.inpaint);
+  a.settings.fill_holes = !a.no_fill;
+  a.settings.tune_to_fill = a.tune_targets == "fill";
+}
+
 void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
   const auto t_start = std::chrono::steady_clock::now();
   // ---- everything that can be checked before any work
-  check_selection_request(a.request, a.selection);
-  RemovalSettings& rs = a.settings;
-  rs.inpaint = parse_inpaint_method(a.inpaint);
-  rs.fill_holes = !a.no_fill;
-  rs.tune_to_fill = a.tune_targets == "fill";
-  rs.iters = a.iters >= 0 ? a.iters : 0;
+  check_selection_request(a.obj.request, a.obj.selection);
+  fold_flags(a);
+  const RemovalSettings& rs = a.settings;
   rs.validate();
-  a.config.validate();
-  const fs::path out = check_new_output_folder(a.out, a.model);
+  a.obj.config.validate();
+  const fs::path out = check_new_output_folder(a.obj.out, a.obj.model);
   if (!a.inpainted.empty() && !fs::is_directory(a.inpainted))
     throw std::invalid_argument("--inpainted " + a.inpainted + " is not a folder");
 
-  const OpenedModel opened = open_model_and_scene(a.model, a.scene, a.resolution, a.sparse, a.request, a.selection);
+  const OpenedModel opened =
+      open_model_and_scene(a.obj.model, a.obj.scene, a.obj.resolution, a.obj.sparse, a.obj.request, a.obj.selection);
   const TrainedModel& tm = opened.tm;
   Scene* scene = opened.scene.get();
   // The training views' names in holes/, targets/ and --inpainted (a/1.jpg
@@ -101,10 +103,10 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
   Runtime rt(global.device);
   nlohmann::json report;
   report["model"] = tm.file;
-  report["scene"] = a.scene;
-  report["resolution"] = a.resolution;
-  const SelectedObject sel =
-      select_object(rt, tm, *scene, a.request, a.selection, a.config, opened.embedding, a.resolution, report, "remove");
+  report["scene"] = a.obj.scene;
+  report["resolution"] = a.obj.resolution;
+  const SelectedObject sel = select_object(rt, tm, *scene, a.obj.request, a.obj.selection, a.obj.config,
+                                           opened.embedding, a.obj.resolution, report, "remove");
   if (sel.count == tm.model.size())
     throw std::runtime_error("the query selected all " + std::to_string(tm.model.size()) +
                              " anchors: removing them would leave an empty model");
@@ -113,7 +115,7 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
   InterruptGuard interrupts;
 
   // ---- the removal; holes/ and targets/ are written into a folder beside OUT_DIR as they are found
-  StagedFolder staged(out, a.out);
+  StagedFolder staged(out, a.obj.out);
   const fs::path& tmp = staged.path();
   fs::create_directories(tmp / "holes");
   fs::create_directories(tmp / "targets");
@@ -149,7 +151,7 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
   spdlog::info(
       "wrote {}: model.ag2gs and point_cloud.ply without the object ({} anchors kept, {} added, {} "
       "Gaussians), holes/ and targets/ for {} training views, removal.json ({:.1f} s)",
-      a.out, result.kept_anchors, result.added_anchors, result.model.gaussians(), train_views.size(),
+      a.obj.out, result.kept_anchors, result.added_anchors, result.model.gaussians(), train_views.size(),
       seconds_since(t_start));
 }
 
@@ -160,15 +162,9 @@ void register_remove(CLI::App& app, GlobalOptions& global) {
   auto* r = app.add_subcommand("remove",
                                "Remove an object selected by a click or by text: delete its anchors, find the holes it "
                                "leaves and their inpainted targets; writes a new model folder");
-  r->add_option("model", a->model, "Model folder written by `ag2gs train` (MODEL_DIR/model.ag2gs)")->required();
-  r->add_option("--scene", a->scene, "Scene directory (images/, sparse/0/) the model was trained on")->required();
-  r->add_option("-o,--out", a->out,
-                "New folder for the model without the object: model.ag2gs, point_cloud.ply, holes/, targets/, "
-                "removal.json")
-      ->check(output_path())
-      ->required();
-  add_query_request_options(r, a->request);
-  r->add_option("--selection", a->selection, "Remove the anchors of a selection.json written by `ag2gs query`");
+  add_object_options(r, a->obj, "Remove",
+                     "New folder for the model without the object: model.ag2gs, point_cloud.ply, holes/, targets/, "
+                     "removal.json");
   r->add_option("--inpaint", a->inpaint,
                 "Fill the holes of the targets by telea (default), ns (Navier-Stokes) or none");
   r->add_option("--inpainted", a->inpainted,
@@ -177,7 +173,7 @@ void register_remove(CLI::App& app, GlobalOptions& global) {
   r->add_option("--dilate", a->settings.holes.dilate,
                 "Grow each hole by this many pixels (default 5: the object's blurred rim and contact shadow)")
       ->check(CLI::Range(0, 64));
-  r->add_option("--iters", a->iters,
+  r->add_option("--iters", a->settings.iters,
                 "Fine-tune the fill and the anchors near it for N iterations against the photos outside the object "
                 "and the inpainted targets in the holes (default " +
                     std::to_string(RemovalSettings{}.iters) +
@@ -221,13 +217,15 @@ void register_remove(CLI::App& app, GlobalOptions& global) {
                 "model's own render, so only the seams around the holes move)")
       ->check(CLI::IsMember({"inpainted", "fill"}));
   r->add_flag("--no-fill", a->no_fill, "Delete only: no fill anchors and no fine-tune");
-  r->add_option("-r,--resolution", a->resolution, "Divide the cameras by R (default: the model's training -r)")
-      ->check(CLI::Range(1, 64));
   r->add_option("--seed", a->settings.seed, "Random seed of the fill (default 1)")->check(seed_number());
-  r->add_option("--sparse", a->sparse,
-                "COLMAP model folder inside the scene (default: sparse/0/, else sparse/ when it holds the model)");
-  add_query_config_options(r, a->config);
-  set_action(r, [&global, a] { cmd_remove(global, *a); });
+  auto print_config = add_print_config_flag(r, "remove with");
+  set_action(r, [&global, a, print_config] {
+    if (*print_config) {
+      fold_flags(*a);
+      return print_config_json(a->settings);
+    }
+    cmd_remove(global, *a);
+  });
 }
 
 }  // namespace ag2gs::cli

@@ -31,71 +31,17 @@ namespace ag2gs::cli {
 namespace {
 
 struct SimulateArgs {
-  QueryRequest request;
-  QueryConfig config;
-  std::string model, scene, selection, out, sparse;
-  std::string material = "jelly";
-  // E: the paper's 2e8 needs 5,600 substeps per frame at grid 64 (the
-  // elastic wave crosses a cell in 7e-6 s): 46-66 s a frame, 25-33 minutes
-  // for 30 frames on 2 CPU cores. 2e6, the paper's background stiffness,
-  // takes about 570 substeps (docs/benchmarks.md, "Physics").
-  double E = 2e6, nu = 0.4, density = 1000;
-  double background_E = 2e6, background_nu = 0.3;
-  // The rest of the scene in the box as particles: off by default. On the
-  // seed-1 mug it made the thin pole and the box on it sag under gravity
-  // (|F - I| up to 2.8): a pole a Gaussian or two thick is too few
-  // particles per cell for the solver (docs/benchmarks.md, "Physics").
-  bool background = false;
-  bool move_hidden = true;  // kept anchors the object hid from every photo move with it
-  int frames = 30;
-  double fps = 25;
-  double max_substeps = 2e6;  // refused above: a stiffness whose stable substep is tiny runs for days
-  double dt = 0;
-  int grid = 64;
-  std::string gravity, force, force_frames = "0:3", up;
-  std::optional<double> ground;
-  double object_size = 0.4;
-  double friction = 0.5;
-  double damping = 0;
-  double push = 10;
-  std::string views;
+  ObjectArgs obj;
+  std::string gravity, force, force_frames = "0:3", up, views;
   int ply_every = 10;
-  int resolution = 0;
-  float min_opacity = 0.02f;
+  SimulationRequest req;  // with the library's defaults, which are the program's; flags set its fields
 };
-
-// "X,Y,Z" -> a vector; throws naming the flag.
-Eigen::Vector3d parse_vector(const std::string& text, const std::string& flag) {
-  std::stringstream ss(text);
-  Eigen::Vector3d v;
-  char comma = 0;
-  if (!(ss >> v(0) >> comma) || comma != ',' || !(ss >> v(1) >> comma) || comma != ',' || !(ss >> v(2)) || !ss.eof() ||
-      !v.allFinite())
-    throw std::invalid_argument(flag + " " + text + ": give three numbers as X,Y,Z");
-  return v;
-}
-
-// "A:B" -> [A, B): the frames whose substeps the force acts in.
-std::pair<int, int> parse_frames(const std::string& text) {
-  const size_t c = text.find(':');
-  try {
-    if (c == std::string::npos) throw std::invalid_argument("");
-    size_t used = 0;
-    const int a = std::stoi(text.substr(0, c), &used);
-    if (used != c) throw std::invalid_argument("");
-    const int b = std::stoi(text.substr(c + 1), &used);
-    if (used != text.size() - c - 1 || a < 0 || b < a) throw std::invalid_argument("");
-    return {a, b};
-  } catch (const std::exception&) {
-    throw std::invalid_argument("--force-frames " + text + ": give A:B with 0 <= A <= B (frames A to B-1)");
-  }
-}
 
 // The views to render: --views names (image names or stems), else the
 // first training view.
 std::vector<int> render_views(const Scene& scene, const std::string& list, const std::string& scene_dir) {
-  std::vector<int> views;
   if (list.empty()) return {scene.train_views().at(0)};
+  std::vector<int> views;
   std::stringstream vs(list);
   std::string name;
   while (std::getline(vs, name, ',')) {
@@ -110,60 +56,45 @@ std::vector<int> render_views(const Scene& scene, const std::string& list, const
   return views;
 }
 
+// The request's fields from the flags that are not its own.
+void fold_flags(SimulateArgs& a) {
+  SimulationSettings& ss = a.req.settings;
+  ss.object.kind = parse_material(a.req.material);
+  ss.background.density = ss.object.density;  // --density is every material's
+  ss.frame_time = 1.0 / a.req.fps;
+  if (!a.gravity.empty()) ss.gravity = parse_vector(a.gravity, "--gravity");
+  if (!a.up.empty()) ss.up = parse_vector(a.up, "--up");
+  if (!a.force.empty()) a.req.force = parse_vector(a.force, "--force");
+  a.req.force_frames = parse_frames(a.force_frames);
+}
+
 void cmd_simulate(const GlobalOptions& global, SimulateArgs a) {
   const auto t_start = std::chrono::steady_clock::now();
   // ---- everything that can be checked before any work
-  check_selection_request(a.request, a.selection);
-  a.config.validate();
-  SimulationRequest req;
-  SimulationSettings& ss = req.settings;
-  ss.object.kind = parse_material(a.material);
-  ss.object.E = a.E;
-  ss.object.nu = a.nu;
-  ss.object.density = a.density;
-  ss.background.kind = MaterialKind::kMetal;  // von Mises plasticity (the paper's background)
-  ss.background.E = a.background_E;
-  ss.background.nu = a.background_nu;
-  ss.background.density = a.density;
-  ss.with_background = a.background;
-  ss.grid = a.grid;
-  ss.frame_time = 1.0 / a.fps;
-  ss.dt = a.dt;
-  if (!a.gravity.empty()) ss.gravity = parse_vector(a.gravity, "--gravity");
-  if (!a.up.empty()) ss.up = parse_vector(a.up, "--up");
-  ss.ground = a.ground;
-  ss.object_size = a.object_size;
-  ss.friction = a.friction;
-  ss.damping = a.damping;
-  ss.min_opacity = a.min_opacity;
-  if (!a.force.empty()) req.force = parse_vector(a.force, "--force");
-  req.force_frames = parse_frames(a.force_frames);
-  if (!(a.fps > 0) || !std::isfinite(a.fps)) throw std::invalid_argument("--fps must be a number > 0");
-  ss.validate();
-  const fs::path out = check_new_output_folder(a.out, a.model);
+  check_selection_request(a.obj.request, a.obj.selection);
+  a.obj.config.validate();
+  fold_flags(a);
+  SimulationRequest& req = a.req;
+  req.validate();
+  const fs::path out = check_new_output_folder(a.obj.out, a.obj.model);
 
-  const OpenedModel opened = open_model_and_scene(a.model, a.scene, a.resolution, a.sparse, a.request, a.selection);
+  const OpenedModel opened =
+      open_model_and_scene(a.obj.model, a.obj.scene, a.obj.resolution, a.obj.sparse, a.obj.request, a.obj.selection);
   const TrainedModel& tm = opened.tm;
   const Scene* scene = opened.scene.get();
-  req.views = render_views(*scene, a.views, a.scene);
+  req.views = render_views(*scene, a.views, a.obj.scene);
 
   Runtime rt(global.device);
   nlohmann::json report;
   report["model"] = tm.file;
-  report["scene"] = a.scene;
-  report["resolution"] = a.resolution;
-  const SelectedObject sel = select_object(rt, tm, *scene, a.request, a.selection, a.config, opened.embedding,
-                                           a.resolution, report, "simulate");
+  report["scene"] = a.obj.scene;
+  report["resolution"] = a.obj.resolution;
+  const SelectedObject sel = select_object(rt, tm, *scene, a.obj.request, a.obj.selection, a.obj.config,
+                                           opened.embedding, a.obj.resolution, report, "simulate");
   req.object = object_in_model(opened, sel);
-  req.push = a.push;
-  req.move_hidden = a.move_hidden;
-  req.frames = a.frames;
-  req.fps = a.fps;
-  req.max_substeps = a.max_substeps;
-  req.material = a.material;
 
   InterruptGuard interrupts;
-  StagedFolder staged(out, a.out);
+  StagedFolder staged(out, a.obj.out);
   const fs::path& tmp = staged.path();
   // a/1.jpg and b/1.jpg: frames/a_1/ and frames/b_1/.
   std::vector<std::string> names;
@@ -175,7 +106,7 @@ void cmd_simulate(const GlobalOptions& global, SimulateArgs a) {
     fs::create_directories(tmp / "frames" / stems[i]);
     auto w = std::make_unique<cv::VideoWriter>();
     w->open((tmp / "frames" / (stems[i] + ".avi")).string(), cv::CAP_OPENCV_MJPEG,
-            cv::VideoWriter::fourcc('M', 'J', 'P', 'G'), a.fps, cv::Size(cam.width, cam.height));
+            cv::VideoWriter::fourcc('M', 'J', 'P', 'G'), req.fps, cv::Size(cam.width, cam.height));
     if (!w->isOpened()) {
       spdlog::warn("OpenCV cannot write a video here; the frames are PNG only");
       w.reset();
@@ -217,8 +148,9 @@ void cmd_simulate(const GlobalOptions& global, SimulateArgs a) {
   jf.write(report.dump(2) + "\n");
   jf.commit();
   staged.commit();
-  spdlog::info("wrote {}: frames/ ({} views x {} frames), {}simulation.json ({:.1f} s simulating, {} substeps)", a.out,
-               req.views.size(), a.frames + 1, a.ply_every > 0 ? "ply/, " : "", result.simulate_s, result.substeps);
+  spdlog::info("wrote {}: frames/ ({} views x {} frames), {}simulation.json ({:.1f} s simulating, {} substeps)",
+               a.obj.out, req.views.size(), req.frames + 1, a.ply_every > 0 ? "ply/, " : "", result.simulate_s,
+               result.substeps);
 }
 
 }  // namespace
@@ -228,77 +160,73 @@ void register_simulate(CLI::App& app, GlobalOptions& global) {
   auto* r = app.add_subcommand("simulate",
                                "Simulate a selected object (by a click or by text) with MLS-MPM and render the scene "
                                "as it moves; writes frames, PLYs and simulation.json to a new folder");
-  r->add_option("model", a->model, "Model folder written by `ag2gs train` (MODEL_DIR/model.ag2gs)")->required();
-  r->add_option("--scene", a->scene, "Scene directory (images/, sparse/0/) the model was trained on")->required();
-  r->add_option("-o,--out", a->out, "New folder for frames/, ply/ and simulation.json")
-      ->check(output_path())
-      ->required();
-  add_query_request_options(r, a->request);
-  r->add_option("--selection", a->selection, "Simulate the anchors of a selection.json written by `ag2gs query`");
-  r->add_option("--material", a->material, "The object's material: jelly (default), metal, sand or plasticine")
+  add_object_options(r, a->obj, "Simulate", "New folder for frames/, ply/ and simulation.json");
+  r->add_option("--material", a->req.material, "The object's material: jelly (default), metal, sand or plasticine")
       ->check(CLI::IsMember({"jelly", "metal", "sand", "plasticine"}));
-  r->add_option("--E", a->E,
+  r->add_option("--E", a->req.settings.object.E,
                 "The object's Young's modulus in Pa (default 2e6; the paper's 2e8 is 100x stiffer and takes 10x "
                 "the substeps)")
       ->check(positive_number());
-  r->add_option("--nu", a->nu, "The object's Poisson's ratio (default 0.4)");
-  r->add_option("--density", a->density, "Density in kg/m^3 of every material (default 1000)")
+  r->add_option("--nu", a->req.settings.object.nu, "The object's Poisson's ratio (default 0.4)");
+  r->add_option("--density", a->req.settings.object.density, "Density in kg/m^3 of every material (default 1000)")
       ->check(finite_range(0.1, 1e5));
-  r->add_option("--background-E", a->background_E,
+  r->add_option("--background-E", a->req.settings.background.E,
                 "Young's modulus of the other Gaussians inside the simulation box (default 2e6; von Mises)")
       ->check(positive_number());
-  r->add_option("--background-nu", a->background_nu, "Their Poisson's ratio (default 0.3)");
-  r->add_flag("--background,!--no-background", a->background,
+  r->add_option("--background-nu", a->req.settings.background.nu, "Their Poisson's ratio (default 0.3)");
+  r->add_flag("--background,!--no-background", a->req.settings.with_background,
               "Also simulate the other Gaussians inside the simulation box above the ground, as --background-E "
               "material (the paper's setting; default off: the rest of the scene stays still)");
-  r->add_flag("!--keep-hidden", a->move_hidden,
+  r->add_flag("!--keep-hidden", a->req.move_hidden,
               "Leave in place the kept anchors inside the object that the training views saw only through it (by "
               "default they move with it, as `remove` takes them with it)");
-  r->add_option("--frames", a->frames, "Frames to simulate (default 30; frame 0, the start, is written too)")
+  r->add_option("--frames", a->req.frames, "Frames to simulate (default 30; frame 0, the start, is written too)")
       ->check(CLI::Range(1, 100000));
-  r->add_option("--fps", a->fps, "Frames per second of simulated time (default 25)")->check(positive_number());
-  r->add_option("--max-substeps", a->max_substeps,
+  r->add_option("--fps", a->req.fps, "Frames per second of simulated time (default 25)")->check(positive_number());
+  r->add_option("--max-substeps", a->req.max_substeps,
                 "Refuse a run that needs more substeps than this (default 2e6; the cup's defaults take ~18k)")
       ->check(positive_number());
-  r->add_option("--dt", a->dt,
+  r->add_option("--dt", a->req.settings.dt,
                 "Substep in s (default: the largest stable one at the current speed; a value above the stable "
                 "substep is refused)")
       ->check(non_negative_number());
-  r->add_option("--grid", a->grid, "Grid cells per side of the simulation box (default 64)")
+  r->add_option("--grid", a->req.settings.grid, "Grid cells per side of the simulation box (default 64)")
       ->check(CLI::Range(16, 512));
   r->add_option("--gravity", a->gravity, "Gravity X,Y,Z in the world frame, m/s^2 (default 9.8 against --up)");
   r->add_option("--force", a->force,
                 "Acceleration X,Y,Z (m/s^2, world frame) on the object during --force-frames (default: --push "
                 "along the first view's right, across up)");
-  r->add_option("--push", a->push, "Size of the default force in m/s^2 (default 10; 0 = none)")
+  r->add_option("--push", a->req.push, "Size of the default force in m/s^2 (default 10; 0 = none)")
       ->check(non_negative_number());
   r->add_option("--force-frames", a->force_frames, "Frames A:B (A to B-1) during which the force acts (default 0:3)");
   r->add_option("--up", a->up, "Up direction X,Y,Z in the world (default: the cameras' mean up)");
-  r->add_option("--ground", a->ground,
+  r->add_option("--ground", a->req.settings.ground,
                 "Height of the ground plane along up, world units (default: the surface the SfM points show under "
                 "the object)")
       ->check(finite_range(-1e9, 1e9));
-  r->add_option("--friction", a->friction,
+  r->add_option("--friction", a->req.settings.friction,
                 "Coulomb friction of the ground plane (default 0.5; 0: things slide on it freely)")
       ->check(non_negative_number());
-  r->add_option("--damping", a->damping,
+  r->add_option("--damping", a->req.settings.damping,
                 "Drag on the motion, per second (default 0: none; e.g. 30 lets a pile creep to rest without "
                 "inertia)")
       ->check(non_negative_number());
-  r->add_option("--object-size", a->object_size,
+  r->add_option("--object-size", a->req.settings.object_size,
                 "The object's largest side in the simulation's metres (default 0.4; the box is 1 m across)");
-  r->add_option("--min-opacity", a->min_opacity,
+  r->add_option("--min-opacity", a->req.settings.min_opacity,
                 "Gaussians at or below this opacity stay out of the simulation (default 0.02)");
   r->add_option("--views", a->views,
                 "Views to render, comma-separated names or stems (default: the first training view)");
   r->add_option("--ply-every", a->ply_every, "Write ply/frame_NNNN.ply every K frames (default 10; 0 = none)")
       ->check(CLI::Range(0, 100000));
-  r->add_option("-r,--resolution", a->resolution, "Divide the cameras by R (default: the model's training -r)")
-      ->check(CLI::Range(1, 64));
-  r->add_option("--sparse", a->sparse,
-                "COLMAP model folder inside the scene (default: sparse/0/, else sparse/ when it holds the model)");
-  add_query_config_options(r, a->config);
-  set_action(r, [&global, a] { cmd_simulate(global, *a); });
+  auto print_config = add_print_config_flag(r, "simulate with");
+  set_action(r, [&global, a, print_config] {
+    if (*print_config) {
+      fold_flags(*a);
+      return print_config_json(a->req);
+    }
+    cmd_simulate(global, *a);
+  });
 }
 
 }  // namespace ag2gs::cli

@@ -157,6 +157,19 @@ SelectedObject select_object(Runtime& rt, const TrainedModel& tm, const Scene& s
   return out;
 }
 
+void add_object_options(CLI::App* cmd, ObjectArgs& a, const std::string& verb, const std::string& out_help) {
+  cmd->add_option("model", a.model, "Model folder written by `ag2gs train` (MODEL_DIR/model.ag2gs)")->required();
+  cmd->add_option("--scene", a.scene, "Scene directory (images/, sparse/0/) the model was trained on")->required();
+  cmd->add_option("-o,--out", a.out, out_help)->check(output_path())->required();
+  add_query_request_options(cmd, a.request);
+  cmd->add_option("--selection", a.selection, verb + " the anchors of a selection.json written by `ag2gs query`");
+  cmd->add_option("-r,--resolution", a.resolution, "Divide the cameras by R (default: the model's training -r)")
+      ->check(CLI::Range(1, 64));
+  cmd->add_option("--sparse", a.sparse,
+                  "COLMAP model folder inside the scene (default: sparse/0/, else sparse/ when it holds the model)");
+  add_query_config_options(cmd, a.config);
+}
+
 OpenedModel open_model_and_scene(const std::string& model_dir, const std::string& scene_dir, int& resolution,
                                  const std::string& sparse, const QueryRequest& request,
                                  const std::string& selection_file) {

@@ -72,6 +72,18 @@ SelectedObject select_object(Runtime& rt, const TrainedModel& tm, const Scene& s
                              const std::vector<float>& embedding, int resolution, nlohmann::json& report,
                              const std::string& action);
 
+// The arguments remove and simulate share, and their options: the model
+// folder, --scene, -o, the object (a click, a phrase or --selection), -r and
+// --sparse, and the query's settings. `verb` ("Remove", "Simulate") starts
+// --selection's help; `out_help` is -o's.
+struct ObjectArgs {
+  QueryRequest request;
+  QueryConfig config;
+  std::string model, scene, selection, out, sparse;
+  int resolution = 0;  // 0: the model's training -r
+};
+void add_object_options(CLI::App* cmd, ObjectArgs& a, const std::string& verb, const std::string& out_help);
+
 // What remove and simulate open before selecting: the model (with stage 3's
 // clusters and language features for a text query), the scene it was
 // trained on at -r `resolution` (0: the model's training -r, and `resolution`

@@ -10,6 +10,8 @@
 #include <string>
 #include <vector>
 
+#include "apps/removal/removal.h"
+#include "apps/simulation/simulate.h"
 #include "cli_test_util.h"
 #include "io_test_util.h"
 #include "queries/query.h"
@@ -299,6 +301,41 @@ TEST(Defaults, BaselineAndQueryUseTheLibrarysDefaults) {
   EXPECT_NE(bad.output.find("--tau"), std::string::npos) << bad.output;
   EXPECT_FALSE(std::filesystem::exists("/nonexistent/b"));
   EXPECT_FALSE(std::filesystem::exists("/nonexistent/q"));
+}
+
+// remove and simulate print the settings they would run with; with no flags
+// they are the library's RemovalSettings{} and SimulationRequest{} (whose
+// defaults are the program's), field by field, and a flag moves its field.
+TEST(Defaults, RemoveAndSimulateUseTheLibrarysDefaults) {
+  auto printed = [](const std::string& command) {
+    const test::CliResult r = test::run_cli(command + " --print-config");
+    EXPECT_EQ(r.code, 0) << r.output;
+    return nlohmann::json::parse(r.output);
+  };
+  const std::string object = " /nonexistent/m --scene " + sample_scene() + " --selection s.json -o /nonexistent/o";
+  EXPECT_EQ(printed("remove" + object), RemovalSettings{}.to_json());
+  RemovalSettings r;
+  r.holes.dilate = 2;
+  r.tune_to_fill = true;
+  r.inpaint = InpaintMethod::kNavierStokes;
+  r.iters = 7;
+  EXPECT_EQ(printed("remove" + object + " --dilate 2 --tune-targets fill --inpaint ns --iters 7"), r.to_json());
+  EXPECT_EQ(printed("simulate" + object), SimulationRequest{}.to_json());
+  SimulationRequest s;
+  s.settings.object.E = 1e5;
+  s.settings.object.density = 500;
+  s.settings.background.density = 500;
+  s.fps = 50;
+  s.settings.frame_time = 1.0 / 50;
+  s.force_frames = {1, 4};
+  s.settings.with_background = true;
+  EXPECT_EQ(printed("simulate" + object + " --E 1e5 --density 500 --fps 50 --force-frames 1:4 --background"),
+            s.to_json());
+  // A refused combination names its flags before anything is printed.
+  const test::CliResult bad = test::run_cli("remove" + object + " --no-fill --iters 3 --print-config");
+  EXPECT_NE(bad.code, 0);
+  EXPECT_NE(bad.output.find("--no-fill"), std::string::npos) << bad.output;
+  EXPECT_FALSE(std::filesystem::exists("/nonexistent/o"));
 }
 
 }  // namespace

@@ -198,6 +198,35 @@ void RemovalSettings::validate() const {
   if (iters < 0) throw std::invalid_argument("--iters must be 0 or more");
 }
 
+nlohmann::json RemovalSettings::to_json() const {
+  const char* method = inpaint == InpaintMethod::kTelea          ? "telea"
+                       : inpaint == InpaintMethod::kNavierStokes ? "ns"
+                                                                 : "none";
+  return {{"inpaint", method},
+          {"iters", iters},
+          {"fill_holes", fill_holes},
+          {"clear_stray", clear_stray},
+          {"stray_colour", stray_colour},
+          {"stray_reach", stray_reach},
+          {"clear_hidden", clear_hidden},
+          {"hidden_fraction", hidden_fraction},
+          {"tune_targets", tune_to_fill ? "fill" : "inpainted"},
+          {"seed", seed},
+          {"fill",
+           {{"min_views", fill.min_views},
+            {"max_anchors", fill.max_anchors},
+            {"opacity", fill.opacity},
+            {"near", fill.near},
+            {"prune_opacity", fill.prune_opacity},
+            {"max_alpha", fill.max_alpha},
+            {"colour_quantile", fill.colour_quantile}}},
+          {"holes",
+           {{"object_weight", holes.object_weight},
+            {"alpha_min", holes.alpha_min},
+            {"behind", holes.behind},
+            {"dilate", holes.dilate}}}};
+}
+
 RemovalResult remove_object(Runtime& rt, const RemovalRequest& req) {
   req.object.check("remove_object");
   const RemovalSettings& s = req.settings;

@@ -50,6 +50,8 @@ struct RemovalSettings {
   uint64_t seed = 1;
   // Throws std::invalid_argument naming the `remove` flag.
   void validate() const;
+  // The settings as `ag2gs remove --print-config` prints them.
+  nlohmann::json to_json() const;
 };
 
 struct RemovalRequest {

@@ -46,6 +46,12 @@ struct SimulationRequest {
   std::function<void(int frame, Simulation& sim)> on_frame;
   // Called after each frame with what is running; it may throw to stop (Ctrl-C).
   std::function<void(const std::string& during)> check_stop;
+
+  // The settings (not the object, views or callbacks): throws
+  // std::invalid_argument naming the `simulate` flag; and as `ag2gs simulate
+  // --print-config` prints them.
+  void validate() const;
+  nlohmann::json to_json() const;
 };
 
 struct SimulationResult {

@@ -21,10 +21,22 @@
 
 namespace ag2gs {
 
+// The defaults are `ag2gs simulate`'s.
 struct SimulationSettings {
-  MpmMaterial object;      // the selection (material 0)
-  MpmMaterial background;  // the other Gaussians inside the box (material 1)
-  bool with_background = true;
+  // The selection (material 0). E = 2e6 Pa: the paper's 2e8 needs 5,600
+  // substeps per frame at grid 64 (the elastic wave crosses a cell in 7e-6
+  // s), 46-66 s a frame, 25-33 minutes for 30 frames on 2 CPU cores; 2e6,
+  // the paper's background stiffness, takes about 570 (docs/benchmarks.md,
+  // "Physics").
+  MpmMaterial object;
+  // The other Gaussians inside the box (material 1): von Mises plasticity,
+  // the paper's background.
+  MpmMaterial background{MaterialKind::kMetal, 2e6, 0.3};
+  // The rest of the scene in the box as particles: off by default. On the
+  // seed-1 mug it made the thin pole and the box on it sag under gravity
+  // (|F - I| up to 2.8): a pole a Gaussian or two thick is too few particles
+  // per cell for the solver (docs/benchmarks.md, "Physics").
+  bool with_background = false;
   int grid = 64;
   double frame_time = 0.04;                         // s
   double dt = 0;                                    // s; 0 = the largest stable substep
