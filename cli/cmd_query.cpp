@@ -79,13 +79,7 @@ static std::vector<int> pick_scene_views(const Scene& scene, const std::string& 
   if (views == "train") return scene.train_views();
   if (views == "test") return scene.test_views();
   std::vector<int> out;
-  std::stringstream ss(views);
-  std::string item;
-  while (std::getline(ss, item, ',')) {
-    item.erase(0, item.find_first_not_of(" \t"));
-    item.erase(item.find_last_not_of(" \t") + 1);
-    if (!item.empty()) out.push_back(scene.find_view(item));
-  }
+  for (const std::string& item : split_list(views)) out.push_back(scene.find_view(item));
   return out;
 }
 

@@ -7,13 +7,8 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
-#include <cstdlib>
 #include <filesystem>
-#include <fstream>
-#include <map>
 #include <memory>
-#include <optional>
-#include <set>
 #include <sstream>
 
 #include "cli/commands.h"
@@ -24,18 +19,11 @@
 #include "host/io/colmap_reader.h"
 #include "host/io/image_io.h"
 #include "host/io/json_input.h"
-#include "host/io/model_io.h"
 #include "host/io/model_ply.h"
 #include "host/io/npy_io.h"
 #include "host/io/output_set.h"
-#include "host/io/ply_io.h"
-#include "host/render/renderer.h"
 #include "host/render/sky.h"
 #include "host/scene/scene.h"
-#include "stages/anchor_model.h"
-#include "stages/clustering.h"
-#include "stages/instance_map.h"
-#include "stages/train_common.h"
 
 namespace fs = std::filesystem;
 
@@ -72,18 +60,6 @@ std::array<float, 3> parse_rgb(const std::string& s) {
   }
   if (i != 3) throw std::invalid_argument("--bg '" + s + "': expected three numbers R,G,B in [0,1], e.g. 1,1,1");
   return v;
-}
-
-std::vector<std::string> split_list(const std::string& s) {
-  std::vector<std::string> out;
-  std::stringstream ss(s);
-  std::string item;
-  while (std::getline(ss, item, ',')) {
-    item.erase(0, item.find_first_not_of(" \t"));
-    item.erase(item.find_last_not_of(" \t") + 1);
-    if (!item.empty()) out.push_back(item);
-  }
-  return out;
 }
 
 // --views: train | test (every 8th image in name order, as --eval holds out) | all | names.

@@ -39,6 +39,8 @@ CLI::Validator seed_number();
 CLI::Validator output_path();
 // "X,Y,Z" -> a vector of three finite numbers; throws naming `flag`.
 Eigen::Vector3d parse_vector(const std::string& text, const std::string& flag);
+// "a, b,,c" -> {"a", "b", "c"}: a comma-separated flag's items, trimmed, empty ones left out.
+std::vector<std::string> split_list(const std::string& s);
 // "A:B" -> [A, B), 0 <= A <= B: the frames of --force-frames.
 std::pair<int, int> parse_frames(const std::string& text);
 
