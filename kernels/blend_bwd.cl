@@ -18,6 +18,41 @@
 #define SEG 1
 #endif
 #define PSTRIDE (WG_SIZE + SEG)
+// The segment sums' local array, or (SEG 1, none declared) s_part, unread.
+#if SEG > 1
+#define S_SEG s_seg
+#else
+#define S_SEG s_part
+#endif
+
+#if !NO_STAGING
+// The GPU layout's fixed-order sum of each of `rows` values over the
+// work-items' partials (row r of s_part, PSTRIDE apart), shared by blend_bwd
+// and blend_weights. SEG 1: one work-item per value sums the WG_SIZE
+// partials in index order. SEG > 1: segment_sums (every work-item calls it)
+// first has segment g of each row sum work-items g, g + SEG, ... into s_seg;
+// then one work-item sums the SEG segment sums in order. PSTRIDE = WG_SIZE +
+// SEG puts a warp's 32 / SEG rows x SEG segments in distinct banks.
+inline void segment_sums(__local const float* s_part, __local float* s_seg, int rows, int lid) {
+  for (int k = lid; k < rows * SEG; k += WG_SIZE) {
+    __local const float* p = s_part + (k / SEG) * PSTRIDE + k % SEG;
+    float s = 0.f;
+    for (int l = 0; l < WG_SIZE / SEG; ++l) s += p[l * SEG];
+    s_seg[k] = s;
+  }
+  barrier(CLK_LOCAL_MEM_FENCE);
+}
+// Row r's total (after segment_sums when SEG > 1; s_seg unread when SEG is 1).
+inline float row_total(__local const float* s_part, __local const float* s_seg, int r) {
+  float s = 0.f;
+#if SEG == 1
+  for (int l = 0; l < WG_SIZE; ++l) s += s_part[r * PSTRIDE + l];
+#else
+  for (int g = 0; g < SEG; ++g) s += s_seg[r * SEG + g];
+#endif
+  return s;
+}
+#endif
 
 #if NO_STAGING
 // CPU layout: one work-item per tile. The Gaussians are the outer loop and the
@@ -239,31 +274,11 @@ void blend_bwd(int width, int height, int tiles_x,
     // Sum the work-items' partials of each value (row r = j * G2_SIZE + c of
     // s_part) into the intersection's slot, in a fixed order.
     const int rows = nb * G2_SIZE;
-#if SEG == 1
-    // One work-item per value, work-items in index order.
-    for (int r = lid; r < rows; r += WG_SIZE) {
-      __local const float* p = s_part + r * PSTRIDE;
-      float s = 0.f;
-      for (int l = 0; l < WG_SIZE; ++l) s += p[l];
-      isect_grads[(size_t)s_slot[r / G2_SIZE] * G2_SIZE + r % G2_SIZE] = s;
-    }
-#else
-    // SEG work-items per value: segment g sums work-items g, g + SEG, ...;
-    // then one work-item sums the SEG segment sums in order. PSTRIDE = WG_SIZE
-    // + SEG puts a warp's 32 / SEG rows x SEG segments in distinct banks.
-    for (int k = lid; k < rows * SEG; k += WG_SIZE) {
-      __local const float* p = s_part + (k / SEG) * PSTRIDE + k % SEG;
-      float s = 0.f;
-      for (int l = 0; l < WG_SIZE / SEG; ++l) s += p[l * SEG];
-      s_seg[k] = s;
-    }
-    barrier(CLK_LOCAL_MEM_FENCE);
-    for (int r = lid; r < rows; r += WG_SIZE) {
-      float s = 0.f;
-      for (int g = 0; g < SEG; ++g) s += s_seg[r * SEG + g];
-      isect_grads[(size_t)s_slot[r / G2_SIZE] * G2_SIZE + r % G2_SIZE] = s;
-    }
+#if SEG > 1
+    segment_sums(s_part, s_seg, rows, lid);
 #endif
+    for (int r = lid; r < rows; r += WG_SIZE)
+      isect_grads[(size_t)s_slot[r / G2_SIZE] * G2_SIZE + r % G2_SIZE] = row_total(s_part, S_SEG, r);
   }
   // Intersections behind every pixel's last blended Gaussian get zeros.
   for (int k = bound + lid; k < n; k += WG_SIZE) {
@@ -392,31 +407,15 @@ void blend_weights(int width, int height, int tiles_x,
     }
     barrier(CLK_LOCAL_MEM_FENCE);
     // One value per Gaussian, summed over the work-items as blend_bwd sums.
-#if SEG == 1
-    for (int r = lid; r < nb; r += WG_SIZE) {
-      __local const float* p = s_part + r * PSTRIDE;
-      float s = 0.f;
-      for (int l = 0; l < WG_SIZE; ++l) s += p[l];
-      __global float* o2 = isect_grads + (size_t)s_slot[r] * G2_SIZE;
-      for (int c = 0; c < G2_SIZE; ++c) o2[c] = 0.f;
-      o2[G2_FEAT] = s;
-    }
-#else
-    for (int k = lid; k < nb * SEG; k += WG_SIZE) {
-      __local const float* p = s_part + (k / SEG) * PSTRIDE + k % SEG;
-      float s = 0.f;
-      for (int l = 0; l < WG_SIZE / SEG; ++l) s += p[l * SEG];
-      s_seg[k] = s;
-    }
-    barrier(CLK_LOCAL_MEM_FENCE);
-    for (int r = lid; r < nb; r += WG_SIZE) {
-      float s = 0.f;
-      for (int g = 0; g < SEG; ++g) s += s_seg[r * SEG + g];
-      __global float* o2 = isect_grads + (size_t)s_slot[r] * G2_SIZE;
-      for (int c = 0; c < G2_SIZE; ++c) o2[c] = 0.f;
-      o2[G2_FEAT] = s;
-    }
+#if SEG > 1
+    segment_sums(s_part, s_seg, nb, lid);
 #endif
+    for (int r = lid; r < nb; r += WG_SIZE) {
+      const float total = row_total(s_part, S_SEG, r);
+      __global float* o2 = isect_grads + (size_t)s_slot[r] * G2_SIZE;
+      for (int c = 0; c < G2_SIZE; ++c) o2[c] = 0.f;
+      o2[G2_FEAT] = total;
+    }
   }
   for (int k = b0 + lid; k < n; k += WG_SIZE) {
     __global float* o2 = isect_grads + (size_t)isect_vals[range.x + k] * G2_SIZE;
