@@ -249,6 +249,16 @@ TEST(InstanceMap, SingleClusterWeightIsRenderedAlpha) {
   EXPECT_EQ(mismatched, 0u);
 }
 
+// The scene squeezed towards the view axis with opacities 0.3-0.9: an opaque
+// stack whose pixels stop early (T < T_MIN).
+void squeeze_into_opaque_stack(GaussianSet& g) {
+  for (size_t i = 0; i < g.size(); ++i) {
+    g.means[3 * i] *= 0.2f;
+    g.means[3 * i + 1] *= 0.2f;
+    g.opacities[i] = 0.3f + 0.6f * static_cast<float>(i % 7) / 6.f;
+  }
+}
+
 // Stage 3's one pass: after Renderer::bin() (no blend), compute_with_images()
 // writes the ids and weights of compute() after a whole forward pass, and the
 // feature planes and alpha that forward pass blended, bit for bit: on random
@@ -261,12 +271,7 @@ TEST(InstanceMap, OneWalkGivesTheForwardPassFeatureAndAlphaBitForBit) {
     std::vector<int32_t> ac;
     const int K = scene == 2 ? 1 : 3;
     GaussianSet g = clustered_scene(scene == 2 ? 300 : 120, K, 5 + scene, ac);
-    if (scene == 2)  // an opaque stack along the view axis
-      for (size_t i = 0; i < g.size(); ++i) {
-        g.means[3 * i] *= 0.2f;
-        g.means[3 * i + 1] *= 0.2f;
-        g.opacities[i] = 0.3f + 0.6f * static_cast<float>(i % 7) / 6.f;
-      }
+    if (scene == 2) squeeze_into_opaque_stack(g);
     const Camera cam = test::look_at_origin(61 + 4 * scene, 37 + 3 * scene);
     const size_t npix = static_cast<size_t>(cam.width) * cam.height;
     DeviceGaussians dg(test::runtime());
@@ -315,12 +320,7 @@ TEST(InstanceMap, WeightIsTheWinnersBlendedShareBitForBit) {
     std::vector<int32_t> ac;
     const int K = 2;
     GaussianSet g = clustered_scene(150, K, 31 + scene, ac);
-    if (scene == 2)  // an opaque stack along the view axis: pixels stop early
-      for (size_t i = 0; i < g.size(); ++i) {
-        g.means[3 * i] *= 0.2f;
-        g.means[3 * i + 1] *= 0.2f;
-        g.opacities[i] = 0.3f + 0.6f * static_cast<float>(i % 7) / 6.f;
-      }
+    if (scene == 2) squeeze_into_opaque_stack(g);
     const Camera cam = test::look_at_origin(53 + 4 * scene, 41 + 3 * scene);
     const size_t npix = static_cast<size_t>(cam.width) * cam.height;
     for (int c = 0; c < 6; ++c) {
