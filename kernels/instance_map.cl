@@ -147,7 +147,15 @@ void instance_map(int width, int height, int tiles_x, int children,
   // 0 + w_1 + w_2 + ... over the candidate's Gaussians in blending order
   // (the first vote gives w_1 - 0), the very sum walk 2 would make, bit for
   // bit; only contested pixels walk again (at an object's edge, say).
-  const vint again = s.contested & (s.cand >= 0) & pr.inside;
+  // Walk 1 also bounds the candidate: its weight not in the surplus was
+  // cancelled by as much weight of other clusters, so W_cand <= (total +
+  // surplus) / 2 with total = 1 - T. Where that bound, widened by the float
+  // rounding of n steps (8 ulps of 1 per step, more than the surplus's, the
+  // product's and walk 2's sum's errors together), stays below MIN_FRACTION,
+  // no cluster passes and walk 2 is skipped: a cluttered ray with no majority.
+  const vfloat bound = 0.5f * ((1.f - T) + s.surplus);
+  const vint no_majority = (bound + (float)(n + 4) * 0x1p-21f) < MIN_FRACTION;
+  const vint again = s.contested & (s.cand >= 0) & pr.inside & NOT(no_majority);
   int end = 0;
 #if VW == 1
   end = again ? s.last_cand + 1 : 0;
@@ -158,7 +166,7 @@ void instance_map(int width, int height, int tiles_x, int children,
     for (int l = 0; l < VW; ++l) end = max(end, lc[l] + 1);
   }
 #endif
-  vfloat weight = select((vfloat)0.f, s.surplus, (s.cand >= 0) & NOT(again));
+  vfloat weight = select((vfloat)0.f, select(bound, s.surplus, NOT(s.contested)), (s.cand >= 0) & NOT(again));
   {
     vfloat T2 = 1.f;  // walk 2's own (walk 1's T gives the alpha below)
     vint done = NOT(again), ok;

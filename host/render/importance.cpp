@@ -15,8 +15,8 @@ std::vector<double> blend_weight_sums(Renderer& renderer, const DeviceGaussians&
   for (const Camera& cam : cameras) {
     renderer.bin(g, cam, settings);
     renderer.blend_weights();
-    renderer.device_grads().features->download(grads, 3 * g.n);
-    for (size_t i = 0; i < g.n; ++i) sums[i] += static_cast<double>(grads[3 * i]);
+    renderer.device_weight_sums().download(grads, g.n);
+    for (size_t i = 0; i < g.n; ++i) sums[i] += static_cast<double>(grads[i]);
   }
   return sums;
 }

@@ -58,13 +58,12 @@ Renderer::Renderer(Runtime& rt)
       staged_(blend_staging_for(rt.info())),
       bwd_plan_(staged_ ? blend_bwd_plan_for(rt.info()) : BlendBwdPlan{}) {
   for (DeviceBuffer* b :
-       {&cam_buf_,        &records_,     &rects_,          &tile_counts_,   &depth_keys_,     &radii_,
-        &order_keys_tmp_, &order_vals_,  &order_vals_tmp_, &counts_sorted_, &offsets_,        &block_sums_,
-        &tile_keys_,   &tile_keys_tmp_,  &isect_vals_,    &isect_vals_tmp_, &isect_gid_,
-        &isect_start_,    &ranges_,      &out_rgb_,        &out_feat_,      &out_depth_,      &out_alpha_,
-        &out_dist_,       &out_aux_,     &out_last_,       &out_count_,     &g_rgb_,          &g_feat_,
-        &g_depth_,        &g_alpha_,     &g_dist_,         &isect_grads_,   &v_means_,        &v_scales_,
-        &v_quats_,        &v_opacities_, &v_sh_,           &v_features_,    &v_means2d_})
+       {&cam_buf_,    &records_,        &rects_,         &tile_counts_, &depth_keys_,  &radii_,      &order_keys_tmp_,
+        &order_vals_, &order_vals_tmp_, &counts_sorted_, &offsets_,     &block_sums_,  &tile_keys_,  &tile_keys_tmp_,
+        &isect_vals_, &isect_vals_tmp_, &isect_gid_,     &isect_start_, &ranges_,      &out_rgb_,    &out_feat_,
+        &out_depth_,  &out_alpha_,      &out_dist_,      &out_aux_,     &out_last_,    &out_count_,  &g_rgb_,
+        &g_feat_,     &g_depth_,        &g_alpha_,       &g_dist_,      &isect_grads_, &v_means_,    &v_scales_,
+        &v_quats_,    &v_opacities_,    &v_sh_,          &v_features_,  &v_means2d_,   &weight_sums_})
     b->bind(&rt_);
 }
 
@@ -359,7 +358,16 @@ void Renderer::blend_weights() {
   set_kernel_args(weights, cam_.width, cam_.height, tiles_x_, ranges_, *sorted_isect_vals_, isect_gid_, records_,
                   isect_grads_);
   rt_.launch("blend_weights", weights, cl::NDRange(static_cast<size_t>(tiles_x_) * tiles_y_ * local[0]), local);
-  project_backward();
+  const DeviceGaussians& g = *gaussians_;
+  weight_sums_.reserve(std::max<size_t>(g.n, 1) * 4);
+  if (g.n == 0) return;
+  // Only the feature channel's per-Gaussian sum: project_bwd's chain rule
+  // would be wasted on it.
+  std::map<std::string, std::string> pdef{{"SH_K", std::to_string(sh_coeffs_for_degree(g.sh_degree))},
+                                          {"SH_ACTIVE", std::to_string(sh_active_)}};
+  cl::Kernel sums = rt_.kernel("project_bwd.cl", "weight_sums", pdef);
+  set_kernel_args(sums, static_cast<int>(g.n), tile_counts_, isect_start_, isect_grads_, weight_sums_);
+  rt_.launch("blend_weights", sums, cl::NDRange(g.n), cl::NDRange(64));
 }
 
 cl::NDRange Renderer::blend_bwd_layout(std::map<std::string, std::string>& defs) {

@@ -95,11 +95,13 @@ class Renderer {
   };
   void backward(const DeviceOutputGrads& grads);
   // After bin() or forward(): each Gaussian's blending weights w = alpha T
-  // summed over the frame's pixels, in device_grads().features channel 0 (the
-  // other gradients are zero). Equal bit for bit to forward() and backward()
-  // with an upstream gradient of 1 on feature channel 0 and none other, at
-  // the cost of one walk (kernels/blend_bwd.cl, blend_weights).
+  // summed over the frame's pixels, in device_weight_sums() ([N] floats).
+  // Equal bit for bit to channel 0 of device_grads().features after
+  // forward() and backward() with an upstream gradient of 1 on feature
+  // channel 0 and none other, at the cost of one walk (kernels/blend_bwd.cl,
+  // blend_weights) and a sum per Gaussian (no gradients are computed).
   void blend_weights();
+  const DeviceBuffer& device_weight_sums() const { return weight_sums_; }
 
   // The blending inputs of the last forward(), read-only, for kernels that
   // walk the same depth-ordered per-tile lists as blend_fwd.cl (instance
@@ -181,6 +183,7 @@ class Renderer {
   DeviceBuffer out_rgb_, out_feat_, out_depth_, out_alpha_, out_dist_, out_aux_, out_last_, out_count_;
   DeviceBuffer g_rgb_, g_feat_, g_depth_, g_alpha_, g_dist_, isect_grads_;
   DeviceBuffer v_means_, v_scales_, v_quats_, v_opacities_, v_sh_, v_features_, v_means2d_;
+  DeviceBuffer weight_sums_;              // blend_weights(): [N]
   DeviceBuffer* sorted_order_ = nullptr;  // Gaussian ids in depth order
   DeviceBuffer* sorted_tile_keys_ = nullptr;
   DeviceBuffer* sorted_isect_vals_ = nullptr;
