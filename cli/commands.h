@@ -9,6 +9,8 @@
 #include <utility>
 #include <vector>
 
+#include "apps/selection/selection.h"  // QueryRequest, TrainedModel and the query's steps
+#include "host/core/text.h"            // split_list
 #include "host/io/model_io.h"
 #include "host/scene/scene.h"
 #include "queries/query.h"
@@ -39,8 +41,6 @@ CLI::Validator seed_number();
 CLI::Validator output_path();
 // "X,Y,Z" -> a vector of three finite numbers; throws naming `flag`.
 Eigen::Vector3d parse_vector(const std::string& text, const std::string& flag);
-// "a, b,,c" -> {"a", "b", "c"}: a comma-separated flag's items, trimmed, empty ones left out.
-std::vector<std::string> split_list(const std::string& s);
 // "A:B" -> [A, B), 0 <= A <= B: the frames of --force-frames.
 std::pair<int, int> parse_frames(const std::string& text);
 
@@ -94,58 +94,9 @@ void register_view(CLI::App& app, GlobalOptions& global);           // view (vie
 // The QueryConfig flags shared by query and eval (cmd_query.cpp).
 void add_query_config_options(CLI::App* sub, QueryConfig& config);
 
-// A click or text query as `query` and `remove` take it (cmd_query.cpp).
-struct QueryRequest {
-  std::string view, click, text, vocab, text_embedding;
-  std::string click_by = "auto";  // auto | features | support (prepare_click)
-  bool by_click() const { return !click.empty(); }
-  bool by_text() const { return !text.empty() || !text_embedding.empty(); }
-};
-// --view, --click, --text, --vocab, --text-embedding.
+// --view, --click, --text, --vocab, --text-embedding, --click-by (a
+// QueryRequest, apps/selection/selection.h).
 void add_query_request_options(CLI::App* sub, QueryRequest& request);
-// Throws std::invalid_argument unless exactly one well-formed query is given.
-void check_query_request(const QueryRequest& request);
-// The text query's embedding: --text-embedding's .npy or --text's phrase of
-// --vocab; throws naming the file and the fix when it does not fit `dim`.
-std::vector<float> load_query_embedding(const QueryRequest& request, const std::string& model_file, int dim);
-// The embeddings of the --vocab file's other phrases (--text): a cluster is
-// the phrase's only if none of them describes it better (QueryEngine::text).
-// Empty for --text-embedding.
-std::vector<std::vector<float>> load_rival_embeddings(const QueryRequest& request);
-// How a click selects (--click-by): "features" grows over the trained
-// features (queries/query.h); "support" takes what stands on the scene's
-// main plane (a model trained without SAM masks has no features to grow
-// over); "auto" is support when the model never trained features (its
-// training stopped at stage 1) and the scene shows a floor, else features.
-// Sets the engine's support plane when chosen, records the choice in
-// (*j)["click_by"] and logs it. Throws naming the fix when "support" is asked
-// for and the scene has no floor.
-void prepare_click(QueryEngine& engine, const std::string& click_by, const nlohmann::json& model_meta,
-                   const Scene& scene, nlohmann::json* j);
-// Runs the query (a click maps its full-size pixel to the view's camera at
-// -r `resolution`) and records it in j ("query", "seeds", text scores);
-// *ms gets the query's latency. Returns the selected anchors.
-std::vector<int32_t> run_query(QueryEngine& engine, const Scene& scene, const QueryRequest& request,
-                               const std::vector<float>& embedding, int resolution, double text_margin,
-                               nlohmann::json& j, double* ms);
-// A trained model folder as `query` and `remove` read it (cmd_query.cpp).
-struct TrainedModel {
-  std::string file;  // MODEL_DIR/model.ag2gs
-  ModelArchive archive;
-  AnchorModel model;
-  int sh_degree = 0;   // the SH degree training had reached
-  int resolution = 1;  // the training -r
-  bool eval_split = true;
-  Clustering clustering;  // with_language only
-  LanguageFeatures language;
-};
-// Reads MODEL_DIR/model.ag2gs; with_language also its stage-3 clusters and
-// language features, which a text query needs. Throws naming the file and
-// the fix.
-TrainedModel load_trained_model(const std::string& model_dir, bool with_language);
-// The same from an archive in memory (`file` names it in messages): the
-// live training view's snapshots.
-TrainedModel trained_model_from_archive(ModelArchive archive, const std::string& file, bool with_language);
 // A 0/1 mask [H,W] as the bytes of an 8-bit PNG (0/255).
 std::vector<uint8_t> encode_mask_png(const std::vector<uint8_t>& mask, int width, int height);
 // The same PNG, written atomically.

@@ -89,13 +89,6 @@ void StagedFolder::commit() {
   committed_ = true;
 }
 
-std::string anchor_fingerprint(const AnchorModel& model) {
-  const uint64_t h = AnchorGraph::anchor_fingerprint(model);  // the graph's own tie to its anchors
-  char hex[17];
-  std::snprintf(hex, sizeof hex, "%016llx", static_cast<unsigned long long>(h));
-  return hex;
-}
-
 std::vector<int32_t> read_selection_file(const std::string& path, const AnchorModel& model) {
   const size_t anchors = model.size();
   if (!std::ifstream(path))

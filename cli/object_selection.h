@@ -46,11 +46,6 @@ class StagedFolder {
   bool committed_ = false;
 };
 
-// What ties a selection to the model it was made on: the hash of the anchors'
-// layers and cells in order that the anchor graph keeps (16 hex digits). `query` writes it into
-// selection.json as "anchor_fingerprint".
-std::string anchor_fingerprint(const AnchorModel& model);
-
 // The anchors listed in a `query` selection.json; throws naming the file
 // when it cannot be read, lists an id outside the model's anchors, or
 // carries the fingerprint of another model (files without one are read).

@@ -15,6 +15,7 @@
 #include <opencv2/imgproc.hpp>
 #include <random>
 
+#include "apps/selection/selection.h"
 #include "cli_test_util.h"
 #include "host/io/model_io.h"
 #include "host/io/npy_io.h"
@@ -800,6 +801,75 @@ TEST(QueryCli, TextByVocabularyAndByEmbedding) {
         e.path().filename().string().find(".ag2gs-commit") != std::string::npos)
       left.push_back(e.path().string());
   EXPECT_TRUE(left.empty()) << left[0];
+}
+
+// The library's entry point called directly (apps/selection/selection.h), as
+// the viewer, the Python module or a script would: the anchors, Gaussians,
+// masks and record that `ag2gs query` writes for the same click and the
+// same phrase; and requests it must refuse, before any query runs.
+TEST(QueryCli, TheLibraryCallGivesWhatTheProgramWrites) {
+  CliWorld w;
+  const Eigen::Vector2i px = w.pixel(1);
+  const std::string click = std::to_string(2 * px.x()) + "," + std::to_string(2 * px.y());
+  auto r = test::run_cli(w.base("plain", "lib_click") + "--view view_000 --click " + click + " --views view_003");
+  ASSERT_EQ(r.code, 0) << r.output;
+  r = test::run_cli(w.base("stage3", "lib_text") + "--text \"red cube\" --vocab " + w.dir.file("vocab.json") +
+                    " --views test");
+  ASSERT_EQ(r.code, 0) << r.output;
+
+  SelectionRequest by_click;
+  by_click.model = w.dir.file("plain");
+  by_click.scene = w.scene;
+  by_click.resolution = 2;
+  by_click.query.view = "view_000";
+  by_click.query.click = click;
+  by_click.mask_views = "view_003";
+  SelectionRequest by_text = by_click;
+  by_text.model = w.dir.file("stage3");
+  by_text.query = QueryRequest{};
+  by_text.query.text = "red cube";
+  by_text.query.vocab = w.dir.file("vocab.json");
+  by_text.mask_views = "test";
+  for (const auto& [req, out] : {std::pair{by_click, "lib_click"}, std::pair{by_text, "lib_text"}}) {
+    const SelectionResult res = select_object(test::runtime(), req);
+    const fs::path dir = w.dir.path() / out;
+    const nlohmann::json written = nlohmann::json::parse(std::ifstream(dir / "selection.json"));
+    EXPECT_EQ(nlohmann::json(res.anchors), written["anchors"]) << out;
+    EXPECT_FALSE(res.anchors.empty()) << out;
+    for (const char* key : {"anchor_fingerprint", "query", "seeds", "thresholds", "resolution", "gaussian_count",
+                            "remainder_anchor_count", "remainder_gaussian_count"})
+      EXPECT_EQ(res.record.at(key), written.at(key)) << out << " " << key;
+    EXPECT_EQ(res.selection.size(), read_ply((dir / "selection.ply").string()).size()) << out;
+    EXPECT_EQ(res.remainder.size(), read_ply((dir / "remainder.ply").string()).size()) << out;
+    EXPECT_EQ(res.selection.size() + res.remainder.size(), w.built.model.gaussians()) << out;
+    ASSERT_EQ(res.masks.size(), written["masks"].size()) << out;
+    for (size_t i = 0; i < res.masks.size(); ++i) {
+      const SelectionResult::Mask& m = res.masks[i];
+      EXPECT_EQ(m.view, written["masks"][i]["view"]) << out;
+      EXPECT_EQ(m.on, written["masks"][i]["pixels"].get<size_t>()) << out;
+      const cv::Mat png =
+          cv::imread((dir / written["masks"][i]["file"].get<std::string>()).string(), cv::IMREAD_UNCHANGED);
+      ASSERT_EQ(png.cols, m.width);
+      ASSERT_EQ(png.rows, m.height);
+      std::vector<uint8_t> on(png.total());
+      for (int y = 0; y < png.rows; ++y)
+        for (int x = 0; x < png.cols; ++x) on[static_cast<size_t>(y) * png.cols + x] = png.at<uint8_t>(y, x) > 127;
+      EXPECT_EQ(on, m.pixels) << out << " " << m.view;
+    }
+  }
+  // Refused requests: no query, two queries, a click outside its image, an unknown mask view.
+  SelectionRequest none = by_click;
+  none.query = QueryRequest{};
+  test::expect_error_with<std::invalid_argument>([&] { select_object(test::runtime(), none); }, {"exactly one"});
+  SelectionRequest both = by_click;
+  both.query.text_embedding = w.dir.file("green.npy");
+  test::expect_error_with<std::invalid_argument>([&] { select_object(test::runtime(), both); }, {"exactly one"});
+  SelectionRequest outside = by_click;
+  outside.query.click = "5000,10";
+  test::expect_error_with<std::invalid_argument>([&] { select_object(test::runtime(), outside); }, {"outside"});
+  SelectionRequest unknown = by_click;
+  unknown.mask_views = "view_999";
+  test::expect_error_with<std::invalid_argument>([&] { select_object(test::runtime(), unknown); }, {"view_999"});
 }
 
 TEST(QueryCli, Errors) {
