@@ -20,6 +20,8 @@
 #include <optional>
 #include <string>
 #include <thread>
+#include <type_traits>
+#include <variant>
 
 #include "cli/commands.h"
 #include "cli/run_driver.h"
@@ -30,6 +32,7 @@
 #include "host/scene/scene.h"
 #include "stages/divergence_guard.h"
 #include "stages/language.h"
+#include "stages/train_settings.h"
 #include "stages/trainer.h"
 
 namespace fs = std::filesystem;
@@ -81,61 +84,87 @@ struct LiveView {
   std::thread thread;
 };
 
-// Presets. The default (also called "appearance") is the measured setting
-// for photographed scenes: children that may outgrow their voxel (scale cap
-// 64), 2 per anchor placed on the SfM points, the points seeding the top
-// layer and the next (so thin objects get anchors of their own), growth of
-// at most 10% of the anchors per round, recycling of transparent children,
-// faster offset and scale rates; with the library's defaults for the rest
-// (the voxel chosen from the scene, the Gaussian budget). "paper" is the
-// method as published: 200 top-layer cells, 5 children inside their voxels,
-// one seeded layer, no growth budget. A setting the user gives on the
-// command line wins. A resumed run takes its settings from the checkpoint, so
-// a preset is applied only when given explicitly there.
+// A setting as a flag shows it: "--children 2", "--init-children-random",
+// "--far-shell true".
+std::string flag_text(const TrainSetting& s, const TrainConfig& c) {
+  const nlohmann::json v = s.get(c);
+  if (s.is_bool() && !s.takes_value) {
+    const std::string name = s.name_for(v.get<bool>());
+    return name.empty() ? s.flag_name() + "=" + (v.get<bool>() ? "true" : "false") : name;
+  }
+  if (s.is_bool()) return s.flag_name() + (v.get<bool>() ? " true" : " false");
+  if (v.is_number_float()) return fmt::format("{} {:g}", s.flag_name(), v.get<double>());
+  return s.flag_name() + " " + v.dump();
+}
+
+// The flag of a setting (stages/train_settings.h), bound to its field of
+// `c`, checked as the table says.
+void add_setting_option(CLI::App* sub, const TrainSetting& s, TrainConfig& c) {
+  std::visit(
+      [&](auto field) {
+        auto& ref = field(c);
+        using T = std::decay_t<decltype(ref)>;
+        if constexpr (std::is_same_v<T, bool>) {
+          if (!s.takes_value) {
+            sub->add_flag(s.flag, ref, s.help);
+            return;
+          }
+        }
+        CLI::Option* o = sub->add_option(s.flag, ref, s.help);
+        switch (s.check) {
+          case TrainSetting::Check::kRange:
+            if constexpr (std::is_integral_v<T> && !std::is_same_v<T, bool>) {
+              const T hi = s.hi >= static_cast<double>(std::numeric_limits<T>::max()) ? std::numeric_limits<T>::max()
+                                                                                      : static_cast<T>(s.hi);
+              o->check(CLI::Range(static_cast<T>(s.lo), hi));
+            } else {
+              o->check(finite_range(s.lo, s.hi));
+            }
+            break;
+          case TrainSetting::Check::kNonNegative:
+            o->check(non_negative_number());
+            break;
+          case TrainSetting::Check::kPositive:
+            o->check(positive_number());
+            break;
+          case TrainSetting::Check::kSeed:
+            o->check(seed_number());
+            break;
+          case TrainSetting::Check::kNone:
+            break;
+        }
+      },
+      s.field);
+}
+
+// --preset's help, from the table.
+std::string preset_help() {
+  std::string def, paper;
+  const TrainConfig d = TrainConfig::preset("default"), p = TrainConfig::preset("paper");
+  for (const TrainSetting& s : train_settings()) {
+    if (s.in_default) def += " " + flag_text(s, d);
+    if (s.in_paper) paper += " " + flag_text(s, p);
+  }
+  return "default (= appearance, the measured setting for photographed scenes:" + def +
+         ") or paper (the method as published:" + paper +
+         ", 5 children inside their voxels, one seeded layer); the library's defaults for the rest; flags given "
+         "explicitly win";
+}
+
+// Presets (stages/train_settings.cpp names the values). The default (also
+// called "appearance") is the measured setting for photographed scenes;
+// "paper" is the method as published. A setting the user gives on the
+// command line wins. A resumed run takes its settings from the checkpoint,
+// so a preset is applied only when given explicitly there.
 void apply_preset(const CLI::App& sub, TrainArgs& a, bool log = true) {
   const bool continues = a.resume || std::find(a.stages.begin(), a.stages.end(), 1) == a.stages.end();
   if (continues && sub.count("--preset") == 0) return;
-  TrainConfig& c = a.config;
-  // The values live in the library (TrainConfig::preset); a flag given on
-  // the command line wins over them.
-  const TrainConfig p = TrainConfig::preset(a.preset);
-  auto unless_given = [&sub](const char* flag, auto& field, auto value) {
-    if (sub.count(flag) == 0) field = value;
-  };
-  unless_given("--top-cells", c.anchors.top_cells, p.anchors.top_cells);
-  unless_given("--max-gaussians", c.max_gaussians, p.max_gaussians);
-  unless_given("--downscales", c.downscales, p.downscales);
-  unless_given("--sky-degree", c.sky_degree, p.sky_degree);
-  unless_given("--scale-cap", c.anchors.scale_cap, p.anchors.scale_cap);
-  unless_given("--children", c.anchors.children, p.anchors.children);
-  unless_given("--init-layers", c.anchors.init_layers, p.anchors.init_layers);
-  unless_given("--grow-budget", c.grow_budget, p.grow_budget);
-  unless_given("--init-children-at-points", c.anchors.init_children_at_points, p.anchors.init_children_at_points);
-  unless_given("--recycle-opacity", c.recycle_opacity, p.recycle_opacity);
-  unless_given("--final-prune-opacity", c.final_prune_opacity, p.final_prune_opacity);
-  unless_given("--prune-importance", c.prune_importance, p.prune_importance);
-  unless_given("--lr-offset", c.offset_lr_init, p.offset_lr_init);
-  unless_given("--lr-scaling", c.scaling_lr, p.scaling_lr);
-  unless_given("--grow-min-seen", c.grow_min_seen, p.grow_min_seen);
-  unless_given("--grow-split", c.grow_split, p.grow_split);
-  unless_given("--far-shell", c.far_shell, p.far_shell);
+  apply_train_preset(a.config, a.preset, [&sub](const TrainSetting& s) { return sub.count(s.flag_name()) > 0; });
   if (!log) return;
-  if (a.preset == "paper") {
-    spdlog::info(
-        "preset paper: --top-cells {} --children {} --init-layers {} --scale-cap {} --grow-budget {} --max-gaussians "
-        "{} --sky-degree {}",
-        c.anchors.top_cells, c.anchors.children, c.anchors.init_layers, c.anchors.scale_cap, c.grow_budget,
-        c.max_gaussians, c.sky_degree);
-    return;
-  }
-  spdlog::info(
-      "preset {}: --scale-cap {} --children {} --init-layers {} --{} --grow-budget {} --grow-min-seen {} "
-      "--grow-split {} --far-shell {} --recycle-opacity {} --final-prune-opacity {} --prune-importance {} "
-      "--lr-offset {} --lr-scaling {}",
-      a.preset, c.anchors.scale_cap, c.anchors.children, c.anchors.init_layers,
-      c.anchors.init_children_at_points ? "init-children-at-points" : "init-children-random", c.grow_budget,
-      c.grow_min_seen, c.grow_split, c.far_shell, c.recycle_opacity, c.final_prune_opacity, c.prune_importance,
-      c.offset_lr_init, c.scaling_lr);
+  std::string line;
+  for (const TrainSetting& s : train_settings())
+    if (s.in_a_preset()) line += " " + flag_text(s, a.config);
+  spdlog::info("preset {}:{}", a.preset, line);
 }
 
 bool has_stage(const TrainArgs& a, int s) {
@@ -571,191 +600,8 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                                  "(propagation loss), stage 3 (clusters, language features); writes "
                                  "MODEL_DIR/model.ag2gs and MODEL_DIR/point_cloud.ply");
   add_scene_options(sub, *a);
-  sub->add_option("--iters", c.iterations, "Training iterations (default 30000)")->check(CLI::Range(1, 100000000));
-  sub->add_option("--seed", c.seed, "Random seed: anchor init and view order (default 0)")->check(seed_number());
-  sub->add_option("--sh-degree", c.anchors.sh_degree, "Highest SH degree (default 3)")->check(CLI::Range(0, 3));
-  sub->add_option("--sh-interval", c.sh_interval,
-                  "Iterations per SH degree step (default 0 = min(1000, iters / (sh-degree + 1)))")
-      ->check(non_negative_number());
-  sub->add_flag("--white-bg", c.white_background, "White background instead of black (with a sky: its start)");
-  sub->add_option("--sky-degree", c.sky_degree,
-                  "The sky behind the Gaussians: a colour per viewing direction, spherical harmonics of this degree "
-                  "(0 = one learned colour; -1 = none, a fixed black or white background, as --preset paper; default "
-                  "-2 = from the scene: 3 when at least 5% of the training pixels have no SfM point near them, else "
-                  "-1)")
-      ->check(CLI::Range(-2, 3));
-  sub->add_option("--far-shell", c.far_shell,
-                  "Where the pixels without SfM points show surfaces rather than an open sky (a degree-3 sky fits "
-                  "them with an RMS error above 0.04, as a room's far walls), seed anchors from them on a sphere "
-                  "around the cameras (default true; false: --preset paper and the official code)");
-  sub->add_option("--lr-sky", c.sky_lr, "Learning rate of the sky's coefficients (default 0.01)")
-      ->check(finite_range(0, 100));
-  sub->add_option("--lambda-ssim", c.lambda_ssim, "Weight of 1 - SSIM in L_rgb (default 0.2)")
-      ->check(finite_range(0.0, 1.0));
-  sub->add_option("--w-offset", c.w_offset, "Weight of the offset regulariser L_in (default 0.5)")
-      ->check(finite_range(0, 1e+06));
-  sub->add_option("--w-dist", c.w_distortion, "Weight of the depth distortion L_d (default 50)")
-      ->check(finite_range(0, 1e+06));
-  sub->add_option("--dist-from", c.distortion_from, "First iteration with the distortion term (default 0)")
-      ->check(non_negative_number());
-  sub->add_option("--downscales", c.downscales,
-                  "Coarse-to-fine: start at the images divided by 2^N, doubling the resolution every --res-schedule "
-                  "iterations (default -1: as many halvings, at most 3, as keep the shorter side >= 64 px; 0 = off, "
-                  "as --preset paper; mask-loss iterations and stage 2 always at full resolution)")
-      ->check(CLI::Range(-1, 6));
-  sub->add_option("--res-schedule", c.res_schedule,
-                  "Iterations per resolution doubling with --downscales (default 0: 0.85 x iters / levels, at most "
-                  "3000, so full resolution for the last 15% of the run)")
-      ->check(CLI::Range(0, 100000000));
-  sub->add_option("--coarse-lowpass", c.coarse_lowpass,
-                  "At the coarse levels of --downscales, the screen-space low-pass is 0.3 px^2 x F^level of the "
-                  "downscaled image (default 0.5; 1 = 0.3 coarse px at every level, 0.25 = 0.3 full-resolution px)")
-      ->check(finite_range(1e-6, 1.0));
-  sub->add_option("--w-is", c.w_is,
-                  "Weight of the mask-internal loss L_is on the rendered features (default 0.1; scenes with masks)")
-      ->check(finite_range(0, 1e+06));
-  sub->add_option("--w-ic", c.w_ic, "Weight of the mask-contrast loss L_ic (default 0.1)")
-      ->check(finite_range(0, 1e+06));
-  sub->add_option("--mask-from", c.mask_from,
-                  "First iteration with the mask losses (default -1 = iters / 6, the official 5k of 30k)")
-      ->check(CLI::Range(-1, std::numeric_limits<int>::max()));
-  sub->add_flag("!--no-mask-alpha-norm", c.mask_alpha_normalise,
-                "Mask losses on the raw rendered feature instead of the feature divided by alpha (default: divided, "
-                "pixels with alpha < 0.1 left out)");
-  sub->add_flag("--mask-geometry,!--mask-features-only", c.mask_geometry,
-                "--mask-geometry (default): the mask losses' gradient reaches every Gaussian parameter (the "
-                "paper's joint loss); --mask-features-only: it trains the semantic features alone, so appearance "
-                "and geometry train as without masks");
-  sub->add_flag("!--no-unmasked-group", c.mask_unmasked_group,
-                "Leave pixels without a SAM mask out of the mask losses (default: they form one more mask, so "
-                "object features are pushed away from the unmasked surroundings)");
-  sub->add_flag("!--no-grow-same-layer", c.grow_same_layer,
-                "Grow only finer anchors (default: also anchors of a child's own layer where its mean left its "
-                "voxel, so the model spreads into regions without SfM points)");
-  sub->add_option("--recycle-opacity", c.recycle_opacity,
-                  "In growing rounds, children of a kept anchor below this opacity become copies of its most opaque "
-                  "child, the two sharing its opacity (default 0.02; --preset paper 0 = off)")
-      ->check(finite_range(0.0, 0.999));
-  sub->add_flag("!--no-feature-ball", c.feature_ball,
-                "Let the semantic features grow without bound (default: projected into the unit ball after each "
-                "step, so the graph stages' absolute thresholds keep their meaning)");
-  sub->add_option("--lr-feature", c.feature_lr, "Semantic feature learning rate (default 0.05)")
-      ->check(finite_range(0, 100));
-  sub->add_option("--lr-offset", c.offset_lr_init,
-                  "Offset learning rate at the start (default 1e-2; --preset paper 1e-3; voxel units)")
-      ->check(finite_range(0, 100));
-  sub->add_option("--lr-offset-final", c.offset_lr_final, "Offset learning rate at the end (default 1e-4)")
-      ->check(finite_range(0, 100));
-  sub->add_flag("--lr-offset-extent,!--no-lr-offset-extent", c.offset_lr_extent,
-                "Multiply the offset rates by the camera radius (default on, as the official code; "
-                "--no-lr-offset-extent for voxel units alone)");
-  sub->add_option("--lr-sh", c.sh_dc_lr, "SH DC learning rate (default 0.0025)")->check(finite_range(0, 100));
-  sub->add_option("--lr-sh-rest", c.sh_rest_lr, "Higher SH learning rate (default 0.0025 / 20)")
-      ->check(finite_range(0, 100));
-  sub->add_option("--lr-opacity", c.opacity_lr, "Opacity logit learning rate (default 0.05)")
-      ->check(finite_range(0, 100));
-  sub->add_option("--lr-scaling", c.scaling_lr, "Scale logit learning rate (default 0.01; --preset paper 0.005)")
-      ->check(finite_range(0, 100));
-  sub->add_option("--lr-rotation", c.rotation_lr, "Rotation learning rate (default 0.001)")
-      ->check(finite_range(0, 100));
-  sub->add_option("--top-cells", c.anchors.top_cells,
-                  "Top-layer voxels along the longest robust extent of the SfM points (default: the voxel is "
-                  "chosen from the scene, a finest-layer voxel of about a pixel at the points' median depth; "
-                  "--preset paper: 200)")
-      ->check(positive_number());
-  sub->add_option("--voxel-size", c.anchors.voxel_size,
-                  "Top-layer voxel edge in world units (overrides --top-cells and the scene's choice)")
-      ->check([](const std::string& v) -> std::string {
-        char* end = nullptr;
-        const double x = std::strtod(v.c_str(), &end);
-        if (end == v.c_str() || *end != 0 || !(x > 0) || !std::isfinite(x))
-          return "--voxel-size must be a finite number > 0 (world units), not '" + v + "'";
-        return {};
-      });
-  sub->add_option("--max-gaussians", c.max_gaussians,
-                  "Growth never takes the model past this many Gaussians (default: the pixels of a training view, "
-                  "at least twice the initial count; 0 = no limit; below the initial count is an error)")
-      ->check(CLI::Range(int64_t{0}, std::numeric_limits<int64_t>::max()));
-  sub->add_option("--grow-budget", c.grow_budget,
-                  "A growing round adds at most this fraction of the anchors (at least 64; default 0.1, the "
-                  "library's 0.25; 0 = no limit); the children asking hardest win")
-      ->check(finite_range(0.0, 1e6));
-  sub->add_option("--children", c.anchors.children, "Gaussians per anchor (default 2; --preset paper 5)")
-      ->check(CLI::Range(1, 64));
-  sub->add_option("--init-layer", c.anchors.init_layer,
-                  "First voxel layer the SfM points initialise anchors on (default 0 = the top layer, as the "
-                  "official code; -1 = every layer, as the paper says)")
-      ->check(CLI::Range(-1, 15));
-  sub->add_option("--init-layers", c.anchors.init_layers,
-                  "Layers the SfM points initialise anchors on, from --init-layer down (default 2: the top layer "
-                  "and the next, so thin objects start with anchors of their own; --preset paper 1, the official "
-                  "code)")
-      ->check(CLI::Range(1, 16));
-  sub->add_option("--init-scale", c.anchors.init_scale,
-                  "Scale of a fresh child as a fraction of its voxel edge (default 0.5; below --scale-cap)")
-      ->check(finite_range(1e-4, 1023.0));
-  sub->add_option("--scale-cap", c.anchors.scale_cap,
-                  "A child's scale is at most this many voxel edges (default 64; --preset paper 1: a child "
-                  "never outgrows its voxel)")
-      ->check(finite_range(1.0, 1024.0));
-  sub->add_option("--scale-cap-layers", c.anchors.scale_cap_layers,
-                  "--scale-cap holds on this many of the coarsest layers (1 = the top layer only); finer layers keep "
-                  "their children inside their voxels (default: every layer)")
-      ->check(CLI::Range(1, 16));
-  sub->add_option("--init-opacity", c.anchors.init_opacity, "Opacity of a fresh child (default 0.1)")
-      ->check(finite_range(1e-4, 0.9999));
-  sub->add_flag("--init-children-at-points,!--init-children-random", c.anchors.init_children_at_points,
-                "Seeded anchors put their children on the SfM points of their voxel, with those points' colours "
-                "(default; --init-children-random, as the official code and --preset paper: random offsets and "
-                "the voxel's mean colour)");
-  sub->add_option("--grow-from", c.grow_from, "First iteration of anchor growing (default 500)")
-      ->check(non_negative_number());
-  sub->add_option("--grow-until", c.grow_until, "Last iteration of anchor growing (default 0 = 2/3 of --iters)")
-      ->check(non_negative_number());
-  sub->add_option("--grow-every", c.grow_every, "Iterations between growing rounds (default 100; 0 = no growing)")
-      ->check(non_negative_number());
-  sub->add_option("--grow-threshold", c.grow_threshold,
-                  "Mean screen-space gradient (NDC units) above which a child grows a finer anchor (default 1.5e-4, "
-                  "x2 per layer)")
-      ->check(finite_range(1e-12, 1000));
-  sub->add_option("--grow-min-seen", c.grow_min_seen,
-                  "Fraction of a round's iterations a child must be visible in to grow (default 0.1, so the far "
-                  "background that a circling capture sees in a few views grows too; --preset paper and the "
-                  "official code 0.4)")
-      ->check(finite_range(0.0, 1.0));
-  sub->add_option("--grow-split", c.grow_split,
-                  "Split growth, as 3DGS splits a large Gaussian: a growing child at least this many voxels of the "
-                  "layer it grows into wide along one of its two longest axes also asks for anchors at +-1 "
-                  "standard deviation along it, and the anchors it grows start at its scale / 1.6 "
-                  "(default 4; 0 = off: one anchor at the child's mean whose children start at --init-scale, "
-                  "--preset paper and the official code)")
-      ->check(finite_range(0.0, 1e6));
-  sub->add_option("--prune-opacity", c.prune_opacity,
-                  "In growing rounds, remove anchors whose children's mean opacity is below this (default 0.01; 0 = "
-                  "off)")
-      ->check(finite_range(0.0, 0.999));
-  sub->add_option("--final-prune-opacity", c.final_prune_opacity,
-                  "After the last stage-1 iteration, remove anchors whose children's mean opacity is below this "
-                  "(default 0.015; --preset paper: 0 = off)")
-      ->check(finite_range(0.0, 0.999));
-  sub->add_option("--prune-importance", c.prune_importance,
-                  "Once, at --prune-importance-at, remove the anchors that draw least (their Gaussians' blending "
-                  "weights summed over every pixel of the training views) while together they draw at most this "
-                  "share of the pictures (default 0.01; --preset paper: 0 = off)")
-      ->check(finite_range(0.0, 0.999));
-  sub->add_option("--prune-importance-at", c.prune_importance_at,
-                  "The iteration of the importance prune (default 0: halfway between the end of growing and --iters)")
-      ->check(CLI::Range(0, std::numeric_limits<int>::max()));
-  sub->add_option("--prune-unseen-window", c.prune_unseen_window,
-                  "In growing rounds, remove anchors none of whose children was visible in the last N training views "
-                  "(default 0 = 2 x training views; -1 = off)")
-      ->check(CLI::Range(-1, std::numeric_limits<int>::max()));
-  sub->add_option("--opacity-reset-every", c.opacity_reset_every,
-                  "Reset every opacity to at most 0.01 every N iterations while growing runs (default 3000; 0 = off)")
-      ->check(non_negative_number());
-  sub->add_option("--opacity-reset-pause", c.opacity_reset_pause,
-                  "Growing rounds this many iterations after a reset do not prune by opacity (default 500)")
-      ->check(non_negative_number());
+  for (const TrainSetting& s : train_settings())
+    if (s.is_flag()) add_setting_option(sub, s, c);
   add_progress_options(sub, *a);
   sub->add_flag("--view", a->view,
                 "Serve the viewer while training (as `ag2gs view`): the picture follows the model, with its progress "
@@ -775,16 +621,6 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                   "model (e.g. --stages 3 re-clusters a trained model)")
       ->delimiter(',')
       ->check(CLI::Range(1, 3));
-  sub->add_option("--prop-iters", c.prop_iters,
-                  "Stage-2 iterations after stage 1 (default -1 = iters / 6, the official 5000 after 30000; 0 = no "
-                  "stage 2)")
-      ->check(CLI::Range(-1, std::numeric_limits<int>::max()));
-  sub->add_option("--w-prop", c.w_prop,
-                  "Weight of the propagation loss L_prop (a mean over edges) in stage 2 (default 10; the paper's 0.01 "
-                  "is on a sum)")
-      ->check(finite_range(0, 1e+06));
-  sub->add_option("--prop-tau", c.prop_tau, "Bilateral bandwidth tau of L_prop (default 0.05)")
-      ->check(finite_range(1e-09, 1e+06));
   Stage3Config& s3 = a->stage3;
   sub->add_option("--cluster-distance", s3.cluster.max_distance,
                   "Stage 3: join graph neighbours whose feature distance is below this (default 0.01)")
@@ -801,15 +637,7 @@ void register_train(CLI::App& app, GlobalOptions& global) {
   sub->add_option("--instance-fraction", s3.language.instance_fraction,
                   "Stage 3: a pixel belongs to a cluster holding at least this share of its weight (default 0.5)")
       ->check(finite_range(0.5, 0.999));
-  sub->add_option("--preset", a->preset,
-                  "default (= appearance: --scale-cap 64 --children 2 --init-layers 2 --init-children-at-points "
-                  "--grow-budget 0.1 --grow-min-seen 0.1 --grow-split 4 --far-shell true --recycle-opacity 0.02 "
-                  "--final-prune-opacity 0.015 --prune-importance 0.01 --lr-offset 1e-2 "
-                  "--lr-scaling 0.01, "
-                  "the voxel from the "
-                  "scene) or paper (the method as published: --top-cells 200, 5 children inside their voxels, "
-                  "--scale-cap 1, one seeded layer, no growth budget); flags given explicitly win")
-      ->check(CLI::IsMember({"default", "appearance", "paper"}));
+  sub->add_option("--preset", a->preset, preset_help())->check(CLI::IsMember({"default", "appearance", "paper"}));
   auto print_config = std::make_shared<bool>(false);
   sub->add_flag("--print-config", *print_config,
                 "Print the settings this command would train with (the preset, then the flags given; JSON, the "

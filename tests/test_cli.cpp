@@ -240,8 +240,14 @@ TEST(Cli, TrainPresetsDefaultAppearanceAndPaperExplicitFlagsWin) {
   // The default is the appearance setting.
   Result def = run(common + (dir / "default").string());
   ASSERT_EQ(def.code, 0) << def.output;
-  EXPECT_NE(def.output.find("preset default: --scale-cap 64 --children 2 --init-layers 2"), std::string::npos)
-      << def.output;
+  // The log line names every setting a preset sets, with the values used.
+  auto logged = [](const Result& r, const std::string& preset, const std::vector<std::string>& settings) {
+    const size_t at = r.output.find("preset " + preset + ":");
+    ASSERT_NE(at, std::string::npos) << r.output;
+    const std::string line = r.output.substr(at, r.output.find('\n', at) - at) + " ";
+    for (const std::string& s : settings) EXPECT_NE(line.find(" " + s + " "), std::string::npos) << s << " in " << line;
+  };
+  logged(def, "default", {"--scale-cap 64", "--children 2", "--init-layers 2", "--init-children-at-points"});
   EXPECT_EQ(config_of(dir / "default").at("scale_cap").get<float>(), 64.f);
   EXPECT_EQ(config_of(dir / "default").at("children").get<int>(), 2);
   EXPECT_EQ(config_of(dir / "default").at("init_layers").get<int>(), 2);
@@ -250,10 +256,9 @@ TEST(Cli, TrainPresetsDefaultAppearanceAndPaperExplicitFlagsWin) {
   // --preset paper: the method as published; the explicit --top-cells wins.
   Result paper = run(common + (dir / "paper").string() + " --preset paper");
   ASSERT_EQ(paper.code, 0) << paper.output;
-  EXPECT_NE(paper.output.find("preset paper: --top-cells 50 --children 5 --init-layers 1 --scale-cap 1 "
-                              "--grow-budget 0 --max-gaussians 0"),
-            std::string::npos)
-      << paper.output;
+  logged(paper, "paper",
+         {"--top-cells 50", "--children 5", "--init-layers 1", "--scale-cap 1", "--grow-budget 0", "--max-gaussians 0",
+          "--sky-degree -1", "--downscales 0", "--init-children-random", "--far-shell false"});
   EXPECT_EQ(config_of(dir / "paper").at("scale_cap").get<float>(), 1.f);
   EXPECT_EQ(config_of(dir / "paper").at("children").get<int>(), 5);
   EXPECT_EQ(config_of(dir / "paper").at("init_layers").get<int>(), 1);
@@ -265,13 +270,10 @@ TEST(Cli, TrainPresetsDefaultAppearanceAndPaperExplicitFlagsWin) {
 
   Result app = run(common + (dir / "app").string() + " --preset appearance --children 4");
   ASSERT_EQ(app.code, 0) << app.output;
-  EXPECT_NE(
-      app.output.find("preset appearance: --scale-cap 64 --children 4 --init-layers 2 "
-                      "--init-children-at-points --grow-budget 0.1 --grow-min-seen 0.1 --grow-split 4 --far-shell true "
-                      "--recycle-opacity 0.02 --final-prune-opacity 0.015 --prune-importance 0.01 --lr-offset 0.01 "
-                      "--lr-scaling 0.01"),
-      std::string::npos)
-      << app.output;
+  logged(app, "appearance",
+         {"--scale-cap 64", "--children 4", "--init-layers 2", "--init-children-at-points", "--grow-budget 0.1",
+          "--grow-min-seen 0.1", "--grow-split 4", "--far-shell true", "--recycle-opacity 0.02",
+          "--final-prune-opacity 0.015", "--prune-importance 0.01", "--lr-offset 0.01", "--lr-scaling 0.01"});
   const auto c = config_of(dir / "app");
   EXPECT_EQ(c.at("scale_cap").get<float>(), 64.f);
   EXPECT_EQ(c.at("children").get<int>(), 4);

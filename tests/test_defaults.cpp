@@ -3,6 +3,7 @@
 // and the program's default training on a small generated scene.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <fstream>
 #include <nlohmann/json.hpp>
@@ -18,6 +19,7 @@
 #include "stages/divergence_guard.h"
 #include "stages/free_trainer.h"
 #include "stages/train_config.h"
+#include "stages/train_settings.h"
 #include "stages/voxel_rule.h"
 #include "test_util.h"
 
@@ -273,6 +275,66 @@ TEST(Defaults, TheProgramTrainsWithTheLibrarysPreset) {
   EXPECT_NE(TrainConfig::preset("default").anchors.children, TrainConfig{}.anchors.children);
   EXPECT_THROW(TrainConfig::preset("fast"), std::invalid_argument);
   EXPECT_FALSE(std::filesystem::exists("/nonexistent/m"));
+}
+
+// The settings table (stages/train_settings.h) is the one place a training
+// setting is declared: every leaf of the config JSON is a row and every row
+// a leaf; every flag of the table is one of `train --help`'s; the JSON
+// round-trips; an unknown key and a missing one are refused by name; a
+// value out of range is refused naming its flag, by the library and by the
+// program; and each preset survives the round trip through the JSON and
+// through the program.
+TEST(Defaults, EveryTrainingSettingIsOneRowOfTheTable) {
+  const TrainConfig d = TrainConfig::preset("default");
+  const nlohmann::json j = d.to_json();
+  size_t leaves = 0;
+  for (const auto& [k, v] : j.items()) leaves += v.is_object() ? v.size() : 1;
+  EXPECT_EQ(leaves, train_settings().size());
+  const test::CliResult help = test::run_cli("train --help");
+  for (const TrainSetting& s : train_settings()) {
+    std::string pointer = "/" + s.key;
+    std::replace(pointer.begin(), pointer.end(), '.', '/');
+    EXPECT_TRUE(j.contains(nlohmann::json::json_pointer(pointer))) << s.key;
+    if (s.is_flag()) EXPECT_NE(help.output.find(s.flag_name()), std::string::npos) << s.flag_name();
+  }
+  // Round trip, for the presets and a config with every rule resolved.
+  for (const char* p : {"default", "paper"}) {
+    const TrainConfig c = TrainConfig::preset(p);
+    EXPECT_EQ(TrainConfig::from_json(c.to_json()).to_json(), c.to_json()) << p;
+  }
+  // A key the table does not know, at the top or in a group, and a missing required one.
+  nlohmann::json extra = j;
+  extra["grow_speed"] = 2;
+  test::expect_error_with<std::runtime_error>([&] { TrainConfig::from_json(extra); }, {"unknown key", "grow_speed"});
+  extra = j;
+  extra["grow"]["bogus"] = 1;
+  test::expect_error_with<std::runtime_error>([&] { TrainConfig::from_json(extra); }, {"grow.bogus"});
+  nlohmann::json missing = j;
+  missing["anchors"].erase("children");
+  test::expect_error_with<std::runtime_error>([&] { TrainConfig::from_json(missing); }, {"anchors.children"});
+  missing = j;
+  missing.erase("far_shell");  // written before the far shell existed: off
+  EXPECT_FALSE(TrainConfig::from_json(missing).far_shell);
+  nlohmann::json mistyped = j;
+  mistyped["grow"]["every"] = "often";
+  test::expect_error_with<std::runtime_error>([&] { TrainConfig::from_json(mistyped); }, {"grow.every"});
+  // Out of range: the library names the key and the flag.
+  TrainConfig bad = d;
+  bad.grow_min_seen = 1.5;
+  test::expect_error_with<std::invalid_argument>([&] { bad.validate(); }, {"grow.min_seen", "--grow-min-seen", "1.5"});
+  bad = d;
+  bad.anchors.children = 0;
+  test::expect_error_with<std::invalid_argument>([&] { bad.validate(); }, {"--children"});
+  bad = d;
+  bad.max_gaussians = -1;  // the rule's value: accepted, though the flag does not take it
+  EXPECT_NO_THROW(bad.validate());
+  // ... and the program refuses it by the flag, before printing anything.
+  for (const char* flags : {"--grow-min-seen 1.5", "--children 0", "--lr-sky nan", "--grow-every -1"}) {
+    const test::CliResult r = test::run_cli("train " + sample_scene() + " -o /nonexistent/m --print-config " + flags);
+    EXPECT_NE(r.code, 0) << flags;
+    EXPECT_NE(r.output.find(std::string(flags).substr(0, std::string(flags).find(' '))), std::string::npos) << r.output;
+    EXPECT_EQ(r.output.find("\"iterations\""), std::string::npos) << r.output;
+  }
 }
 
 // The same for `baseline` (FreeTrainConfig) and `query` (QueryConfig): with
