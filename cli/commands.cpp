@@ -28,6 +28,7 @@ std::map<CLI::App*, std::function<void()>>& actions() {
 void register_commands(CLI::App& app, GlobalOptions& global) {
   register_devices(app, global);
   register_render(app, global);
+  register_info(app, global);
   register_scene_commands(app, global);
   register_synth(app, global);
   register_train(app, global);

@@ -82,7 +82,8 @@ void set_action(CLI::App* sub, std::function<void()> action);
 // Subcommands defined in their own files.
 void register_devices(CLI::App& app, GlobalOptions& global);        // devices (cmd_devices.cpp)
 void register_render(CLI::App& app, GlobalOptions& global);         // render (cmd_render.cpp)
-void register_scene_commands(CLI::App& app, GlobalOptions& global);  // info, sfm, undistort (cmd_scene.cpp)
+void register_info(CLI::App& app, GlobalOptions& global);           // info (cmd_info.cpp)
+void register_scene_commands(CLI::App& app, GlobalOptions& global);  // sfm, undistort (cmd_scene.cpp)
 void register_synth(CLI::App& app, GlobalOptions& global);          // synth (cmd_synth.cpp)
 void register_train(CLI::App& app, GlobalOptions& global);          // train (cmd_train.cpp)
 void register_baseline(CLI::App& app, GlobalOptions& global);       // baseline (cmd_baseline.cpp)

@@ -1,0 +1,161 @@
+// `ag2gs train`'s flags: the training settings' from their table
+// (stages/train_settings.h), the presets, and the run's own (stages, stage
+// 3, progress, the live viewer, checkpoints).
+#include <spdlog/spdlog.h>
+
+#include <algorithm>
+#include <cstdio>
+#include <limits>
+#include <memory>
+#include <string>
+#include <type_traits>
+#include <variant>
+
+#include "cli/train_command.h"
+
+namespace ag2gs::cli {
+
+std::string flag_text(const TrainSetting& s, const TrainConfig& c) {
+  const nlohmann::json v = s.get(c);
+  if (s.is_bool() && !s.takes_value) {
+    const std::string name = s.name_for(v.get<bool>());
+    return name.empty() ? s.flag_name() + "=" + (v.get<bool>() ? "true" : "false") : name;
+  }
+  if (s.is_bool()) return s.flag_name() + (v.get<bool>() ? " true" : " false");
+  if (v.is_number_float()) return fmt::format("{} {:g}", s.flag_name(), v.get<double>());
+  return s.flag_name() + " " + v.dump();
+}
+
+namespace {
+
+// The flag of a setting (stages/train_settings.h), bound to its field of
+// `c`, checked as the table says.
+void add_setting_option(CLI::App* sub, const TrainSetting& s, TrainConfig& c) {
+  std::visit(
+      [&](auto field) {
+        auto& ref = field(c);
+        using T = std::decay_t<decltype(ref)>;
+        if constexpr (std::is_same_v<T, bool>) {
+          if (!s.takes_value) {
+            sub->add_flag(s.flag, ref, s.help);
+            return;
+          }
+        }
+        CLI::Option* o = sub->add_option(s.flag, ref, s.help);
+        switch (s.check) {
+          case TrainSetting::Check::kRange:
+            if constexpr (std::is_integral_v<T> && !std::is_same_v<T, bool>) {
+              const T hi = s.hi >= static_cast<double>(std::numeric_limits<T>::max()) ? std::numeric_limits<T>::max()
+                                                                                      : static_cast<T>(s.hi);
+              o->check(CLI::Range(static_cast<T>(s.lo), hi));
+            } else {
+              o->check(finite_range(s.lo, s.hi));
+            }
+            break;
+          case TrainSetting::Check::kNonNegative:
+            o->check(non_negative_number());
+            break;
+          case TrainSetting::Check::kPositive:
+            o->check(positive_number());
+            break;
+          case TrainSetting::Check::kSeed:
+            o->check(seed_number());
+            break;
+          case TrainSetting::Check::kNone:
+            break;
+        }
+      },
+      s.field);
+}
+
+// --preset's help, from the table.
+std::string preset_help() {
+  std::string def, paper;
+  const TrainConfig d = TrainConfig::preset("default"), p = TrainConfig::preset("paper");
+  for (const TrainSetting& s : train_settings()) {
+    if (s.in_default) def += " " + flag_text(s, d);
+    if (s.in_paper) paper += " " + flag_text(s, p);
+  }
+  return "default (= appearance, the measured setting for photographed scenes:" + def +
+         ") or paper (the method as published:" + paper +
+         ", 5 children inside their voxels, one seeded layer); the library's defaults for the rest; flags given "
+         "explicitly win";
+}
+
+}  // namespace
+
+void apply_preset(const CLI::App& sub, TrainArgs& a, bool log) {
+  const bool continues = a.resume || std::find(a.stages.begin(), a.stages.end(), 1) == a.stages.end();
+  if (continues && sub.count("--preset") == 0) return;
+  apply_train_preset(a.config, a.preset, [&sub](const TrainSetting& s) { return sub.count(s.flag_name()) > 0; });
+  if (!log) return;
+  std::string line;
+  for (const TrainSetting& s : train_settings())
+    if (s.in_a_preset() && !(s.auto_value && s.get(a.config) == *s.auto_value))  // a rule's value: no flag gives it
+      line += " " + flag_text(s, a.config);
+  spdlog::info("preset {}:{}", a.preset, line);
+}
+
+void register_train(CLI::App& app, GlobalOptions& global) {
+  auto a = std::make_shared<TrainArgs>();
+  TrainConfig& c = a->config;
+  auto* sub = app.add_subcommand("train",
+                                 "Train the anchor model on a scene directory: stage 1 (appearance, masks), stage 2 "
+                                 "(propagation loss), stage 3 (clusters, language features); writes "
+                                 "MODEL_DIR/model.ag2gs and MODEL_DIR/point_cloud.ply");
+  add_scene_options(sub, *a);
+  for (const TrainSetting& s : train_settings())
+    if (s.is_flag()) add_setting_option(sub, s, c);
+  add_progress_options(sub, *a);
+  sub->add_flag("--view", a->view,
+                "Serve the viewer while training (as `ag2gs view`): the picture follows the model, with its progress "
+                "and a pause button; after training it shows the final model until Ctrl-C");
+  sub->add_option("--port", a->serve.port, "With --view: TCP port (default 8080; 0 = any free port, printed)")
+      ->check(CLI::Range(0, 65535));
+  sub->add_option("--host", a->serve.host, "With --view: address to listen on (default 127.0.0.1)");
+  sub->add_option("--save-every", a->save_every, "Checkpoint every N iterations (default 0 = end only)")
+      ->check(non_negative_number());
+  sub->add_flag("--resume", a->resume,
+                "Continue from MODEL_DIR/checkpoint.ag2gs (its settings, stages included; flags given must agree "
+                "with them)");
+  sub->add_flag("--force", a->force,
+                "Start a new model even though MODEL_DIR holds one (its files are replaced when training ends)");
+  sub->add_option("--stages", a->stages,
+                  "Stages to run (comma-separated, default 1,2,3); without 1 they run on MODEL_DIR's checkpoint / "
+                  "model (e.g. --stages 3 re-clusters a trained model)")
+      ->delimiter(',')
+      ->check(CLI::Range(1, 3));
+  Stage3Config& s3 = a->stage3;
+  sub->add_option("--cluster-distance", s3.cluster.max_distance,
+                  "Stage 3: join graph neighbours whose feature distance is below this (default 0.01)")
+      ->check(finite_range(1e-9, 1e6));
+  sub->add_option("--min-cluster-size", s3.cluster.min_cluster_size,
+                  "Stage 3: clusters with fewer anchors are skipped (default 5)")
+      ->check(CLI::Range(1, std::numeric_limits<int>::max()));
+  sub->add_option("--match-score", s3.language.min_score,
+                  "Stage 3: a cluster takes a mask's CLIP feature when their score S exceeds this (default 0.3)")
+      ->check(finite_range(-1, 1));
+  sub->add_option("--match-softmax", s3.language.softmax_scale,
+                  "Stage 3: the matches' weights are softmax(scale * S) (default 10)")
+      ->check(finite_range(0.001, 80.0));
+  sub->add_option("--instance-fraction", s3.language.instance_fraction,
+                  "Stage 3: a pixel belongs to a cluster holding at least this share of its weight (default 0.5)")
+      ->check(finite_range(0.5, 0.999));
+  sub->add_option("--preset", a->preset, preset_help())->check(CLI::IsMember({"default", "appearance", "paper"}));
+  auto print_config = std::make_shared<bool>(false);
+  sub->add_flag("--print-config", *print_config,
+                "Print the settings this command would train with (the preset, then the flags given; JSON, the "
+                "`config` of model.ag2gs) and exit without reading the scene or writing anything");
+  set_action(sub, [&global, a, sub, print_config] {
+    a->stages_given = sub->count("--stages") > 0;
+    apply_preset(*sub, *a, !*print_config);
+    if (*print_config) {
+      a->config.validate();
+      std::printf("%s\n", a->config.to_json().dump(2).c_str());
+      return;
+    }
+    cmd_train(global, *a);
+  });
+}
+
+}  // namespace ag2gs::cli
