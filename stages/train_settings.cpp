@@ -24,9 +24,10 @@ std::string number_text(double v) {
   return buf;
 }
 
-std::vector<TrainSetting> build_table() {
+// A row of the table, added at its end.
+struct Rows {
   std::vector<TrainSetting> t;
-  auto add = [&t](TrainSetting::Access f, const char* key, const char* flag, const char* help) -> TrainSetting& {
+  TrainSetting& operator()(TrainSetting::Access f, const char* key, const char* flag, const char* help) {
     TrainSetting s;
     s.field = f;
     s.key = key;
@@ -35,8 +36,11 @@ std::vector<TrainSetting> build_table() {
     s.takes_value = !std::holds_alternative<TrainSetting::Field<bool>>(f);
     t.push_back(s);
     return t.back();
-  };
-  // In --help's order; the settings without a flag last.
+  }
+};
+
+// The run, the sky, the schedule and the losses.
+void add_run_and_loss_settings(Rows& add) {
   add(field<int>([](TrainConfig& c) -> int& { return c.iterations; }), "iterations", "--iters",
       "Training iterations (default 30000)")
       .range(1, 1e8);
@@ -140,6 +144,10 @@ std::vector<TrainSetting> build_table() {
       "Let the semantic features grow without bound (default: projected into the unit ball after each "
       "step, so the graph stages' absolute thresholds keep their meaning)")
       .before(0);
+}
+
+// The learning rates and the anchors.
+void add_rate_and_anchor_settings(Rows& add) {
   add(field<double>([](TrainConfig& c) -> double& { return c.feature_lr; }), "feature_lr", "--lr-feature",
       "Semantic feature learning rate (default 0.05)")
       .range(0, 100);
@@ -235,6 +243,10 @@ std::vector<TrainSetting> build_table() {
       "the voxel's mean colour)")
       .before(0)
       .presets(1, kKeep);
+}
+
+// Growing and pruning, stage 2, and the settings without a flag.
+void add_growth_and_stage2_settings(Rows& add) {
   add(field<int>([](TrainConfig& c) -> int& { return c.grow_from; }), "grow.from", "--grow-from",
       "First iteration of anchor growing (default 500)")
       .non_negative();
@@ -323,7 +335,15 @@ std::vector<TrainSetting> build_table() {
   add(field<double>([](TrainConfig& c) -> double& { return c.adam.beta1; }), "adam.beta1", "", "");
   add(field<double>([](TrainConfig& c) -> double& { return c.adam.beta2; }), "adam.beta2", "", "");
   add(field<double>([](TrainConfig& c) -> double& { return c.adam.eps; }), "adam.eps", "", "");
-  return t;
+}
+
+// In --help's order; the settings without a flag last.
+std::vector<TrainSetting> build_table() {
+  Rows rows;
+  add_run_and_loss_settings(rows);
+  add_rate_and_anchor_settings(rows);
+  add_growth_and_stage2_settings(rows);
+  return rows.t;
 }
 
 }  // namespace

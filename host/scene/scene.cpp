@@ -179,6 +179,71 @@ std::string find_colmap_model(const std::string& dir, const std::string& sparse)
                           "from photos with `ag2gs sfm IMAGES_DIR -o SCENE_DIR`");
 }
 
+// The semantic inputs: language_features/ wins over masks/.
+void Scene::find_semantics() {
+  const fs::path lf = fs::path(dir_) / "language_features";
+  const fs::path mp = fs::path(dir_) / "masks";
+  std::vector<std::string> without;
+  if (fs::is_directory(lf)) {
+    int found = 0;
+    for (SceneView& v : views_) {
+      const fs::path sp = lf / (v.stem + "_s.npy"), fp = lf / (v.stem + "_f.npy");
+      const bool has_s = fs::exists(sp), has_f = fs::exists(fp);
+      if (has_s != has_f) {
+        fail((has_s ? fp : sp).string(),
+             "missing; language features come in pairs <stem>_s.npy (mask ids) and "
+             "<stem>_f.npy (CLIP features)");
+      }
+      if (has_s) {
+        v.semantics_path = sp.string();
+        v.features_path = fp.string();
+        ++found;
+      } else {
+        without.push_back(v.name);
+      }
+    }
+    if (found > 0)
+      semantics_ = SemanticsKind::language_features;
+    else
+      notes_.push_back(lf.string() + " has no <stem>_s.npy/_f.npy for any image: training appearance only");
+  } else if (fs::is_directory(mp)) {
+    int found = 0;
+    for (SceneView& v : views_) {
+      const fs::path p = mp / (v.stem + ".png");
+      if (fs::exists(p)) {
+        v.semantics_path = p.string();
+        ++found;
+      } else {
+        without.push_back(v.name);
+      }
+    }
+    if (found > 0)
+      semantics_ = SemanticsKind::mask_png;
+    else
+      notes_.push_back(mp.string() + " has no <stem>.png for any image: training appearance only");
+  }
+  if (semantics_ != SemanticsKind::none && !without.empty()) {
+    notes_.push_back(std::to_string(without.size()) +
+                     " views have no masks (they train appearance only): " + some_names(without));
+  }
+  if (semantics_ == SemanticsKind::mask_png && options_.sam_levels.size() > 1) {
+    notes_.push_back("masks/ PNGs have one level; the SAM levels option applies to language_features/ only");
+  }
+}
+
+// The SfM points' robust box, and the cameras' centre and radius.
+void Scene::find_bounds() {
+  robust_box(points_, &bounds_.lo, &bounds_.hi, &bounds_.points_kept);
+  bounds_.points_total = static_cast<int>(points_.size());
+  Eigen::Vector3d mean = Eigen::Vector3d::Zero();
+  for (const SceneView& v : views_) mean += v.full_camera.center();
+  mean /= static_cast<double>(views_.size());
+  double far = 0;
+  for (const SceneView& v : views_) far = std::max(far, (v.full_camera.center() - mean).norm());
+  bounds_.camera_center = mean;
+  bounds_.camera_radius = 1.1 * far;
+}
+
 std::unique_ptr<Scene> Scene::open(const std::string& dir, const SceneOptions& options) {
   if (!fs::is_directory(dir)) {
     fail(dir, "no such scene directory; a scene holds images/ and sparse/0/ (make one with `ag2gs sfm IMAGES -o " +
@@ -285,66 +350,8 @@ std::unique_ptr<Scene> Scene::open(const std::string& dir, const SceneOptions& o
     s->notes_.push_back("--eval with a single image holds it out and leaves nothing to train on");
   }
 
-  // Semantics: language_features/ wins over masks/.
-  const fs::path lf = root / "language_features";
-  const fs::path mp = root / "masks";
-  std::vector<std::string> without;
-  if (fs::is_directory(lf)) {
-    int found = 0;
-    for (SceneView& v : s->views_) {
-      const fs::path sp = lf / (v.stem + "_s.npy"), fp = lf / (v.stem + "_f.npy");
-      const bool has_s = fs::exists(sp), has_f = fs::exists(fp);
-      if (has_s != has_f) {
-        fail((has_s ? fp : sp).string(),
-             "missing; language features come in pairs <stem>_s.npy (mask ids) and "
-             "<stem>_f.npy (CLIP features)");
-      }
-      if (has_s) {
-        v.semantics_path = sp.string();
-        v.features_path = fp.string();
-        ++found;
-      } else {
-        without.push_back(v.name);
-      }
-    }
-    if (found > 0)
-      s->semantics_ = SemanticsKind::language_features;
-    else
-      s->notes_.push_back(lf.string() + " has no <stem>_s.npy/_f.npy for any image: training appearance only");
-  } else if (fs::is_directory(mp)) {
-    int found = 0;
-    for (SceneView& v : s->views_) {
-      const fs::path p = mp / (v.stem + ".png");
-      if (fs::exists(p)) {
-        v.semantics_path = p.string();
-        ++found;
-      } else {
-        without.push_back(v.name);
-      }
-    }
-    if (found > 0)
-      s->semantics_ = SemanticsKind::mask_png;
-    else
-      s->notes_.push_back(mp.string() + " has no <stem>.png for any image: training appearance only");
-  }
-  if (s->semantics_ != SemanticsKind::none && !without.empty()) {
-    s->notes_.push_back(std::to_string(without.size()) +
-                        " views have no masks (they train appearance only): " + some_names(without));
-  }
-  if (s->semantics_ == SemanticsKind::mask_png && options.sam_levels.size() > 1) {
-    s->notes_.push_back("masks/ PNGs have one level; the SAM levels option applies to language_features/ only");
-  }
-
-  // Bounds.
-  robust_box(s->points_, &s->bounds_.lo, &s->bounds_.hi, &s->bounds_.points_kept);
-  s->bounds_.points_total = static_cast<int>(s->points_.size());
-  Eigen::Vector3d mean = Eigen::Vector3d::Zero();
-  for (const SceneView& v : s->views_) mean += v.full_camera.center();
-  mean /= static_cast<double>(s->views_.size());
-  double far = 0;
-  for (const SceneView& v : s->views_) far = std::max(far, (v.full_camera.center() - mean).norm());
-  s->bounds_.camera_center = mean;
-  s->bounds_.camera_radius = 1.1 * far;
+  s->find_semantics();
+  s->find_bounds();
   if (s->points_.empty()) s->notes_.push_back(s->points_path_ + " has no points; training needs SfM points");
   return s;
 }

@@ -150,6 +150,8 @@ class Scene {
   void insert(int kind, int view, std::shared_ptr<const void> value, size_t bytes);
   std::shared_ptr<Image> load_image(const SceneView& view) const;
   std::shared_ptr<ViewMasks> load_masks(const SceneView& view);
+  void find_semantics();  // open(): semantics_ and each view's semantic files
+  void find_bounds();     // open(): bounds_
 
   std::string dir_;
   SceneOptions options_;
