@@ -15,8 +15,8 @@
 #include "host/io/model_io.h"
 #include "host/render/sky.h"
 #include "host/scene/scene.h"
-#include "stages/anchor_model.h"
-#include "stages/train_config.h"
+#include "train/anchors/anchor_model.h"
+#include "train/train_config.h"
 
 namespace ag2gs {
 

@@ -1,5 +1,5 @@
 // baseline: vanilla 3DGS (free Gaussians, no anchors) on a scene directory
-// (stages/free_trainer.h), through the same kernels as `ag2gs train`, writing
+// (train/baseline/free_trainer.h), through the same kernels as `ag2gs train`, writing
 // MODEL_DIR/point_cloud.ply and, with --eval, MODEL_DIR/metrics.json in the
 // trainer's layout.
 #include <spdlog/spdlog.h>
@@ -17,8 +17,8 @@
 #include "cli/run_guard.h"
 #include "host/device/cl_runtime.h"
 #include "host/scene/scene.h"
-#include "stages/free_trainer.h"
-#include "stages/trainer.h"
+#include "train/baseline/free_trainer.h"
+#include "train/trainer.h"
 
 namespace fs = std::filesystem;
 

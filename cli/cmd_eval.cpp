@@ -19,10 +19,10 @@
 #include "host/scene/scene.h"
 #include "queries/query.h"
 #include "queries/query_eval.h"
-#include "stages/anchor_model.h"
-#include "stages/clustering.h"
-#include "stages/language.h"
-#include "stages/trainer.h"
+#include "train/anchors/anchor_model.h"
+#include "train/stage3/clustering.h"
+#include "train/stage3/language.h"
+#include "train/trainer.h"
 
 namespace fs = std::filesystem;
 

@@ -12,9 +12,9 @@
 #include "host/io/model_io.h"
 #include "host/io/ply_io.h"
 #include "host/scene/scene.h"
-#include "stages/anchor_graph.h"
-#include "stages/clustering.h"
-#include "stages/language.h"
+#include "train/graph/anchor_graph.h"
+#include "train/stage3/clustering.h"
+#include "train/stage3/language.h"
 
 namespace fs = std::filesystem;
 

@@ -24,7 +24,7 @@
 #include "host/render/sky.h"
 #include "host/scene/scene.h"
 #include "queries/query.h"
-#include "stages/train_common.h"
+#include "train/train_common.h"
 
 namespace fs = std::filesystem;
 

@@ -1,6 +1,6 @@
 // train: stages 1 (appearance + mask losses), 2 (propagation loss over the
 // anchor graph) and 3 (clusters and their language features) of the anchor
-// model on a scene directory (stages/trainer.h), writing MODEL_DIR/model.ag2gs,
+// model on a scene directory (train/trainer.h), writing MODEL_DIR/model.ag2gs,
 // checkpoint.ag2gs and point_cloud.ply. --stages picks a subset; without
 // stage 1 the run continues from MODEL_DIR's checkpoint / model.
 #include <spdlog/spdlog.h>
@@ -18,8 +18,8 @@
 #include "cli/train_command.h"
 #include "host/device/cl_runtime.h"
 #include "host/io/model_io.h"
-#include "stages/divergence_guard.h"
-#include "stages/eta.h"
+#include "train/divergence_guard.h"
+#include "train/eta.h"
 
 namespace fs = std::filesystem;
 
@@ -122,7 +122,7 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   double psnr0 = NAN;
   StepTerms terms;  // since the last progress line
   double stage1_end_s = -1;
-  // Divergence warnings (stages/divergence_guard.h), also in metrics.json.
+  // Divergence warnings (train/divergence_guard.h), also in metrics.json.
   DivergenceGuard guard;
   auto warn = [&](const std::optional<std::string>& w) {
     if (w) run.warn(*w);

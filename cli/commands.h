@@ -14,10 +14,10 @@
 #include "host/io/model_io.h"
 #include "host/scene/scene.h"
 #include "queries/query.h"
-#include "stages/anchor_model.h"
-#include "stages/clustering.h"
-#include "stages/language.h"
-#include "stages/model_check.h"  // recorded_resolution, recorded_sh_degree
+#include "train/anchors/anchor_model.h"
+#include "train/model_check.h"  // recorded_resolution, recorded_sh_degree
+#include "train/stage3/clustering.h"
+#include "train/stage3/language.h"
 
 namespace ag2gs::cli {
 

@@ -12,11 +12,11 @@
 #include "host/io/ply_io.h"
 #include "host/render/renderer.h"
 #include "host/render/sky.h"
-#include "stages/anchor_model.h"
-#include "stages/clustering.h"
-#include "stages/instance_map.h"
-#include "stages/model_check.h"
-#include "stages/train_common.h"
+#include "train/anchors/anchor_model.h"
+#include "train/model_check.h"
+#include "train/stage3/clustering.h"
+#include "train/stage3/instance_map.h"
+#include "train/train_common.h"
 
 namespace fs = std::filesystem;
 
@@ -161,7 +161,7 @@ ModelFrame ModelRender::render(const Camera& cam) {
   f.alpha = std::move(out.alpha);  // always: the feature colours need it
   if (has(outputs, "instance")) {
     // Cluster ids (-1 = none): the pixels where one cluster holds more than
-    // half of the blending weight (stages/instance_map.h).
+    // half of the blending weight (train/stage3/instance_map.h).
     s_->mapper.compute(s_->renderer);
     f.instance = s_->mapper.download().ids;
   }

@@ -13,7 +13,7 @@
 
 #include "cli/run_guard.h"
 #include "host/io/json_input.h"
-#include "stages/anchor_graph.h"
+#include "train/graph/anchor_graph.h"
 
 namespace fs = std::filesystem;
 

@@ -13,7 +13,7 @@
 #include "cli/run_guard.h"
 #include "host/core/quantile.h"
 #include "host/core/timing.h"
-#include "stages/checkpoint.h"
+#include "train/checkpoint.h"
 
 namespace fs = std::filesystem;
 

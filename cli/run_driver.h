@@ -17,8 +17,8 @@
 #include "host/core/timing.h"  // fmt_duration
 #include "host/device/cl_runtime.h"
 #include "host/scene/scene.h"
-#include "stages/eta.h"
-#include "stages/train_common.h"
+#include "train/eta.h"
+#include "train/train_common.h"
 
 namespace ag2gs::cli {
 
@@ -73,7 +73,7 @@ class RunDriver {
   // in the summary names which).
   void record_step_ms(double ms, bool fixed);
   double recent_step_ms() const;  // median of the last 100
-  // estimate_seconds_left (stages/eta.h) at the recent step time.
+  // estimate_seconds_left (train/eta.h) at the recent step time.
   double eta_seconds(int remaining, size_t now, int growing, double end_count) const;
 
   // Running means of the progress line.

@@ -14,10 +14,10 @@
 #include "cli/run_driver.h"
 #include "cli/viewer/view_server.h"
 #include "host/scene/scene.h"
-#include "stages/stage3.h"
-#include "stages/train_config.h"
-#include "stages/train_settings.h"
-#include "stages/trainer.h"
+#include "train/stage3/stage3.h"
+#include "train/train_config.h"
+#include "train/train_settings.h"
+#include "train/trainer.h"
 
 namespace ag2gs::cli {
 
@@ -71,7 +71,7 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a);
 // train_options.cpp. A setting as a flag shows it ("--children 2",
 // "--init-children-random", "--far-shell true").
 std::string flag_text(const TrainSetting& s, const TrainConfig& c);
-// Presets (stages/train_settings.cpp names the values). The default (also
+// Presets (train/train_settings.cpp names the values). The default (also
 // called "appearance") is the measured setting for photographed scenes;
 // "paper" is the method as published. A setting the user gives on the
 // command line wins. A resumed run takes its settings from the checkpoint,

@@ -1,5 +1,5 @@
 // `ag2gs train`'s flags: the training settings' from their table
-// (stages/train_settings.h), the presets, and the run's own (stages, stage
+// (train/train_settings.h), the presets, and the run's own (stages, stage
 // 3, progress, the live viewer, checkpoints).
 #include <spdlog/spdlog.h>
 
@@ -28,7 +28,7 @@ std::string flag_text(const TrainSetting& s, const TrainConfig& c) {
 
 namespace {
 
-// The flag of a setting (stages/train_settings.h), bound to its field of
+// The flag of a setting (train/train_settings.h), bound to its field of
 // `c`, checked as the table says.
 void add_setting_option(CLI::App* sub, const TrainSetting& s, TrainConfig& c) {
   std::visit(

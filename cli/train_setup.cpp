@@ -8,12 +8,12 @@
 #include <string>
 
 #include "cli/run_guard.h"
-#include "host/core/timing.h"
-#include "stages/eta.h"
 #include "cli/train_command.h"
+#include "host/core/timing.h"
 #include "host/device/cl_runtime.h"
 #include "host/io/model_io.h"
-#include "stages/language.h"
+#include "train/eta.h"
+#include "train/stage3/language.h"
 
 namespace fs = std::filesystem;
 

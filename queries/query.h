@@ -65,10 +65,10 @@
 #include "host/device/cl_runtime.h"
 #include "host/render/renderer.h"
 #include "host/scene/scene_up.h"
-#include "stages/anchor_graph.h"
-#include "stages/anchor_model.h"
-#include "stages/clustering.h"
-#include "stages/language.h"
+#include "train/anchors/anchor_model.h"
+#include "train/graph/anchor_graph.h"
+#include "train/stage3/clustering.h"
+#include "train/stage3/language.h"
 
 namespace ag2gs {
 

@@ -18,7 +18,7 @@
 
 #include "host/device/cl_runtime.h"
 #include "host/scene/scene.h"
-#include "stages/anchor_model.h"
+#include "train/anchors/anchor_model.h"
 
 namespace ag2gs {
 

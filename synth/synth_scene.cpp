@@ -1214,33 +1214,22 @@ void validate(const SynthOptions& o) {
         std::to_string(o.mask_factor) + " for " + std::to_string(o.width) + "x" + std::to_string(o.height) + ")");
 }
 
-}  // namespace
-
-void write_synth_scene(const std::string& out_dir, const SynthOptions& opt) {
-  validate(opt);
-  const EmbeddingModel model(opt.feature_dim);  // throws for too small a dimension
-  const Rng rng{opt.seed};
-  const int W = opt.width, H = opt.height;
-
-  // ---- scene
-  std::vector<Camera> cams = make_cameras(opt, rng);
-  Layout lay = opt.hard ? layout_hard(opt, rng, cams) : layout_ordinary(opt, rng, 1, {}, {});
-  Scene scene;
-  scene.objects = lay.objects;
-  {
-    double az = 2.0 * kPi * rng.uniform(kStreamLight, 0), el = rng.uniform(0.75, 1.05, kStreamLight, 1);
-    scene.light.direction = Vec3(std::cos(az) * std::cos(el), std::sin(az) * std::cos(el), std::sin(el));
-  }
-  scene.ground_key = rng.bits(kStreamTexture, 0xffff);
-  scene.backdrop = opt.backdrop;
-  scene.backdrop_key = rng.bits(kStreamTexture, 0xfffe);
-  std::vector<Feature> category_vec;
-  for (const auto& o : scene.objects) category_vec.push_back(model.category(o.colour_name, o.family));
-
-  // ---- folders
-  fs::path root(out_dir);
-  const fs::path images = root / "images", sparse = root / "sparse" / "0", lf = root / "language_features",
-                 masks_dir = root / "masks", gt_dir = root / "gt", label_dir = root / "label";
+// The scene's folders, made, and cleared of what an earlier run wrote that
+// this one will not (other views, the other COLMAP format, removal ground truth).
+struct SceneFolders {
+  fs::path root, images, sparse, lf, masks_dir, gt_dir, label_dir;
+};
+SceneFolders make_scene_folders(const std::string& out_dir, const SynthOptions& opt) {
+  SceneFolders d;
+  d.root = out_dir;
+  d.images = d.root / "images";
+  d.sparse = d.root / "sparse" / "0";
+  d.lf = d.root / "language_features";
+  d.masks_dir = d.root / "masks";
+  d.gt_dir = d.root / "gt";
+  d.label_dir = d.root / "label";
+  const fs::path &root = d.root, &images = d.images, &sparse = d.sparse, &lf = d.lf, &masks_dir = d.masks_dir,
+                 &gt_dir = d.gt_dir, &label_dir = d.label_dir;
   try {
     for (const auto& d : {images, sparse, lf, masks_dir, gt_dir, label_dir}) fs::create_directories(d);
   } catch (const fs::filesystem_error& e) {
@@ -1264,134 +1253,82 @@ void write_synth_scene(const std::string& out_dir, const SynthOptions& opt) {
     const char* other = opt.text_model ? ".bin" : ".txt";
     for (const char* f : {"cameras", "images", "points3D"}) fs::remove(sparse / (std::string(f) + other));
   }
+  return d;
+}
 
-  std::vector<std::string> files;
-  Json clicks = Json::array();
-  Json views_json = Json::array();
-  std::map<std::pair<int, int>, int> occlusion_total;
-  const int f = opt.mask_factor;
-  for (int i = 0; i < opt.views; ++i) {
-    const Camera& cam = cams[i];
-    const std::string stem = view_stem(i);
-    ViewRender vr = render_view(scene, cam, opt.samples);
-    write_rgb_png((images / (stem + ".png")).string(), vr.rgb, W, H);
-    std::vector<float> gtf(vr.gt.begin(), vr.gt.end());
-    write_gray16_png((gt_dir / (stem + ".png")).string(), gtf, W, H, 1.f);
-    files.push_back("images/" + stem + ".png");
-    files.push_back("gt/" + stem + ".png");
-
-    // SAM-like masks, CLIP-like features, and the level-3 PNG at full size.
-    ViewMasksOut vm = make_masks(scene, cam, i, f, rng, opt.background_masks);
-    write_npy((lf / (stem + "_s.npy")).string(), vm.ids, {kLevels, vm.height, vm.width});
-    std::vector<float> feats(vm.masks.size() * static_cast<size_t>(opt.feature_dim));
-    for (size_t m = 0; m < vm.masks.size(); ++m) {
-      Feature v = mask_feature(model, category_vec, vm.masks[m], i, rng);
-      for (int d = 0; d < opt.feature_dim; ++d) feats[m * opt.feature_dim + d] = static_cast<float>(v[d]);
-    }
-    write_npy((lf / (stem + "_f.npy")).string(), feats,
-              {static_cast<int64_t>(vm.masks.size()), static_cast<int64_t>(opt.feature_dim)});
-    std::vector<float> large(static_cast<size_t>(W) * H);
-    const size_t level3 = 3 * static_cast<size_t>(vm.width) * vm.height;
-    for (int y = 0; y < H; ++y)
-      for (int x = 0; x < W; ++x)
-        large[static_cast<size_t>(y) * W + x] = vm.ids[level3 + static_cast<size_t>(y / f) * vm.width + x / f] + 1.f;
-    write_gray16_png((masks_dir / (stem + ".png")).string(), large, W, H, 1.f);
-    files.push_back("language_features/" + stem + "_s.npy");
-    files.push_back("language_features/" + stem + "_f.npy");
-    files.push_back("masks/" + stem + ".png");
-
-    // Visible objects and, for test views, labels and clicks from the exact GT.
-    std::map<int, int> pixels;
-    for (int id : vr.gt)
-      if (id > 0) ++pixels[id];
-    Json visible = Json::array();
-    for (const auto& [id, n] : pixels) visible.push_back(Json{{"id", id}, {"pixels", n}});
-    if (is_test_view(i)) {
-      Json objs = Json::array();
-      cv::Mat gt_mat(H, W, CV_32S, vr.gt.data());
-      for (const auto& [id, n] : pixels) {
-        if (n < kMinLabelPixels) continue;
-        const Object& o = scene.objects[id - 1];
-        cv::Mat mask = gt_mat == id;  // CV_8U 0/255
-        cv::Mat comp, stats, centroids;
-        int nc = cv::connectedComponentsWithStats(mask, comp, stats, centroids, 8, CV_32S);
-        for (int c = 1; c < nc; ++c) {
-          if (stats.at<int>(c, cv::CC_STAT_AREA) < kMinLabelPixels) continue;
-          cv::Mat one = comp == c;
-          std::vector<std::vector<cv::Point>> contours;
-          cv::findContours(one, contours, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_SIMPLE);
-          for (const auto& contour : contours) {
-            Json seg = Json::array();
-            for (const auto& pt : contour) seg.push_back(Json::array({pt.x, pt.y}));
-            // fillPoly needs 3 points; a 1-2 pixel run gets a degenerate triangle.
-            while (seg.size() < 3) seg.push_back(seg.back());
-            cv::Rect bb = cv::boundingRect(contour);
-            objs.push_back(Json{{"category", o.category},
-                                {"segmentation", seg},
-                                {"bbox", Json::array({bb.x, bb.y, bb.x + bb.width - 1, bb.y + bb.height - 1})}});
-          }
-        }
-        // A click deep inside the object: the maximum of the distance transform
-        // (padded so the image border counts as outside; first maximum in raster order).
-        cv::Mat padded;
-        cv::copyMakeBorder(mask, padded, 1, 1, 1, 1, cv::BORDER_CONSTANT, 0);
-        cv::Mat dist;
-        cv::distanceTransform(padded, dist, cv::DIST_L2, cv::DIST_MASK_PRECISE);
-        cv::Point best;
-        cv::minMaxLoc(dist, nullptr, nullptr, nullptr, &best);
-        clicks.push_back(
-            Json{{"frame", stem}, {"x", best.x - 1}, {"y", best.y - 1}, {"category", o.category}, {"object", id}});
+// A test view's labels (every visible object's outline, per connected part,
+// as polygons with boxes) and one click per object deep inside it, from the
+// exact object ids of the pixels.
+Json label_objects(const Scene& scene, ViewRender& vr, const std::map<int, int>& pixels, const std::string& stem,
+                   int W, int H, Json& clicks) {
+  Json objs = Json::array();
+  cv::Mat gt_mat(H, W, CV_32S, vr.gt.data());
+  for (const auto& [id, n] : pixels) {
+    if (n < kMinLabelPixels) continue;
+    const Object& o = scene.objects[id - 1];
+    cv::Mat mask = gt_mat == id;  // CV_8U 0/255
+    cv::Mat comp, stats, centroids;
+    int nc = cv::connectedComponentsWithStats(mask, comp, stats, centroids, 8, CV_32S);
+    for (int c = 1; c < nc; ++c) {
+      if (stats.at<int>(c, cv::CC_STAT_AREA) < kMinLabelPixels) continue;
+      cv::Mat one = comp == c;
+      std::vector<std::vector<cv::Point>> contours;
+      cv::findContours(one, contours, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_SIMPLE);
+      for (const auto& contour : contours) {
+        Json seg = Json::array();
+        for (const auto& pt : contour) seg.push_back(Json::array({pt.x, pt.y}));
+        // fillPoly needs 3 points; a 1-2 pixel run gets a degenerate triangle.
+        while (seg.size() < 3) seg.push_back(seg.back());
+        cv::Rect bb = cv::boundingRect(contour);
+        objs.push_back(Json{{"category", o.category},
+                            {"segmentation", seg},
+                            {"bbox", Json::array({bb.x, bb.y, bb.x + bb.width - 1, bb.y + bb.height - 1})}});
       }
-      Json label{{"info", {{"width", W}, {"height", H}, {"name", stem + ".png"}}}, {"objects", objs}};
-      write_text_atomic(label_dir / (stem + ".json"), label.dump() + "\n");
-      files.push_back("label/" + stem + ".json");
     }
-
-    Json occ = Json::array();
-    for (const auto& [pair, n] : vr.occlusion) {
-      occ.push_back(Json{{"occluded", pair.first}, {"occluder", pair.second}, {"pixels", n}});
-      occlusion_total[pair] += n;
-    }
-    views_json.push_back(
-        Json{{"name", cam.name},
-             {"test", is_test_view(i)},
-             {"visible", visible},
-             {"masks_per_level", Json::array({vm.per_level[0], vm.per_level[1], vm.per_level[2], vm.per_level[3]})},
-             {"occlusions", occ}});
-    spdlog::info("synth: view {}/{} {}{}: {} objects visible, {} masks", i + 1, opt.views, cam.name,
-                 is_test_view(i) ? " (test)" : "", pixels.size(), vm.masks.size());
+    // A click deep inside the object: the maximum of the distance transform
+    // (padded so the image border counts as outside; first maximum in raster order).
+    cv::Mat padded;
+    cv::copyMakeBorder(mask, padded, 1, 1, 1, 1, cv::BORDER_CONSTANT, 0);
+    cv::Mat dist;
+    cv::distanceTransform(padded, dist, cv::DIST_L2, cv::DIST_MASK_PRECISE);
+    cv::Point best;
+    cv::minMaxLoc(dist, nullptr, nullptr, nullptr, &best);
+    clicks.push_back(
+        Json{{"frame", stem}, {"x", best.x - 1}, {"y", best.y - 1}, {"category", o.category}, {"object", id}});
   }
-  if (opt.hard && occlusion_total.empty()) spdlog::warn("synth: hard scene without any occlusion between objects");
+  return objs;
+}
 
-  // ---- removal ground truth: every test view traced again without each
-  // category's objects (all objects of a category go together, as a text
-  // query selects them together).
-  if (opt.removal_gt) {
-    std::set<std::string> categories;
-    for (const auto& o : scene.objects) categories.insert(o.category);
-    for (const std::string& category : categories) {
-      Scene without = scene;
-      for (auto& o : without.objects) o.removed = o.category == category;
-      const fs::path dir = root / "removal_gt" / category;
-      try {
-        fs::create_directories(dir);
-      } catch (const fs::filesystem_error& e) {
-        throw std::runtime_error(dir.string() + ": cannot create the folder: " + e.what());
-      }
-      for (int i = 0; i < opt.views; ++i) {
-        if (!is_test_view(i)) continue;
-        const std::string stem = view_stem(i);
-        ViewRender vr = render_view(without, cams[i], opt.samples);
-        write_rgb_png((dir / (stem + ".png")).string(), vr.rgb, W, H);
-        files.push_back("removal_gt/" + category + "/" + stem + ".png");
-      }
-      spdlog::info("synth: removal ground truth without \"{}\"", category);
+// Every test view traced again without each category's objects.
+void write_removal_gt(const fs::path& root, const Scene& scene, const std::vector<Camera>& cams,
+                      const SynthOptions& opt, std::vector<std::string>& files) {
+  const int W = opt.width, H = opt.height;
+  std::set<std::string> categories;
+  for (const auto& o : scene.objects) categories.insert(o.category);
+  for (const std::string& category : categories) {
+    Scene without = scene;
+    for (auto& o : without.objects) o.removed = o.category == category;
+    const fs::path dir = root / "removal_gt" / category;
+    try {
+      fs::create_directories(dir);
+    } catch (const fs::filesystem_error& e) {
+      throw std::runtime_error(dir.string() + ": cannot create the folder: " + e.what());
     }
+    for (int i = 0; i < opt.views; ++i) {
+      if (!is_test_view(i)) continue;
+      const std::string stem = view_stem(i);
+      ViewRender vr = render_view(without, cams[i], opt.samples);
+      write_rgb_png((dir / (stem + ".png")).string(), vr.rgb, W, H);
+      files.push_back("removal_gt/" + category + "/" + stem + ".png");
+    }
+    spdlog::info("synth: removal ground truth without \"{}\"", category);
   }
+}
 
-  // ---- sparse points on visible surfaces: rays through random pixels of random views.
-  std::vector<Eigen::Vector3d> points;
-  std::vector<Eigen::Vector3<uint8_t>> colors;
+// Sparse points on visible surfaces: rays through random pixels of random views.
+void sample_points(const Scene& scene, const std::vector<Camera>& cams, const SynthOptions& opt, const Rng& rng,
+                   std::vector<Eigen::Vector3d>& points, std::vector<Eigen::Vector3<uint8_t>>& colors) {
+  const int W = opt.width, H = opt.height;
   points.reserve(opt.points);
   colors.reserve(opt.points);
   for (int n = 0; n < opt.points; ++n) {
@@ -1412,51 +1349,30 @@ void write_synth_scene(const std::string& out_dir, const SynthOptions& opt) {
       break;
     }
   }
-  write_colmap_model(sparse.string(), cams, points, colors, !opt.text_model);
-  for (const char* name : {"cameras", "images", "points3D"})
-    files.push_back(std::string("sparse/0/") + name + (opt.text_model ? ".txt" : ".bin"));
+}
 
-  // ---- vocabulary: scene categories plus distractors (two unused colour/family
-  // pairs, related to scene objects by colour or family, and unrelated phrases).
+// Two unused colour/family pairs of the scene's palette, and unrelated phrases.
+std::vector<std::string> pick_distractors(const Scene& scene, const Rng& rng) {
   std::vector<std::string> distractors;
-  {
-    std::set<std::string> used;
-    for (const auto& o : scene.objects) used.insert(o.category);
-    std::vector<std::string> free;
-    for (int c = 0; c < kSceneColours; ++c)
-      for (int fam = 0; fam < kSceneFamilies; ++fam) {
-        std::string p = std::string(kColours[c].name) + " " + kFamilies[fam].name;
-        if (!used.count(p)) free.push_back(p);
-      }
-    for (int d = 0; d < 2 && !free.empty(); ++d) {
-      size_t j = rng.bits(kStreamDistractor, d) % free.size();
-      distractors.push_back(free[j]);
-      free.erase(free.begin() + static_cast<std::ptrdiff_t>(j));
+  std::set<std::string> used;
+  for (const auto& o : scene.objects) used.insert(o.category);
+  std::vector<std::string> free;
+  for (int c = 0; c < kSceneColours; ++c)
+    for (int fam = 0; fam < kSceneFamilies; ++fam) {
+      std::string p = std::string(kColours[c].name) + " " + kFamilies[fam].name;
+      if (!used.count(p)) free.push_back(p);
     }
-    for (const char* p : kUnrelatedPhrases) distractors.push_back(p);
+  for (int d = 0; d < 2 && !free.empty(); ++d) {
+    size_t j = rng.bits(kStreamDistractor, d) % free.size();
+    distractors.push_back(free[j]);
+    free.erase(free.begin() + static_cast<std::ptrdiff_t>(j));
   }
-  Json vocab = Json::object();
-  const Rng text_rng{kModelKey};  // the text encoder does not depend on the scene seed
-  auto add_phrase = [&](const std::string& phrase, const Feature& cat) {
-    Feature t = noisy(cat, kTextNoise, text_rng, kStreamTextNoise, hash_string(phrase), 0, 0);
-    Json arr = Json::array();
-    for (double x : t) arr.push_back(short_float(x));
-    vocab[phrase] = arr;
-  };
-  for (size_t k = 0; k < scene.objects.size(); ++k) add_phrase(scene.objects[k].category, category_vec[k]);
-  for (const auto& p : distractors) {
-    size_t sp = p.find(' ');
-    bool coloured = sp != std::string::npos && p.substr(sp + 1).find(' ') == std::string::npos &&
-                    std::any_of(std::begin(kColours), std::end(kColours),
-                                [&](const ColourName& c) { return p.substr(0, sp) == c.name; });
-    add_phrase(p, coloured ? model.category(p.substr(0, sp), p.substr(sp + 1)) : model.category("", p));
-  }
-  write_text_atomic(root / "vocab.json", vocab.dump() + "\n");
-  write_text_atomic(root / "clicks.json", clicks.dump(1) + "\n");
-  files.push_back("vocab.json");
-  files.push_back("clicks.json");
+  for (const char* p : kUnrelatedPhrases) distractors.push_back(p);
+  return distractors;
+}
 
-  // ---- synth.json: everything needed to rebuild and check the scene.
+// synth.json's objects.
+Json objects_json(const Scene& scene) {
   Json objects = Json::array();
   for (const auto& o : scene.objects) {
     Json size = Json::array({2 * o.half.x(), 2 * o.half.y(), 2 * o.half.z()});
@@ -1471,6 +1387,11 @@ void write_synth_scene(const std::string& out_dir, const SynthOptions& opt) {
                            {"colour", vec_json(o.colour)},
                            {"pattern", pattern_name(o.pattern)}});
   }
+  return objects;
+}
+
+// synth.json's cameras.
+Json cameras_json(const std::vector<Camera>& cams, const SynthOptions& opt) {
   Json cameras = Json::array();
   for (int i = 0; i < opt.views; ++i) {
     const Camera& c = cams[i];
@@ -1488,6 +1409,39 @@ void write_synth_scene(const std::string& out_dir, const SynthOptions& opt) {
                            {"t", vec_json(c.t)},
                            {"centre", vec_json(c.center())}});
   }
+  return cameras;
+}
+
+// vocab.json: a text embedding per scene category and distractor, from the
+// same embedding model as the features (the text encoder does not depend on
+// the scene seed).
+Json vocabulary_json(const Scene& scene, const EmbeddingModel& model, const std::vector<Feature>& category_vec,
+                     const std::vector<std::string>& distractors) {
+  Json vocab = Json::object();
+  const Rng text_rng{kModelKey};  // the text encoder does not depend on the scene seed
+  auto add_phrase = [&](const std::string& phrase, const Feature& cat) {
+    Feature t = noisy(cat, kTextNoise, text_rng, kStreamTextNoise, hash_string(phrase), 0, 0);
+    Json arr = Json::array();
+    for (double x : t) arr.push_back(short_float(x));
+    vocab[phrase] = arr;
+  };
+  for (size_t k = 0; k < scene.objects.size(); ++k) add_phrase(scene.objects[k].category, category_vec[k]);
+  for (const auto& p : distractors) {
+    size_t sp = p.find(' ');
+    bool coloured = sp != std::string::npos && p.substr(sp + 1).find(' ') == std::string::npos &&
+                    std::any_of(std::begin(kColours), std::end(kColours),
+                                [&](const ColourName& c) { return p.substr(0, sp) == c.name; });
+    add_phrase(p, coloured ? model.category(p.substr(0, sp), p.substr(sp + 1)) : model.category("", p));
+  }
+  return vocab;
+}
+
+// synth.json: everything needed to rebuild and check the scene.
+Json synth_record(const SynthOptions& opt, const Scene& scene, const Layout& lay, const std::vector<Camera>& cams,
+                  const Json& objects, const Json& cameras, const std::vector<std::string>& distractors,
+                  size_t points_written, const std::map<std::pair<int, int>, int>& occlusion_total,
+                  const Json& views_json, const std::vector<std::string>& files) {
+  const int W = opt.width, H = opt.height, f = opt.mask_factor;
   auto pairs = [](const std::vector<std::pair<int, int>>& v) {
     Json a = Json::array();
     for (const auto& [x, y] : v) a.push_back(Json::array({x, y}));
@@ -1496,7 +1450,6 @@ void write_synth_scene(const std::string& out_dir, const SynthOptions& opt) {
   Json occ_pairs = Json::array();
   for (const auto& [pair, n] : occlusion_total)
     occ_pairs.push_back(Json{{"occluded", pair.first}, {"occluder", pair.second}, {"pixels", n}});
-  files.push_back("synth.json");
   Json synth{{"generator", "ag2gs synth"},
              {"format_version", 1},
              {"seed", opt.seed},
@@ -1546,7 +1499,7 @@ void write_synth_scene(const std::string& out_dir, const SynthOptions& opt) {
                   if (is_test_view(i)) a.push_back(cams[i].name);
                 return a;
               }()},
-             {"points_written", points.size()},
+             {"points_written", points_written},
              {"outliers", 0},
              {"masks",
               {{"levels", Json::array({"default", "small", "medium", "large"})},
@@ -1566,6 +1519,129 @@ void write_synth_scene(const std::string& out_dir, const SynthOptions& opt) {
              {"occlusion_pairs", occ_pairs},
              {"views", views_json},
              {"files", files}};
+  return synth;
+}
+
+}  // namespace
+
+void write_synth_scene(const std::string& out_dir, const SynthOptions& opt) {
+  validate(opt);
+  const EmbeddingModel model(opt.feature_dim);  // throws for too small a dimension
+  const Rng rng{opt.seed};
+  const int W = opt.width, H = opt.height;
+
+  // ---- scene
+  std::vector<Camera> cams = make_cameras(opt, rng);
+  Layout lay = opt.hard ? layout_hard(opt, rng, cams) : layout_ordinary(opt, rng, 1, {}, {});
+  Scene scene;
+  scene.objects = lay.objects;
+  {
+    double az = 2.0 * kPi * rng.uniform(kStreamLight, 0), el = rng.uniform(0.75, 1.05, kStreamLight, 1);
+    scene.light.direction = Vec3(std::cos(az) * std::cos(el), std::sin(az) * std::cos(el), std::sin(el));
+  }
+  scene.ground_key = rng.bits(kStreamTexture, 0xffff);
+  scene.backdrop = opt.backdrop;
+  scene.backdrop_key = rng.bits(kStreamTexture, 0xfffe);
+  std::vector<Feature> category_vec;
+  for (const auto& o : scene.objects) category_vec.push_back(model.category(o.colour_name, o.family));
+
+  // ---- folders
+  const SceneFolders dirs = make_scene_folders(out_dir, opt);
+  const fs::path &root = dirs.root, &images = dirs.images, &sparse = dirs.sparse, &lf = dirs.lf,
+                 &masks_dir = dirs.masks_dir, &gt_dir = dirs.gt_dir, &label_dir = dirs.label_dir;
+
+  std::vector<std::string> files;
+  Json clicks = Json::array();
+  Json views_json = Json::array();
+  std::map<std::pair<int, int>, int> occlusion_total;
+  const int f = opt.mask_factor;
+  for (int i = 0; i < opt.views; ++i) {
+    const Camera& cam = cams[i];
+    const std::string stem = view_stem(i);
+    ViewRender vr = render_view(scene, cam, opt.samples);
+    write_rgb_png((images / (stem + ".png")).string(), vr.rgb, W, H);
+    std::vector<float> gtf(vr.gt.begin(), vr.gt.end());
+    write_gray16_png((gt_dir / (stem + ".png")).string(), gtf, W, H, 1.f);
+    files.push_back("images/" + stem + ".png");
+    files.push_back("gt/" + stem + ".png");
+
+    // SAM-like masks, CLIP-like features, and the level-3 PNG at full size.
+    ViewMasksOut vm = make_masks(scene, cam, i, f, rng, opt.background_masks);
+    write_npy((lf / (stem + "_s.npy")).string(), vm.ids, {kLevels, vm.height, vm.width});
+    std::vector<float> feats(vm.masks.size() * static_cast<size_t>(opt.feature_dim));
+    for (size_t m = 0; m < vm.masks.size(); ++m) {
+      Feature v = mask_feature(model, category_vec, vm.masks[m], i, rng);
+      for (int d = 0; d < opt.feature_dim; ++d) feats[m * opt.feature_dim + d] = static_cast<float>(v[d]);
+    }
+    write_npy((lf / (stem + "_f.npy")).string(), feats,
+              {static_cast<int64_t>(vm.masks.size()), static_cast<int64_t>(opt.feature_dim)});
+    std::vector<float> large(static_cast<size_t>(W) * H);
+    const size_t level3 = 3 * static_cast<size_t>(vm.width) * vm.height;
+    for (int y = 0; y < H; ++y)
+      for (int x = 0; x < W; ++x)
+        large[static_cast<size_t>(y) * W + x] = vm.ids[level3 + static_cast<size_t>(y / f) * vm.width + x / f] + 1.f;
+    write_gray16_png((masks_dir / (stem + ".png")).string(), large, W, H, 1.f);
+    files.push_back("language_features/" + stem + "_s.npy");
+    files.push_back("language_features/" + stem + "_f.npy");
+    files.push_back("masks/" + stem + ".png");
+
+    // Visible objects and, for test views, labels and clicks from the exact GT.
+    std::map<int, int> pixels;
+    for (int id : vr.gt)
+      if (id > 0) ++pixels[id];
+    Json visible = Json::array();
+    for (const auto& [id, n] : pixels) visible.push_back(Json{{"id", id}, {"pixels", n}});
+    if (is_test_view(i)) {
+      Json objs = label_objects(scene, vr, pixels, stem, W, H, clicks);
+      Json label{{"info", {{"width", W}, {"height", H}, {"name", stem + ".png"}}}, {"objects", objs}};
+      write_text_atomic(label_dir / (stem + ".json"), label.dump() + "\n");
+      files.push_back("label/" + stem + ".json");
+    }
+
+    Json occ = Json::array();
+    for (const auto& [pair, n] : vr.occlusion) {
+      occ.push_back(Json{{"occluded", pair.first}, {"occluder", pair.second}, {"pixels", n}});
+      occlusion_total[pair] += n;
+    }
+    views_json.push_back(
+        Json{{"name", cam.name},
+             {"test", is_test_view(i)},
+             {"visible", visible},
+             {"masks_per_level", Json::array({vm.per_level[0], vm.per_level[1], vm.per_level[2], vm.per_level[3]})},
+             {"occlusions", occ}});
+    spdlog::info("synth: view {}/{} {}{}: {} objects visible, {} masks", i + 1, opt.views, cam.name,
+                 is_test_view(i) ? " (test)" : "", pixels.size(), vm.masks.size());
+  }
+  if (opt.hard && occlusion_total.empty()) spdlog::warn("synth: hard scene without any occlusion between objects");
+
+  // ---- removal ground truth: every test view traced again without each
+  // category's objects (all objects of a category go together, as a text
+  // query selects them together).
+  if (opt.removal_gt) write_removal_gt(root, scene, cams, opt, files);
+
+  // ---- sparse points on visible surfaces: rays through random pixels of random views.
+  std::vector<Eigen::Vector3d> points;
+  std::vector<Eigen::Vector3<uint8_t>> colors;
+  sample_points(scene, cams, opt, rng, points, colors);
+  write_colmap_model(sparse.string(), cams, points, colors, !opt.text_model);
+  for (const char* name : {"cameras", "images", "points3D"})
+    files.push_back(std::string("sparse/0/") + name + (opt.text_model ? ".txt" : ".bin"));
+
+  // ---- vocabulary: scene categories plus distractors (two unused colour/family
+  // pairs, related to scene objects by colour or family, and unrelated phrases).
+  const std::vector<std::string> distractors = pick_distractors(scene, rng);
+  const Json vocab = vocabulary_json(scene, model, category_vec, distractors);
+  write_text_atomic(root / "vocab.json", vocab.dump() + "\n");
+  write_text_atomic(root / "clicks.json", clicks.dump(1) + "\n");
+  files.push_back("vocab.json");
+  files.push_back("clicks.json");
+
+  // ---- synth.json: everything needed to rebuild and check the scene.
+  const Json objects = objects_json(scene);
+  const Json cameras = cameras_json(cams, opt);
+  files.push_back("synth.json");
+  Json synth = synth_record(opt, scene, lay, cams, objects, cameras, distractors, points.size(), occlusion_total,
+                            views_json, files);
   // Written only when on, so scenes generated without it keep their bytes.
   if (opt.background_masks) synth["options"]["background_masks"] = true;
   if (opt.removal_gt) synth["options"]["removal_gt"] = true;

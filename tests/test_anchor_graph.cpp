@@ -1,6 +1,6 @@
-// Stage 2: the anchor graph (stages/anchor_graph.h) against a brute-force
+// Stage 2: the anchor graph (train/graph/anchor_graph.h) against a brute-force
 // O(N^2) construction and a hand-made case, its archive round trip and
-// validation; the propagation loss (stages/propagation_loss.h,
+// validation; the propagation loss (train/graph/propagation_loss.h,
 // kernels/propagation_loss.cl) against a double-precision edge-list reference, the
 // reference against central finite differences, and determinism across PoCL
 // thread counts.
@@ -18,13 +18,13 @@
 #include <vector>
 
 #include "host/io/model_io.h"
-#include "stages/anchor_graph.h"
-#include "stages/anchor_model.h"
-#include "stages/propagation_loss.h"
 #include "tests/cli_test_util.h"
 #include "tests/io_test_util.h"
 #include "tests/reference/propagation_loss_reference.h"
 #include "tests/test_util.h"
+#include "train/anchors/anchor_model.h"
+#include "train/graph/anchor_graph.h"
+#include "train/graph/propagation_loss.h"
 
 namespace ag2gs {
 namespace {

@@ -1,5 +1,5 @@
-// The stage-1 anchor representation (stages/anchor_model.h) and the expansion
-// kernels (stages/expander.h, kernels/expander.cl): voxel grid math,
+// The stage-1 anchor representation (train/anchors/anchor_model.h) and the expansion
+// kernels (train/anchors/expander.h, kernels/expander.cl): voxel grid math,
 // initialisation, growing and pruning bookkeeping, the archive, and the
 // device expansion forward and backward against double-precision references
 // and central finite differences, alone and chained through the renderer.
@@ -19,11 +19,11 @@
 #include <vector>
 
 #include "host/io/model_io.h"
-#include "stages/anchor_model.h"
-#include "stages/expander.h"
 #include "tests/io_test_util.h"
 #include "tests/reference/reference_renderer.h"
 #include "tests/test_util.h"
+#include "train/anchors/anchor_model.h"
+#include "train/anchors/expander.h"
 
 namespace ag2gs {
 namespace {

@@ -1,4 +1,4 @@
-// Stage 3 clustering (stages/clustering.h): union-find against a BFS
+// Stage 3 clustering (train/stage3/clustering.h): union-find against a BFS
 // connected-components reference on random graphs, deterministic numbering,
 // the size filter, the edge tests, and the archive round trip.
 #include <gtest/gtest.h>
@@ -9,7 +9,7 @@
 #include <random>
 #include <vector>
 
-#include "stages/clustering.h"
+#include "train/stage3/clustering.h"
 
 namespace ag2gs {
 namespace {

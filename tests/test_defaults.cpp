@@ -16,12 +16,12 @@
 #include "cli_test_util.h"
 #include "io_test_util.h"
 #include "queries/query.h"
-#include "stages/divergence_guard.h"
-#include "stages/free_trainer.h"
-#include "stages/train_config.h"
-#include "stages/train_settings.h"
-#include "stages/voxel_rule.h"
 #include "test_util.h"
+#include "train/anchors/voxel_rule.h"
+#include "train/baseline/free_trainer.h"
+#include "train/divergence_guard.h"
+#include "train/train_config.h"
+#include "train/train_settings.h"
 
 namespace ag2gs {
 namespace {
@@ -277,7 +277,7 @@ TEST(Defaults, TheProgramTrainsWithTheLibrarysPreset) {
   EXPECT_FALSE(std::filesystem::exists("/nonexistent/m"));
 }
 
-// The settings table (stages/train_settings.h) is the one place a training
+// The settings table (train/train_settings.h) is the one place a training
 // setting is declared: every leaf of the config JSON is a row and every row
 // a leaf; every flag of the table is one of `train --help`'s; the JSON
 // round-trips; an unknown key and a missing one are refused by name; a

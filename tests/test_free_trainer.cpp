@@ -1,4 +1,4 @@
-// The free-Gaussian baseline (stages/free_trainer.h, `ag2gs baseline`):
+// The free-Gaussian baseline (train/baseline/free_trainer.h, `ag2gs baseline`):
 // densification decisions against an independent double-precision CPU
 // reference written the way 3DGS's densify_and_prune is (masks over the
 // growing set), split samples against their formula, device statistics
@@ -20,8 +20,8 @@
 #include "host/render/image_loss.h"
 #include "host/scene/scene.h"
 #include "io_test_util.h"
-#include "stages/free_trainer.h"
 #include "test_util.h"
+#include "train/baseline/free_trainer.h"
 
 namespace fs = std::filesystem;
 

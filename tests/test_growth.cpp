@@ -1,4 +1,4 @@
-// Anchor growing and pruning (stages/anchor_growth.h, kernels/anchor_growth.cl): the
+// Anchor growing and pruning (train/densify/anchor_growth.h, kernels/anchor_growth.cl): the
 // statistics kernel against a double-precision host computation, the
 // decision step on a hand-made model (one case per rule), the gather maps
 // with the optimiser state, determinism, and the device round trip after a
@@ -14,11 +14,11 @@
 #include <vector>
 
 #include "host/render/adam.h"
-#include "stages/anchor_growth.h"
-#include "stages/anchor_model.h"
-#include "stages/eta.h"
-#include "stages/expander.h"
 #include "tests/test_util.h"
+#include "train/anchors/anchor_model.h"
+#include "train/anchors/expander.h"
+#include "train/densify/anchor_growth.h"
+#include "train/eta.h"
 
 namespace ag2gs {
 namespace {

@@ -1,4 +1,4 @@
-// Instance maps (stages/instance_map.h, kernels/instance_map.cl) against a
+// Instance maps (train/stage3/instance_map.h, kernels/instance_map.cl) against a
 // double-precision CPU reference that accumulates every cluster's blending
 // weight per pixel exactly, on random scenes, deep stacks and near-0.5 ties;
 // plus agreement with the rendered alpha and determinism.
@@ -8,8 +8,8 @@
 #include <random>
 
 #include "reference/reference_renderer.h"
-#include "stages/instance_map.h"
 #include "test_util.h"
+#include "train/stage3/instance_map.h"
 
 namespace ag2gs {
 namespace {

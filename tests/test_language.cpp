@@ -1,18 +1,19 @@
-// Language attachment (stages/language.h): the sparse scoring against a
+// Language attachment (train/stage3/language.h): the sparse scoring against a
 // brute-force per-pair reference, the softmax attachment against its formula,
 // and a rendered scene of separated objects with known answer: every cluster
 // must receive its own object's CLIP vector.
+#include <unistd.h>
+
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
 #include <map>
-#include <tuple>
 #include <random>
-#include <unistd.h>
+#include <tuple>
 
-#include "stages/instance_map.h"
-#include "stages/language.h"
 #include "test_util.h"
+#include "train/stage3/instance_map.h"
+#include "train/stage3/language.h"
 
 namespace ag2gs {
 namespace {

@@ -23,8 +23,8 @@
 #include "host/io/colmap_writer.h"
 #include "host/io/image_io.h"
 #include "host/io/model_io.h"
-#include "stages/anchor_model.h"
 #include "test_util.h"
+#include "train/anchors/anchor_model.h"
 
 namespace fs = std::filesystem;
 using nlohmann::json;

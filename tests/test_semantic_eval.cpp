@@ -1,4 +1,4 @@
-// Scoring of clusters against ground truth (stages/semantic_eval): the
+// Scoring of clusters against ground truth (queries/semantic_eval): the
 // adjusted Rand index against hand-computed values, purity, the per-object
 // category check, and anchor ground truth on the synthetic sample against the
 // objects' boxes from synth.json.

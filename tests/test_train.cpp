@@ -1,4 +1,4 @@
-// Stage-1 training (stages/trainer.h, `ag2gs train`) on the synthetic sample
+// Stage-1 training (train/trainer.h, `ag2gs train`) on the synthetic sample
 // scene at -r 2 (80x60): the loss falls and PSNR rises, the same seed gives
 // byte-identical model files, the files read back, and bad output folders or
 // scenes without points fail before any training.
@@ -19,10 +19,10 @@
 #include "host/render/importance.h"
 #include "host/scene/scene.h"
 #include "io_test_util.h"
-#include "stages/anchor_model.h"
-#include "stages/expander.h"
-#include "stages/trainer.h"
 #include "test_util.h"
+#include "train/anchors/anchor_model.h"
+#include "train/anchors/expander.h"
+#include "train/trainer.h"
 
 namespace fs = std::filesystem;
 

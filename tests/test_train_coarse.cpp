@@ -10,8 +10,8 @@
 #include "host/scene/scene.h"
 #include "io_test_util.h"
 #include "reference/reference_renderer.h"
-#include "stages/trainer.h"
 #include "test_util.h"
+#include "train/trainer.h"
 
 namespace ag2gs {
 namespace {

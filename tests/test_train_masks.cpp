@@ -1,4 +1,4 @@
-// Mask losses in stage-1 training (stages/trainer.h) on the synthetic sample
+// Mask losses in stage-1 training (train/trainer.h) on the synthetic sample
 // scene at -r 2 (80x60): after a short run the rendered features of different
 // ground-truth objects (the scene's exact gt/ ids, never seen by the trainer)
 // lie apart while the features within one object stay close, the mask loss
@@ -16,9 +16,9 @@
 #include "host/render/renderer.h"
 #include "host/scene/scene.h"
 #include "io_test_util.h"
-#include "stages/anchor_model.h"
-#include "stages/trainer.h"
 #include "test_util.h"
+#include "train/anchors/anchor_model.h"
+#include "train/trainer.h"
 
 namespace fs = std::filesystem;
 

@@ -1,4 +1,4 @@
-// Stages 2 and 3 in training (stages/trainer.h, `ag2gs train`) on the
+// Stages 2 and 3 in training (train/trainer.h, `ag2gs train`) on the
 // synthetic sample scene at -r 2 (80x60): L_prop against a double-precision
 // host evaluation over the graph, the features (and only they) trained by
 // stage 2, resume bit-exact across the stage boundary and inside stage 2, and
@@ -15,11 +15,11 @@
 #include "host/io/model_io.h"
 #include "host/scene/scene.h"
 #include "io_test_util.h"
-#include "stages/anchor_graph.h"
-#include "stages/clustering.h"
-#include "stages/language.h"
-#include "stages/trainer.h"
 #include "test_util.h"
+#include "train/graph/anchor_graph.h"
+#include "train/stage3/clustering.h"
+#include "train/stage3/language.h"
+#include "train/trainer.h"
 
 namespace fs = std::filesystem;
 

@@ -1,4 +1,4 @@
-// Training state over time (stages/trainer.h, `ag2gs train`) on the synthetic
+// Training state over time (train/trainer.h, `ag2gs train`) on the synthetic
 // sample scene at -r 2 (80x60): the 3DGS opacity reset, checkpoints and
 // resume (a run split in two gives the bytes of the straight run), and
 // Ctrl-C on `ag2gs train` (checkpoint, exit status 130, --resume finishes
@@ -20,10 +20,10 @@
 #include "host/io/ply_io.h"
 #include "host/scene/scene.h"
 #include "io_test_util.h"
-#include "stages/anchor_model.h"
-#include "stages/trainer.h"
 #include "synth/synth_scene.h"
 #include "test_util.h"
+#include "train/anchors/anchor_model.h"
+#include "train/trainer.h"
 
 namespace fs = std::filesystem;
 

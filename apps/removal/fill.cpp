@@ -12,7 +12,7 @@
 #include "host/core/gaussians.h"
 #include "host/core/quantile.h"
 #include "host/core/scalar_math.h"
-#include "stages/train_common.h"
+#include "train/train_common.h"
 
 namespace ag2gs {
 namespace {}  // namespace

@@ -23,9 +23,9 @@
 #include "host/render/renderer.h"
 #include "host/render/sky.h"
 #include "host/scene/scene.h"
-#include "stages/anchor_model.h"
-#include "stages/expander.h"
-#include "stages/param_groups.h"
+#include "train/anchors/anchor_model.h"
+#include "train/anchors/expander.h"
+#include "train/param_groups.h"
 
 namespace ag2gs {
 

@@ -6,7 +6,7 @@
 #include <opencv2/photo.hpp>
 #include <stdexcept>
 
-#include "stages/train_common.h"
+#include "train/train_common.h"
 
 namespace ag2gs {
 

@@ -14,8 +14,8 @@
 #include "host/render/renderer.h"
 #include "host/render/sky.h"
 #include "queries/query.h"  // gaussians_of_anchors
-#include "stages/train_common.h"
-#include "stages/train_config.h"
+#include "train/train_common.h"
+#include "train/train_config.h"
 
 namespace ag2gs {
 namespace {

@@ -15,8 +15,8 @@
 #include "host/io/npy_io.h"
 #include "host/io/semantic_io.h"
 #include "host/scene/scene_up.h"
-#include "stages/anchor_graph.h"
-#include "stages/model_check.h"
+#include "train/graph/anchor_graph.h"
+#include "train/model_check.h"
 
 namespace fs = std::filesystem;
 

@@ -13,7 +13,7 @@
 #include "host/core/timing.h"
 #include "host/render/renderer.h"
 #include "host/scene/scene_up.h"
-#include "stages/train_common.h"
+#include "train/train_common.h"
 
 namespace ag2gs {
 namespace {

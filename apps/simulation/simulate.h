@@ -22,7 +22,7 @@
 #include "host/device/cl_runtime.h"
 #include "host/io/model_io.h"
 #include "host/scene/scene.h"
-#include "stages/anchor_model.h"
+#include "train/anchors/anchor_model.h"
 
 namespace ag2gs {
 

@@ -17,9 +17,9 @@
 #include "host/io/semantic_io.h"
 #include "host/scene/scene.h"
 #include "queries/semantic_eval.h"
-#include "stages/anchor_model.h"
-#include "stages/clustering.h"
-#include "stages/language.h"
+#include "train/anchors/anchor_model.h"
+#include "train/stage3/clustering.h"
+#include "train/stage3/language.h"
 
 using namespace ag2gs;
 namespace fs = std::filesystem;

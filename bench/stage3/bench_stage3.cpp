@@ -21,11 +21,11 @@
 #include "host/io/model_io.h"
 #include "host/render/renderer.h"
 #include "host/scene/scene.h"
-#include "stages/anchor_model.h"
-#include "stages/clustering.h"
-#include "stages/expander.h"
-#include "stages/instance_map.h"
-#include "stages/language.h"
+#include "train/anchors/anchor_model.h"
+#include "train/anchors/expander.h"
+#include "train/stage3/clustering.h"
+#include "train/stage3/instance_map.h"
+#include "train/stage3/language.h"
 
 using namespace ag2gs;
 

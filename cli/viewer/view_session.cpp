@@ -19,7 +19,7 @@
 #include "host/io/ply_io.h"
 #include "host/io/semantic_io.h"
 #include "host/scene/scene_up.h"
-#include "stages/train_common.h"
+#include "train/train_common.h"
 
 namespace fs = std::filesystem;
 

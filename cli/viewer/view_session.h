@@ -22,7 +22,7 @@
 #include "host/render/sky.h"
 #include "host/scene/scene.h"
 #include "queries/query.h"
-#include "stages/instance_map.h"
+#include "train/stage3/instance_map.h"
 
 namespace ag2gs::cli {
 

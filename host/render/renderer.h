@@ -105,7 +105,7 @@ class Renderer {
 
   // The blending inputs of the last forward(), read-only, for kernels that
   // walk the same depth-ordered per-tile lists as blend_fwd.cl (instance
-  // maps, stages/instance_map.h). Layouts as in kernels/blend_fwd.cl; valid
+  // maps, train/stage3/instance_map.h). Layouts as in kernels/blend_fwd.cl; valid
   // until the next forward(). Throws std::logic_error before the first.
   struct DeviceFrame {
     int width = 0, height = 0, tiles_x = 0, tiles_y = 0;

@@ -1,4 +1,4 @@
-// Double-precision reference of the propagation loss (stages/propagation_loss.h)
+// Double-precision reference of the propagation loss (train/graph/propagation_loss.h)
 // written from an explicit list of undirected edges rather than from CSR rows:
 //   L = (1 / |E|) sum_{(i,j) in E} w_ij d_ij,  d_ij = |f_i - f_j|^2,
 //   w_ij = exp(-d_ij / (2 tau^2))

@@ -1,0 +1,79 @@
+#include "train/stage3/instance_map.h"
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <stdexcept>
+#include <string>
+
+namespace ag2gs {
+
+InstanceMapper::InstanceMapper(Runtime& rt)
+    : rt_(rt), anchor_cluster_(&rt), ids_(&rt), weights_(&rt), feat_(&rt), alpha_(&rt) {}
+
+void InstanceMapper::set_clusters(const std::vector<int32_t>& anchor_cluster, int children, float min_fraction) {
+  if (children < 1) throw std::invalid_argument("instance map: children per anchor must be >= 1");
+  if (!(min_fraction >= 0.5f && min_fraction < 1.f))
+    throw std::invalid_argument("instance map: min_fraction must lie in [0.5, 1) (at most one cluster may pass it)");
+  for (size_t a = 0; a < anchor_cluster.size(); ++a)
+    if (anchor_cluster[a] < -1)
+      throw std::invalid_argument("instance map: anchor " + std::to_string(a) + " has cluster id " +
+                                  std::to_string(anchor_cluster[a]) + " (ids are >= 0, or -1 for none)");
+  anchors_ = anchor_cluster.size();
+  children_ = children;
+  min_fraction_ = min_fraction;
+  anchor_cluster_.upload(anchor_cluster);
+  have_clusters_ = true;
+}
+
+void InstanceMapper::compute(const Renderer& renderer) {
+  run(renderer, false);
+}
+
+void InstanceMapper::compute_with_images(const Renderer& renderer) {
+  run(renderer, true);
+}
+
+void InstanceMapper::run(const Renderer& renderer, bool with_images) {
+  if (!have_clusters_) throw std::logic_error("InstanceMapper::compute() before set_clusters()");
+  const Renderer::DeviceFrame f = renderer.device_frame();
+  if (f.n_gaussians != anchors_ * static_cast<size_t>(children_))
+    throw std::invalid_argument("instance map: the frame has " + std::to_string(f.n_gaussians) +
+                                " Gaussians but the clusters cover " + std::to_string(anchors_) + " anchors x " +
+                                std::to_string(children_) +
+                                " children; render the expanded model the clusters "
+                                "were made for");
+  width_ = f.width;
+  height_ = f.height;
+  const size_t npix = static_cast<size_t>(f.width) * f.height;
+  ids_.reserve(npix * 4);
+  weights_.reserve(npix * 4);
+  char frac[32];
+  std::snprintf(frac, sizeof frac, "((float)(%.9g))", static_cast<double>(min_fraction_));
+  // Without images the kernel writes neither plane: small placeholders.
+  feat_.reserve(with_images ? npix * 12 : 4);
+  alpha_.reserve(with_images ? npix * 4 : 4);
+  const int wg = 256 / rt_.vector_width();
+  // The renderer's layout: records staged through local memory on GPUs.
+  cl::Kernel k = rt_.kernel("instance_map.cl", "instance_map",
+                            {{"MIN_FRACTION", frac},
+                             {"WITH_IMAGES", with_images ? "1" : "0"},
+                             {"NO_STAGING", renderer.staged() ? "0" : "1"},
+                             {"BATCH", std::to_string(std::max(64, wg))}});
+  const int ntiles = f.tiles_x * f.tiles_y;
+  set_kernel_args(k, f.width, f.height, f.tiles_x, children_, *f.ranges, *f.isect_vals, *f.isect_gid, *f.records,
+                  anchor_cluster_, ids_, weights_, feat_, alpha_);
+  rt_.launch("instance_map", k, cl::NDRange(static_cast<size_t>(ntiles) * wg), cl::NDRange(wg));
+}
+
+InstanceMap InstanceMapper::download() const {
+  InstanceMap m;
+  m.width = width_;
+  m.height = height_;
+  const size_t npix = static_cast<size_t>(width_) * height_;
+  ids_.download(m.ids, npix);
+  weights_.download(m.weight, npix);
+  return m;
+}
+
+}  // namespace ag2gs
