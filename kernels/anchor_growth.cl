@@ -1,4 +1,4 @@
-// Growing statistics (docs/design.md section 3, stages/anchor_growth.h): after each
+// Growing statistics (docs/design.md section 3, train/densify/anchor_growth.h): after each
 // backward pass, per child Gaussian g (row g = a * K + i, the renderer's row),
 // the norm of its screen-space positional gradient where it was visible, the
 // number of such iterations, and the last iteration it was visible.

@@ -1,4 +1,4 @@
-// The anchor trainer's two small per-row kernels (host: stages/anchor_regularisers.h).
+// The anchor trainer's two small per-row kernels (host: train/anchors/anchor_regularisers.h).
 
 // Offset regulariser L_in = mean over the N offsets of exp(relu(|o|^2 - 1))
 // (docs/design.md section 4; offsets in voxel units). Per offset row g: writes its

@@ -1,4 +1,4 @@
-// The free-Gaussian baseline (stages/free_trainer.h): the stored parameters
+// The free-Gaussian baseline (train/baseline/free_trainer.h): the stored parameters
 // of 3DGS -> the activated Gaussians the renderer draws, the backward of that
 // map, and the densification statistics. One work-item per Gaussian, no
 // atomics: every result is bit-reproducible.

@@ -1,4 +1,4 @@
-// Instance map of every anchor cluster in one pass (stages/instance_map.h).
+// Instance map of every anchor cluster in one pass (train/stage3/instance_map.h).
 // Reads the renderer's frame (Renderer::device_frame(): the same tile ranges,
 // depth-sorted intersections and projected records blend_fwd.cl walks) and
 // repeats blend_fwd's per-Gaussian decisions operation for operation, so the

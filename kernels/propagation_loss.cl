@@ -1,5 +1,5 @@
 // The propagation loss of stage 2 (docs/design.md section 6) over the anchor
-// graph (stages/anchor_graph.h), and its gradient with respect to the anchor
+// graph (train/graph/anchor_graph.h), and its gradient with respect to the anchor
 // features f [A,3]:
 //
 //   d_ij = |f_i - f_j|^2,   w_ij = exp(-d_ij / (2 tau^2))
