@@ -5,6 +5,7 @@
 #pragma once
 
 #include <CLI/CLI.hpp>
+#include <memory>
 #include <nlohmann/json.hpp>
 #include <string>
 #include <thread>
@@ -84,6 +85,18 @@ bool has_stage(const TrainArgs& a, int s);
 // The checks of the arguments before anything is read: the stages (sorted,
 // without repeats), stage 3's settings, the output folder.
 void check_train_args(TrainArgs& a);
+// Before training: whether the run continues a checkpoint (no stage 1, or
+// --resume: its settings then come from it), that no model is replaced by
+// accident, the settings' validation, the output folder writable, and the
+// scene, opened (without SAM masks stages 2 and 3 are dropped).
+std::unique_ptr<Scene> prepare_run(TrainArgs& a);
+// The trainer continued from MODEL_DIR's checkpoint; refuses one that has
+// not finished stage 1 when the run has no stage 1.
+void resume_trainer(Trainer& trainer, const TrainArgs& a);
+// After the files are written: with --view, the viewer serves the final
+// model until Ctrl-C; a signal seen during the last stage sets the exit
+// status (the files are complete).
+void end_run(const TrainArgs& a, std::unique_ptr<LiveView>& view);
 // The stage-3 summary line, after training or for --stages 3 alone.
 void log_stage3(const Stage3Summary& s, const Stage3Config& config);
 // --stages 3 alone: stage 3 on MODEL_DIR/model.ag2gs, at the resolution and
@@ -109,6 +122,9 @@ struct StepTerms {
   // ", L_is 0.0143, L_ic 0.9886, L_prop 5.8e-04": the means of the terms the steps had.
   std::string mask_terms() const;
 };
+// What a step did besides the progress line: stage 2's graph on its first
+// step, an opacity reset, a growing round's counts.
+void log_step_events(const StepStats& st, const Trainer& trainer, bool first_of_stage2);
 // The progress line of step `st` (losses, PSNR, counts, speed, an ETA from
 // the recent steps and the growth still to come); resets `terms` and
 // returns the ETA in seconds.

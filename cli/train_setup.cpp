@@ -261,4 +261,70 @@ nlohmann::json final_stages(Runtime& rt, Scene& scene, const TrainArgs& a, doubl
   return stages;
 }
 
+std::unique_ptr<Scene> prepare_run(TrainArgs& a) {
+  // Without stage 1 the run continues from the checkpoint.
+  if (!has_stage(a, 1)) a.resume = true;
+  // A new model never replaces one by accident.
+  if (!a.resume)
+    refuse_model_overwrite(a.out, a.force, "--resume to continue it from its checkpoint, --force to start over");
+  if (a.resume) adopt_checkpoint_config(a);
+  a.config.validate();
+  if (a.resolution < 1) throw std::invalid_argument("-r must be >= 1 (it divides the camera resolution)");
+  // Before anything slow: a run must not fail at its end for want of a place to write.
+  check_model_dir_writable(a.out);
+  std::unique_ptr<Scene> scene = open_run_scene(a);
+  // Without SAM masks the features never train: nothing to propagate or cluster.
+  const bool semantics = scene->semantics() != SemanticsKind::none;
+  if (!semantics && !a.resume && (has_stage(a, 2) || has_stage(a, 3)) &&
+      (a.config.effective_prop_iters() > 0 || has_stage(a, 3))) {
+    spdlog::info("scene {} has no SAM masks: stages 2 and 3 skipped (no semantic features to propagate or cluster)",
+                 scene->dir());
+    a.config.prop_iters = 0;
+    a.stages.erase(std::remove_if(a.stages.begin(), a.stages.end(), [](int s) { return s != 1; }), a.stages.end());
+  }
+  return scene;
+}
+
+void resume_trainer(Trainer& trainer, const TrainArgs& a) {
+  const TrainConfig& c = trainer.config();
+  trainer.resume(a.out);
+  spdlog::info("resuming {} at iteration {} of {}", Trainer::checkpoint_path(a.out), trainer.iteration(),
+               c.total_iterations());
+  if (!has_stage(a, 1) && trainer.iteration() < c.iterations)
+    throw std::runtime_error("--stages without 1: the checkpoint " + Trainer::checkpoint_path(a.out) +
+                             " is at iteration " + std::to_string(trainer.iteration()) + ", stage 1 ends at " +
+                             std::to_string(c.iterations) + "; finish it with --resume");
+}
+
+void end_run(const TrainArgs& a, std::unique_ptr<LiveView>& view) {
+  if (view && !InterruptGuard::interrupted()) {
+    // The final model (with stage 3's clusters): selection works again.
+    InterruptGuard::set_stop_message("\nstopping the viewer (training is done and saved)\n");
+    view->live.publish(read_model_archive((fs::path(a.out) / "model.ag2gs").string()), true);
+    spdlog::info("training done; the viewer keeps serving the final model at port {} until Ctrl-C", view->url_port);
+    view->thread.join();
+    spdlog::info("stopped ({})", InterruptGuard::signal_name());
+    return;  // training completed: status 0
+  }
+  // A stop the caller asked for at the last iteration came after the work
+  // was done: the run ends as a finished one. A signal still sets the status.
+  if (InterruptGuard::signalled()) {
+    spdlog::warn("{} during the last stage: it finished and its files are complete; exiting with status {}",
+                 InterruptGuard::signal_name(), InterruptGuard::exit_code());
+    view.reset();  // the viewer's thread joined before the process exits
+    InterruptGuard::exit_after_saving();
+  }
+}
+
+void log_step_events(const StepStats& st, const Trainer& trainer, bool first_of_stage2) {
+  if (st.stage2 && first_of_stage2)
+    spdlog::info("stage 2: anchor graph with {} edges (mean degree {:.2f})", trainer.graph().edges(),
+                 trainer.anchors() ? 2.0 * trainer.graph().edges() / trainer.anchors() : 0.0);
+  if (st.opacity_reset) spdlog::info("iteration {}: opacities reset to at most 0.01", st.iteration);
+  if (st.grown > 0 || st.pruned > 0)
+    spdlog::info("iteration {}: grew {} anchors{}, pruned {} -> {} anchors, {} Gaussians", st.iteration, st.grown,
+                 st.over_budget > 0 ? fmt::format(" ({} more asked, over the budget)", st.over_budget) : "", st.pruned,
+                 trainer.anchors(), trainer.gaussians());
+}
+
 }  // namespace ag2gs::cli
