@@ -1,4 +1,4 @@
-// Device Adam (host/render/adam.h) against the double-precision reference of
+// Device Adam (host/optim/adam.h) against the double-precision reference of
 // torch.optim.Adam's documented update (tests/reference/adam_reference.h), its
 // sparse (visible-rows) variant, the non-finite gradient count, and the row
 // gather/resize used when rows are added or removed.
@@ -18,7 +18,7 @@
 #include <random>
 #include <vector>
 
-#include "host/render/adam.h"
+#include "host/optim/adam.h"
 #include "test_util.h"
 #include "tests/reference/adam_reference.h"
 

@@ -17,7 +17,7 @@
 
 #include "cli_test_util.h"
 #include "host/io/ply_io.h"
-#include "host/render/image_loss.h"
+#include "host/losses/image_loss.h"
 #include "host/scene/scene.h"
 #include "io_test_util.h"
 #include "test_util.h"

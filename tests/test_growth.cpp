@@ -13,7 +13,7 @@
 #include <random>
 #include <vector>
 
-#include "host/render/adam.h"
+#include "host/optim/adam.h"
 #include "tests/test_util.h"
 #include "train/anchors/anchor_model.h"
 #include "train/anchors/expander.h"

@@ -1,4 +1,4 @@
-// The device photometric loss (L1 + SSIM, host/render/image_loss.h) against the
+// The device photometric loss (L1 + SSIM, host/losses/image_loss.h) against the
 // double-precision reference (tests/reference/image_loss_reference.h), whose
 // analytic gradient is itself checked against central finite differences.
 //
@@ -19,7 +19,7 @@
 #include <random>
 #include <vector>
 
-#include "host/render/image_loss.h"
+#include "host/losses/image_loss.h"
 #include "test_util.h"
 #include "tests/reference/image_loss_reference.h"
 

@@ -1,4 +1,4 @@
-// The device mask losses (L_is, L_ic, host/render/mask_loss.h) against the
+// The device mask losses (L_is, L_ic, host/losses/mask_loss.h) against the
 // double-precision reference (tests/reference/mask_loss_reference.h), whose
 // analytic gradients are themselves checked against central finite
 // differences away from the kinks of |.|.
@@ -20,7 +20,7 @@
 #include <random>
 #include <vector>
 
-#include "host/render/mask_loss.h"
+#include "host/losses/mask_loss.h"
 #include "test_util.h"
 #include "tests/reference/mask_loss_reference.h"
 

@@ -148,7 +148,7 @@ TEST(TrainMasks, FeaturesSeparateGroundTruthObjectsAndMaskLossFalls) {
 
 // The features are projected into the unit ball after each step (default);
 // without it the contrast loss drives them past it. The unmasked pixels form
-// one more mask by default (host/render/mask_loss.h with_unmasked_group): the
+// one more mask by default (host/losses/mask_loss.h with_unmasked_group): the
 // object features then also separate from the ground and backdrop (gt 0).
 TEST(TrainMasks, FeaturesStayInTheUnitBall) {
   SceneOptions so;

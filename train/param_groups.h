@@ -15,7 +15,7 @@
 #include <vector>
 
 #include "host/io/model_io.h"
-#include "host/render/adam.h"
+#include "host/optim/adam.h"
 
 namespace ag2gs {
 

@@ -7,7 +7,7 @@
 #include <vector>
 
 #include "host/device/cl_runtime.h"
-#include "host/render/image_loss.h"
+#include "host/losses/image_loss.h"
 #include "host/render/renderer.h"
 #include "host/render/sky.h"
 #include "host/scene/scene.h"

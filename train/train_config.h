@@ -13,8 +13,8 @@
 #include <vector>
 
 #include "host/core/gaussians.h"
-#include "host/render/adam.h"
-#include "host/render/image_loss.h"
+#include "host/losses/image_loss.h"
+#include "host/optim/adam.h"
 #include "train/anchors/anchor_model.h"
 #include "train/densify/anchor_growth.h"
 #include "train/graph/propagation_loss.h"
@@ -57,7 +57,7 @@ struct TrainConfig {
   // without masks. Measured in the README (query section).
   bool mask_geometry = true;
   // The pixels no SAM mask covers form one more mask in the mask losses
-  // (with_unmasked_group in host/render/mask_loss.h).
+  // (with_unmasked_group in host/losses/mask_loss.h).
   bool mask_unmasked_group = true;
   // Project the semantic features into the unit ball after each of their
   // steps (kernels/anchor_regularisers.cl feature_ball).

@@ -5,7 +5,7 @@
 //   -> renderer backward -> expander backward (+ dL_in/d offset)
 //   -> non-finite check (skip the step) -> Adam per parameter group
 //
-// with L_rgb = (1 - lambda) L1 + lambda (1 - SSIM) (host/render/image_loss.h),
+// with L_rgb = (1 - lambda) L1 + lambda (1 - SSIM) (host/losses/image_loss.h),
 // L_in = mean over offsets of exp(relu(|o|^2 - 1)) (offsets in voxel units),
 // L_d = mean over pixels of the renderer's distortion output.
 //
@@ -20,7 +20,7 @@
 // was seen in the last prune_unseen_window views, are removed. The optimiser
 // state follows the rows (GrowthResult's gather maps).
 //
-// Mask losses (docs/design.md section 4, host/render/mask_loss.h): when the scene has
+// Mask losses (docs/design.md section 4, host/losses/mask_loss.h): when the scene has
 // SAM masks and the iteration is at least mask_from, the view's rendered
 // feature map F (optionally divided by the accumulated alpha) gets
 // w_is L_is + w_ic L_ic; the gradient goes back through the renderer and the
@@ -78,9 +78,9 @@
 #include "host/device/cl_runtime.h"
 #include "host/io/model_io.h"
 #include "host/io/model_ply.h"
-#include "host/render/adam.h"
-#include "host/render/image_loss.h"
-#include "host/render/mask_loss.h"
+#include "host/losses/image_loss.h"
+#include "host/losses/mask_loss.h"
+#include "host/optim/adam.h"
 #include "host/render/renderer.h"
 #include "host/render/sky.h"
 #include "host/scene/scene.h"

@@ -18,8 +18,8 @@
 
 #include "apps/removal/holes.h"
 #include "host/device/cl_runtime.h"
-#include "host/render/adam.h"
-#include "host/render/image_loss.h"
+#include "host/losses/image_loss.h"
+#include "host/optim/adam.h"
 #include "host/render/renderer.h"
 #include "host/render/sky.h"
 #include "host/scene/scene.h"

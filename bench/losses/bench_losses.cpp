@@ -11,8 +11,8 @@
 #include <vector>
 
 #include "host/device/cl_runtime.h"
-#include "host/render/adam.h"
-#include "host/render/image_loss.h"
+#include "host/losses/image_loss.h"
+#include "host/optim/adam.h"
 #include "tests/reference/adam_reference.h"
 #include "tests/reference/image_loss_reference.h"
 

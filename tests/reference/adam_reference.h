@@ -4,7 +4,7 @@
 //   v_t = beta2 v_{t-1} + (1 - beta2) g_t^2
 //   mhat = m_t / (1 - beta1^t),  vhat = v_t / (1 - beta2^t)
 //   theta_t = theta_{t-1} - lr mhat / (sqrt(vhat) + eps)
-// The device (host/render/adam.h) computes the same thing in torch's implementation
+// The device (host/optim/adam.h) computes the same thing in torch's implementation
 // form; this is the documented one.
 #pragma once
 

@@ -1,4 +1,4 @@
-// Double-precision reference of the 3DGS photometric loss (host/render/image_loss.h):
+// Double-precision reference of the 3DGS photometric loss (host/losses/image_loss.h):
 //   L = (1 - lambda) L1 + lambda (1 - SSIM)
 // written the plain way, independent of the device's structure: the 11x11
 // window is summed directly in 2D (no separable passes) and the gradient is

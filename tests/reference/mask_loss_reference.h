@@ -1,4 +1,4 @@
-// Double-precision reference of the SAM mask losses (host/render/mask_loss.h):
+// Double-precision reference of the SAM mask losses (host/losses/mask_loss.h):
 //   L_is = sum_j sum_{p in M_j} |G(p) - Gbar_j|_1 / sum_j |M_j|
 //   L_ic = 1 / (m (m - 1)) sum_{j != k} 1 / (|Gbar_j - Gbar_k|_1 + 1)
 // with G = F, or F / alpha and pixels with alpha < alpha_min excluded.

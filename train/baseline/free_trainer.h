@@ -46,8 +46,8 @@
 
 #include "host/core/gaussians.h"
 #include "host/device/cl_runtime.h"
-#include "host/render/adam.h"
-#include "host/render/image_loss.h"
+#include "host/losses/image_loss.h"
+#include "host/optim/adam.h"
 #include "host/render/renderer.h"
 #include "host/scene/scene.h"
 #include "train/param_groups.h"

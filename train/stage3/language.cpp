@@ -11,7 +11,7 @@
 
 #include "host/core/timing.h"
 #include "host/io/json_input.h"
-#include "host/render/mask_loss.h"  // kMaskAlphaMin
+#include "host/losses/mask_loss.h"  // kMaskAlphaMin
 #include "host/render/renderer.h"
 #include "train/anchors/expander.h"
 

@@ -3,7 +3,7 @@
 //
 // Per view (InstanceMap ids, rendered feature F [3,H,W] and alpha [H,W], the
 // view's masks): G(p) = F(p) / alpha(p) where alpha(p) >= kMaskAlphaMin and
-// the pixel is "featureless" otherwise (as the mask loss sees F, host/render/mask_loss.h;
+// the pixel is "featureless" otherwise (as the mask loss sees F, host/losses/mask_loss.h;
 // with normalise_by_alpha = false, G = F and every pixel has a feature). Then
 // for every (cluster c, mask M) pair sharing at least one pixel:
 //   IoU      = |I_c ∩ M| / |I_c ∪ M|         (I_c = pixels with id c; a pixel in

@@ -1,4 +1,4 @@
-#include "host/render/image_loss.h"
+#include "host/losses/image_loss.h"
 
 #include <algorithm>
 #include <cstdio>

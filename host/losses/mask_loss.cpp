@@ -1,4 +1,4 @@
-#include "host/render/mask_loss.h"
+#include "host/losses/mask_loss.h"
 
 #include <algorithm>
 #include <cmath>

@@ -1,4 +1,4 @@
-#include "host/render/adam.h"
+#include "host/optim/adam.h"
 
 #include <algorithm>
 #include <cmath>

@@ -39,8 +39,8 @@
 #include <vector>
 
 #include "host/device/cl_runtime.h"
-#include "host/render/image_loss.h"  // ImageLayout
-#include "host/scene/scene.h"       // ViewMasks
+#include "host/losses/image_loss.h"  // ImageLayout
+#include "host/scene/scene.h"        // ViewMasks
 
 namespace ag2gs {
 
