@@ -21,7 +21,7 @@
 
 namespace ag2gs {
 
-struct TrainConfig {
+struct TrainConfig : GaussianRates {
   int iterations = 30000;  // stage 1
   // Stage 2: this many more iterations with w_prop L_prop added; -1 =
   // iterations / 6 (the official 5k after 30k), 0 = no stage 2.
@@ -73,11 +73,7 @@ struct TrainConfig {
   double offset_lr_final = 1e-4;
   bool offset_lr_extent = true;
   double feature_lr = 0.05;  // semantic features (stepped on iterations with the mask losses)
-  double sh_dc_lr = 0.0025;
-  double sh_rest_lr = 0.0025 / 20;
-  double opacity_lr = 0.05;
-  double scaling_lr = 0.005;
-  double rotation_lr = 0.001;
+  // sh_dc_lr, sh_rest_lr, opacity_lr, scaling_lr, rotation_lr: GaussianRates (host/optim/adam.h).
   AdamSettings adam;
 
   bool white_background = false;

@@ -26,6 +26,18 @@ struct AdamSettings {
   double eps = 1e-15;  // 3DGS's value (torch's default is 1e-8)
 };
 
+// The learning rates of a Gaussian's appearance and shape groups, 3DGS's
+// values, which the anchor trainer (TrainConfig) and the free-Gaussian
+// baseline (FreeTrainConfig) both start from: SH DC, the higher SH bands,
+// the opacity and scale logits, the rotation.
+struct GaussianRates {
+  double sh_dc_lr = 0.0025;
+  double sh_rest_lr = 0.0025 / 20;
+  double opacity_lr = 0.05;
+  double scaling_lr = 0.005;
+  double rotation_lr = 0.001;
+};
+
 // The optimiser state of one parameter group: first and second moments
 // [rows, row_size] on the device (zero at creation) and the step count.
 class AdamGroup {

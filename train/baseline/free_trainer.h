@@ -55,7 +55,7 @@
 
 namespace ag2gs {
 
-struct FreeTrainConfig {
+struct FreeTrainConfig : GaussianRates {
   int iterations = 30000;
   uint64_t seed = 0;
   int sh_degree = 3;    // highest SH degree
@@ -67,11 +67,7 @@ struct FreeTrainConfig {
   // Learning rates (3DGS). Positions: init -> final (x extent) exponentially.
   double position_lr_init = 1.6e-4;
   double position_lr_final = 1.6e-6;
-  double sh_dc_lr = 0.0025;
-  double sh_rest_lr = 0.0025 / 20;
-  double opacity_lr = 0.05;
-  double scaling_lr = 0.005;
-  double rotation_lr = 0.001;
+  // sh_dc_lr, sh_rest_lr, opacity_lr, scaling_lr, rotation_lr: GaussianRates (host/optim/adam.h).
   AdamSettings adam;
 
   // Densification (3DGS: 500 .. 15000 of 30000 every 100). Rounds at
