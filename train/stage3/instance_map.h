@@ -12,7 +12,9 @@
 // normal occlusion" thresholded at min_fraction, for all clusters at once.
 // weight(p) is the weight of the only possible candidate (a weighted majority
 // vote along the ray, see kernels/instance_map.cl): W_id(p) where id >= 0, else
-// some cluster's W_c(p) <= min_fraction (0 when no clustered Gaussian blends).
+// a number <= min_fraction: the candidate's W_c(p), or, where the vote itself
+// proves that no cluster passes (a cluttered ray), an upper bound of it (0
+// when no clustered Gaussian blends).
 //
 // Precision: the weights are the rendered float weights bit for bit; W_c is
 // their float sum in blending order (tests/test_clustering.cpp measures it
