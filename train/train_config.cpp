@@ -99,15 +99,7 @@ size_t TrainConfig::effective_max_gaussians(size_t view_pixels, size_t initial) 
 
 nlohmann::json TrainConfig::to_json() const {
   nlohmann::json j = nlohmann::json::object();
-  for (const TrainSetting& t : train_settings()) {
-    nlohmann::json* node = &j;
-    size_t start = 0;
-    for (size_t dot = t.key.find('.'); dot != std::string::npos; dot = t.key.find('.', start)) {
-      node = &(*node)[t.key.substr(start, dot - start)];
-      start = dot + 1;
-    }
-    (*node)[t.key.substr(start)] = t.recorded(*this);
-  }
+  for (const TrainSetting& t : train_settings()) j[t.pointer()] = t.recorded(*this);
   return j;
 }
 
@@ -129,17 +121,9 @@ TrainConfig TrainConfig::from_json(const nlohmann::json& j) {
     }
   }
   for (const TrainSetting& t : train_settings()) {
-    const nlohmann::json* node = &j;
-    size_t start = 0;
-    for (size_t dot = t.key.find('.'); dot != std::string::npos && node; dot = t.key.find('.', start)) {
-      const std::string part = t.key.substr(start, dot - start);
-      node = node->contains(part) ? &(*node)[part] : nullptr;
-      start = dot + 1;
-    }
-    const std::string last = t.key.substr(start);
-    if (node && node->contains(last)) {
+    if (j.contains(t.pointer())) {
       try {
-        t.set(c, (*node)[last]);
+        t.set(c, j.at(t.pointer()));
       } catch (const nlohmann::json::exception& e) {
         throw std::runtime_error("training config: '" + t.key + "': " + json_error_text(e));
       }

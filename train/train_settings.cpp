@@ -1,5 +1,6 @@
 #include "train/train_settings.h"
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <limits>
@@ -351,6 +352,12 @@ std::vector<TrainSetting> build_table() {
 const std::vector<TrainSetting>& train_settings() {
   static const std::vector<TrainSetting> table = build_table();
   return table;
+}
+
+nlohmann::json::json_pointer TrainSetting::pointer() const {
+  std::string p = "/" + key;
+  std::replace(p.begin(), p.end(), '.', '/');
+  return nlohmann::json::json_pointer(p);
 }
 
 std::string TrainSetting::flag_name() const {

@@ -72,9 +72,8 @@ struct TrainSetting {
   bool is_flag() const { return !flag.empty(); }
   bool in_a_preset() const { return in_default.has_value() || in_paper.has_value(); }
   bool is_bool() const { return std::holds_alternative<Field<bool>>(field); }
-  bool is_integer() const {
-    return !is_bool() && !std::holds_alternative<Field<float>>(field) && !std::holds_alternative<Field<double>>(field);
-  }
+  // The key as a JSON pointer ("grow.min_seen" -> /grow/min_seen).
+  nlohmann::json::json_pointer pointer() const;
   // The flag's first name ("--mask-geometry" of "--mask-geometry,!--mask-features-only",
   // "--no-feature-ball" of "!--no-feature-ball"); for a switch with two
   // names, name_for(v) is the one that sets v.
