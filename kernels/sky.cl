@@ -21,7 +21,7 @@ inline float3 sky_direction(int x, int y, float4 r0, float4 r1, float4 r2, float
   return normalize((float3)(dot(r0.xyz, dc), dot(r1.xyz, dc), dot(r2.xyz, dc)));
 }
 
-inline float3 sky_colour(__global const float* coef, float3 d) {
+ALWAYS_INLINE float3 sky_colour(__global const float* coef, float3 d) {
   float3 c = (float3)(0.f);
 #pragma unroll
   for (int k = 0; k < SKY_K; ++k) {
