@@ -15,8 +15,10 @@
 #include "cli/commands.h"
 #include "cli/run_driver.h"
 #include "cli/run_guard.h"
+#include "cli/setting_options.h"
 #include "host/device/cl_runtime.h"
 #include "host/scene/scene.h"
+#include "train/baseline/free_train_settings.h"
 #include "train/baseline/free_trainer.h"
 #include "train/trainer.h"
 
@@ -136,52 +138,7 @@ void register_baseline(CLI::App& app, GlobalOptions& global) {
                                  "directory: writes MODEL_DIR/point_cloud.ply");
   add_scene_options(sub, *a);
   sub->add_flag("--force", a->force, "Replace the model MODEL_DIR holds (refused otherwise)");
-  sub->add_option("--iters", c.iterations, "Training iterations (default 30000)")->check(CLI::Range(1, 100000000));
-  sub->add_option("--seed", c.seed, "Random seed: view order and split samples (default 0)")->check(seed_number());
-  sub->add_flag("--white-bg", c.white_background, "White background instead of black");
-  sub->add_option("--sh-degree", c.sh_degree, "Highest SH degree (default 3)")->check(CLI::Range(0, 3));
-  sub->add_option("--sh-interval", c.sh_interval,
-                  "Iterations per SH degree step (default 0 = min(1000, iters / (sh-degree + 1)), as `train`)")
-      ->check(non_negative_number());
-  sub->add_option("--lambda-ssim", c.lambda_ssim, "Weight of 1 - SSIM in the loss (default 0.2)")
-      ->check(finite_range(0.0, 1.0));
-  sub->add_option("--lr-position", c.position_lr_init, "Position learning rate at the start, x extent (default 1.6e-4)")
-      ->check(finite_range(0, 100));
-  sub->add_option("--lr-position-final", c.position_lr_final, "Position learning rate at the end, x extent (1.6e-6)")
-      ->check(finite_range(0, 100));
-  sub->add_option("--lr-sh", c.sh_dc_lr, "SH DC learning rate (default 0.0025)")->check(finite_range(0, 100));
-  sub->add_option("--lr-sh-rest", c.sh_rest_lr, "Higher SH learning rate (default 0.0025 / 20)")
-      ->check(finite_range(0, 100));
-  sub->add_option("--lr-opacity", c.opacity_lr, "Opacity logit learning rate (default 0.05)")
-      ->check(finite_range(0, 100));
-  sub->add_option("--lr-scaling", c.scaling_lr, "Log-scale learning rate (default 0.005)")->check(finite_range(0, 100));
-  sub->add_option("--lr-rotation", c.rotation_lr, "Rotation learning rate (default 0.001)")
-      ->check(finite_range(0, 100));
-  sub->add_option("--densify-from", c.densify_from, "First densification iteration (default 500)")
-      ->check(non_negative_number());
-  sub->add_option("--densify-until", c.densify_until, "Last densification iteration (default 0 = half of --iters)")
-      ->check(non_negative_number());
-  sub->add_option("--densify-every", c.densify_every, "Iterations between densifications (default 100; 0 = off)")
-      ->check(non_negative_number());
-  sub->add_option("--densify-threshold", c.grad_threshold,
-                  "Mean view-space positional gradient (NDC units) above which a Gaussian is cloned or split "
-                  "(default 2e-4)")
-      ->check(finite_range(1e-12, 1e6));
-  sub->add_option("--percent-dense", c.percent_dense,
-                  "Clone when the largest scale is at most this x extent, split otherwise (default 0.01)")
-      ->check(non_negative_number());
-  sub->add_option("--prune-opacity", c.prune_opacity, "Remove Gaussians with opacity below this (default 0.005)")
-      ->check(finite_range(0.0, 0.999));
-  sub->add_option("--opacity-reset-every", c.opacity_reset_every,
-                  "Clamp every opacity to 0.01 every N iterations until --densify-until (default 3000; 0 = off)")
-      ->check(non_negative_number());
-  sub->add_option("--max-screen-size", c.max_screen_size,
-                  "After the first opacity reset, remove Gaussians with a radius above this many pixels (default 20; 0 "
-                  "= off)")
-      ->check(non_negative_number());
-  sub->add_option("--max-world-size", c.max_world_size,
-                  "After the first opacity reset, remove Gaussians larger than this x extent (default 0.1; 0 = off)")
-      ->check(non_negative_number());
+  add_setting_options(sub, free_train_settings(), c);
   add_progress_options(sub, *a);
   auto print_config = add_print_config_flag(sub, "train with");
   set_action(sub, [&global, a, print_config] {

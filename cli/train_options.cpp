@@ -8,9 +8,8 @@
 #include <limits>
 #include <memory>
 #include <string>
-#include <type_traits>
-#include <variant>
 
+#include "cli/setting_options.h"
 #include "cli/train_command.h"
 
 namespace ag2gs::cli {
@@ -27,46 +26,6 @@ std::string flag_text(const TrainSetting& s, const TrainConfig& c) {
 }
 
 namespace {
-
-// The flag of a setting (train/train_settings.h), bound to its field of
-// `c`, checked as the table says.
-void add_setting_option(CLI::App* sub, const TrainSetting& s, TrainConfig& c) {
-  std::visit(
-      [&](auto field) {
-        auto& ref = field(c);
-        using T = std::decay_t<decltype(ref)>;
-        if constexpr (std::is_same_v<T, bool>) {
-          if (!s.takes_value) {
-            sub->add_flag(s.flag, ref, s.help);
-            return;
-          }
-        }
-        CLI::Option* o = sub->add_option(s.flag, ref, s.help);
-        switch (s.check) {
-          case TrainSetting::Check::kRange:
-            if constexpr (std::is_integral_v<T> && !std::is_same_v<T, bool>) {
-              const T hi = s.hi >= static_cast<double>(std::numeric_limits<T>::max()) ? std::numeric_limits<T>::max()
-                                                                                      : static_cast<T>(s.hi);
-              o->check(CLI::Range(static_cast<T>(s.lo), hi));
-            } else {
-              o->check(finite_range(s.lo, s.hi));
-            }
-            break;
-          case TrainSetting::Check::kNonNegative:
-            o->check(non_negative_number());
-            break;
-          case TrainSetting::Check::kPositive:
-            o->check(positive_number());
-            break;
-          case TrainSetting::Check::kSeed:
-            o->check(seed_number());
-            break;
-          case TrainSetting::Check::kNone:
-            break;
-        }
-      },
-      s.field);
-}
 
 // --preset's help, from the table.
 std::string preset_help() {
@@ -104,8 +63,7 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                                  "(propagation loss), stage 3 (clusters, language features); writes "
                                  "MODEL_DIR/model.ag2gs and MODEL_DIR/point_cloud.ply");
   add_scene_options(sub, *a);
-  for (const TrainSetting& s : train_settings())
-    if (s.is_flag()) add_setting_option(sub, s, c);
+  add_setting_options(sub, train_settings(), c);
   add_progress_options(sub, *a);
   sub->add_flag("--view", a->view,
                 "Serve the viewer while training (as `ag2gs view`): the picture follows the model, with its progress "

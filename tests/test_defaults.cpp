@@ -17,6 +17,7 @@
 #include "queries/query.h"
 #include "test_util.h"
 #include "train/anchors/voxel_rule.h"
+#include "train/baseline/free_train_settings.h"
 #include "train/baseline/free_trainer.h"
 #include "train/divergence_guard.h"
 #include "train/train_config.h"
@@ -332,6 +333,48 @@ TEST(Defaults, EveryTrainingSettingIsOneRowOfTheTable) {
     EXPECT_NE(r.output.find(std::string(flags).substr(0, std::string(flags).find(' '))), std::string::npos) << r.output;
     EXPECT_EQ(r.output.find("\"iterations\""), std::string::npos) << r.output;
   }
+}
+
+// The baseline's settings (train/baseline/free_train_settings.h) are one
+// table too: every leaf of its config JSON is a row and every row a leaf,
+// every flag of the table is one of `baseline --help`'s, and a value out of
+// range is refused naming its flag, by the library and by the program.
+TEST(Defaults, EveryBaselineSettingIsOneRowOfItsTable) {
+  const FreeTrainConfig d;
+  const nlohmann::json j = d.to_json();
+  size_t leaves = 0;
+  for (const auto& [k, v] : j.items()) leaves += v.is_object() ? v.size() : 1;
+  EXPECT_EQ(leaves, free_train_settings().size());
+  const test::CliResult help = test::run_cli("baseline --help");
+  size_t flags = 0;
+  for (const FreeTrainSetting& s : free_train_settings()) {
+    EXPECT_TRUE(j.contains(s.pointer())) << s.key;
+    if (s.is_flag()) {
+      ++flags;
+      EXPECT_NE(help.output.find(s.flag_name()), std::string::npos) << s.flag_name();
+    }
+  }
+  EXPECT_GE(flags, 20u);
+  // A rule's value is what the JSON records: half the iterations.
+  EXPECT_EQ(j["densify"]["until"], d.iterations / 2);
+  FreeTrainConfig bad = d;
+  bad.prune_opacity = 1.5;
+  test::expect_error_with<std::invalid_argument>([&] { bad.validate(); },
+                                                 {"densify.prune_opacity", "--prune-opacity", "1.5"});
+  bad = d;
+  bad.lambda_ssim = -0.5f;
+  test::expect_error_with<std::invalid_argument>([&] { bad.validate(); }, {"--lambda-ssim"});
+  bad = d;
+  bad.init_opacity = 0;  // inside the row's range, outside the open interval the trainer needs
+  test::expect_error_with<std::invalid_argument>([&] { bad.validate(); }, {"init_opacity"});
+  for (const char* flags : {"--prune-opacity 1.5", "--sh-degree 4", "--lr-opacity nan"}) {
+    const test::CliResult r =
+        test::run_cli("baseline " + sample_scene() + " -o /nonexistent/b --print-config " + flags);
+    EXPECT_NE(r.code, 0) << flags;
+    EXPECT_NE(r.output.find(std::string(flags).substr(0, std::string(flags).find(' '))), std::string::npos) << r.output;
+    EXPECT_EQ(r.output.find("\"iterations\""), std::string::npos) << r.output;
+  }
+  EXPECT_FALSE(std::filesystem::exists("/nonexistent/b"));
 }
 
 // The same for `baseline` (FreeTrainConfig) and `query` (QueryConfig): with

@@ -21,8 +21,7 @@ void TrainConfig::validate() const {
   auto bad = [](const std::string& what) { throw std::invalid_argument("TrainConfig: " + what); };
   // Each setting's own range (train/train_settings.cpp), then what ties
   // settings together.
-  for (const TrainSetting& t : train_settings())
-    if (const std::string p = t.problem(*this); !p.empty()) bad(p);
+  if (const std::string p = settings_problem(train_settings(), *this); !p.empty()) bad(p);
   anchors.validate();
   if (static_cast<int64_t>(iterations) + effective_prop_iters() > std::numeric_limits<int>::max())
     bad("iterations + prop_iters is too large");
@@ -98,9 +97,7 @@ size_t TrainConfig::effective_max_gaussians(size_t view_pixels, size_t initial) 
 }
 
 nlohmann::json TrainConfig::to_json() const {
-  nlohmann::json j = nlohmann::json::object();
-  for (const TrainSetting& t : train_settings()) j[t.pointer()] = t.recorded(*this);
-  return j;
+  return settings_to_json(train_settings(), *this);
 }
 
 TrainConfig TrainConfig::from_json(const nlohmann::json& j) {

@@ -19,26 +19,7 @@ TrainSetting::Field<T> field(TrainSetting::Field<T> f) {
   return f;
 }
 
-std::string number_text(double v) {
-  char buf[32];
-  std::snprintf(buf, sizeof buf, "%.9g", v);
-  return buf;
-}
-
-// A row of the table, added at its end.
-struct Rows {
-  std::vector<TrainSetting> t;
-  TrainSetting& operator()(TrainSetting::Access f, const char* key, const char* flag, const char* help) {
-    TrainSetting s;
-    s.field = f;
-    s.key = key;
-    s.flag = flag;
-    s.help = help;
-    s.takes_value = !std::holds_alternative<TrainSetting::Field<bool>>(f);
-    t.push_back(s);
-    return t.back();
-  }
-};
+using Rows = SettingRows<TrainConfig>;
 
 // The run, the sky, the schedule and the losses.
 void add_run_and_loss_settings(Rows& add) {
@@ -354,85 +335,9 @@ const std::vector<TrainSetting>& train_settings() {
   return table;
 }
 
-nlohmann::json::json_pointer TrainSetting::pointer() const {
-  std::string p = "/" + key;
-  std::replace(p.begin(), p.end(), '.', '/');
-  return nlohmann::json::json_pointer(p);
-}
-
-std::string TrainSetting::flag_name() const {
-  std::string first = flag.substr(0, flag.find(','));
-  if (!first.empty() && first[0] == '!') first.erase(0, 1);
-  return first;
-}
-
-std::string TrainSetting::name_for(bool v) const {
-  const size_t comma = flag.find(',');
-  const std::string a = flag.substr(0, comma), b = comma == std::string::npos ? "" : flag.substr(comma + 1);
-  for (const std::string& n : {a, b})
-    if (!n.empty() && (n[0] == '!') != v) return n[0] == '!' ? n.substr(1) : n;
-  return "";
-}
-
-nlohmann::json TrainSetting::get(const TrainConfig& c) const {
-  TrainConfig& m = const_cast<TrainConfig&>(c);  // the accessors only read here
-  return std::visit([&m](auto f) { return nlohmann::json(f(m)); }, field);
-}
-
-nlohmann::json TrainSetting::recorded(const TrainConfig& c) const {
-  return effective_value ? nlohmann::json(effective_value(c)) : get(c);
-}
-
-void TrainSetting::set(TrainConfig& c, const nlohmann::json& v) const {
-  std::visit(
-      [&](auto f) {
-        using T = std::decay_t<decltype(f(c))>;
-        f(c) = v.get<T>();
-      },
-      field);
-}
-
-void TrainSetting::assign(TrainConfig& c, double v) const {
-  std::visit(
-      [&](auto f) {
-        using T = std::decay_t<decltype(f(c))>;
-        if constexpr (std::is_same_v<T, bool>)
-          f(c) = v != 0;
-        else
-          f(c) = static_cast<T>(v);
-      },
-      field);
-}
-
-std::string TrainSetting::problem(const TrainConfig& c) const {
-  if (check == Check::kNone) return {};
-  const nlohmann::json j = get(c);
-  if (check == Check::kSeed) return {};  // every uint64 is a seed
-  const double v = j.get<double>();
-  if (auto_value && v == *auto_value) return {};
-  const std::string name = key + (is_flag() ? " (" + flag_name() + ")" : "");
-  const std::string is = name + " is " + j.dump();
-  if (!std::isfinite(v)) return is + "; it must be a finite number";
-  switch (check) {
-    case Check::kRange:
-      if (!(v >= lo && v <= hi)) return is + "; it must lie in [" + number_text(lo) + ", " + number_text(hi) + "]";
-      break;
-    case Check::kNonNegative:
-      if (!(v >= 0)) return is + "; it must be >= 0";
-      break;
-    case Check::kPositive:
-      if (!(v > 0))
-        return is + "; it must be > 0" + (auto_value ? " (or " + number_text(*auto_value) + ": from the scene)" : "");
-      break;
-    default:
-      break;
-  }
-  return {};
-}
-
-std::optional<double> TrainSetting::preset_value(const std::string& preset) const {
+std::optional<double> train_preset_value(const TrainSetting& s, const std::string& preset) {
   check_train_preset(preset);
-  return preset == "paper" ? in_paper : in_default;
+  return preset == "paper" ? s.in_paper : s.in_default;
 }
 
 void check_train_preset(const std::string& name) {
@@ -445,7 +350,7 @@ void apply_train_preset(TrainConfig& c, const std::string& name, const std::func
   const TrainConfig initial;
   for (const TrainSetting& s : train_settings()) {
     if (!s.in_a_preset() || (keep && keep(s))) continue;
-    if (const std::optional<double> v = s.preset_value(name))
+    if (const std::optional<double> v = train_preset_value(s, name))
       s.assign(c, *v);
     else
       s.set(c, s.get(initial));

@@ -8,96 +8,28 @@
 // table. The default of each field is its initialiser in TrainConfig.
 #pragma once
 
-#include <cstdint>
 #include <functional>
-#include <nlohmann/json.hpp>
 #include <optional>
 #include <string>
-#include <variant>
 #include <vector>
+
+#include "host/core/settings.h"
 
 namespace ag2gs {
 
 struct TrainConfig;
 
-struct TrainSetting {
-  // The field, as an accessor of its type.
-  template <class T>
-  using Field = T& (*)(TrainConfig&);
-  using Access = std::variant<Field<int>, Field<int64_t>, Field<uint64_t>, Field<float>, Field<double>, Field<bool>>;
-  // How a value is checked, by validate() and by the flag's parser.
-  enum class Check {
-    kNone,         // booleans, and the settings without a flag
-    kRange,        // lo <= v <= hi (a whole number for integer fields)
-    kNonNegative,  // a finite number >= 0
-    kPositive,     // a finite number > 0
-    kSeed,         // 0 to 2^64 - 1, in digits
-  };
-
-  Access field;
-  std::string key;   // JSON path: "iterations", "grow.min_seen", "anchors.children"
-  std::string flag;  // the flag's CLI11 names ("--grow-min-seen", "!--no-feature-ball",
-                     // "--mask-geometry,!--mask-features-only"); empty: no flag
-  std::string help;  // --help's text
-  Check check = Check::kNone;
-  double lo = 0, hi = 0;  // kRange
-  // The value that means "from the scene / the iterations" where the flag
-  // itself does not take it (0 top cells, -1 Gaussians): validate() accepts
-  // it besides the checked range.
-  std::optional<double> auto_value;
-  // The value a file without the key means (written before the setting
-  // existed); none: the key is required.
-  std::optional<double> before_value;
-  // The value in the presets ("default" = "appearance", and "paper"); none:
-  // the preset keeps TrainConfig's initialiser.
-  std::optional<double> in_default, in_paper;
-  // For a default that is a rule (0 or -1 = "from the iterations"): the
-  // value the rule gives, which to_json records; null: the field itself.
-  int (*effective_value)(const TrainConfig&) = nullptr;
-  bool takes_value = true;  // false for a boolean switch (--white-bg), true for --far-shell true|false
-
-  // Table-building steps.
-  TrainSetting& range(double l, double h) { return check = Check::kRange, lo = l, hi = h, *this; }
-  TrainSetting& non_negative() { return check = Check::kNonNegative, *this; }
-  TrainSetting& positive() { return check = Check::kPositive, *this; }
-  TrainSetting& seed() { return check = Check::kSeed, *this; }
-  TrainSetting& automatic(double v) { return auto_value = v, *this; }
-  TrainSetting& before(double v) { return before_value = v, *this; }
-  TrainSetting& presets(std::optional<double> d, std::optional<double> paper) {
-    return in_default = d, in_paper = paper, *this;
-  }
-  TrainSetting& effective(int (*f)(const TrainConfig&)) { return effective_value = f, *this; }
-  TrainSetting& with_value() { return takes_value = true, *this; }
-
-  bool is_flag() const { return !flag.empty(); }
-  bool in_a_preset() const { return in_default.has_value() || in_paper.has_value(); }
-  bool is_bool() const { return std::holds_alternative<Field<bool>>(field); }
-  // The key as a JSON pointer ("grow.min_seen" -> /grow/min_seen).
-  nlohmann::json::json_pointer pointer() const;
-  // The flag's first name ("--mask-geometry" of "--mask-geometry,!--mask-features-only",
-  // "--no-feature-ball" of "!--no-feature-ball"); for a switch with two
-  // names, name_for(v) is the one that sets v.
-  std::string flag_name() const;
-  std::string name_for(bool v) const;
-
-  // The field's value as JSON, in its own type (to_json records
-  // effective_value where there is one).
-  nlohmann::json get(const TrainConfig& c) const;
-  nlohmann::json recorded(const TrainConfig& c) const;
-  // Sets the field from JSON (throws nlohmann's exceptions for a mistyped
-  // value) or from a number (a preset's or a missing key's value).
-  void set(TrainConfig& c, const nlohmann::json& v) const;
-  void assign(TrainConfig& c, double v) const;
-  // Empty when the field's value passes `check`, else what is wrong, naming
-  // the flag ("grow_min_seen (--grow-min-seen) is 1.5; it must lie in [0, 1]").
-  std::string problem(const TrainConfig& c) const;
-  // The value the named preset gives the field (TrainConfig's initialiser
-  // when the preset does not name it).
-  std::optional<double> preset_value(const std::string& preset) const;
-};
+// A training setting's row (host/core/settings.h); the training settings
+// alone have presets (in_default, in_paper) and values for files written
+// before them (before_value).
+using TrainSetting = Setting<TrainConfig>;
 
 // The table, in --help's order.
 const std::vector<TrainSetting>& train_settings();
+
+// The value preset `preset` gives the setting (none: TrainConfig's
+// initialiser, which the preset keeps). Throws for an unknown preset.
+std::optional<double> train_preset_value(const TrainSetting& s, const std::string& preset);
 
 // The presets TrainConfig::preset accepts: "default" (also called
 // "appearance") and "paper". Throws std::invalid_argument for another name.

@@ -14,6 +14,7 @@
 #include "host/core/gaussians.h"
 #include "host/core/scalar_math.h"
 #include "host/io/ply_io.h"
+#include "train/baseline/free_train_settings.h"
 
 namespace fs = std::filesystem;
 
@@ -34,29 +35,12 @@ double unit_open(uint64_t h) {
 // ------------------------------------------------------------------ config
 void FreeTrainConfig::validate() const {
   auto bad = [](const std::string& what) { throw std::invalid_argument("FreeTrainConfig: " + what); };
-  if (iterations < 1) bad("iterations is " + std::to_string(iterations) + "; it must be at least 1");
-  if (sh_degree < 0 || sh_degree > 3) bad("sh_degree must be in 0..3");
-  if (sh_interval < 0) bad("sh_interval must be >= 0 (0 = automatic)");
-  if (!(lambda_ssim >= 0 && lambda_ssim <= 1)) bad("lambda_ssim must be in [0, 1]");
+  // Each setting's own range (train/baseline/free_train_settings.cpp), then
+  // what ties settings together.
+  if (const std::string p = settings_problem(free_train_settings(), *this); !p.empty()) bad(p);
   if (!(init_opacity > 0 && init_opacity < 1)) bad("init_opacity must be in (0, 1)");
-  const std::pair<const char*, double> rates[] = {{"position_lr_init", position_lr_init},
-                                                  {"position_lr_final", position_lr_final},
-                                                  {"sh_dc_lr", sh_dc_lr},
-                                                  {"sh_rest_lr", sh_rest_lr},
-                                                  {"opacity_lr", opacity_lr},
-                                                  {"scaling_lr", scaling_lr},
-                                                  {"rotation_lr", rotation_lr}};
-  for (const auto& [name, v] : rates)
-    if (!(v >= 0) || !std::isfinite(v)) bad(std::string(name) + " must be finite and >= 0");
   if (position_lr_init > 0 && !(position_lr_final > 0))
     bad("position_lr_final must be > 0 when position_lr_init is (exponential decay)");
-  if (densify_from < 0 || densify_until < 0 || densify_every < 0)
-    bad("densify_from, densify_until and densify_every must be >= 0");
-  if (!(grad_threshold > 0) || !std::isfinite(grad_threshold)) bad("grad_threshold must be finite and > 0");
-  if (!(percent_dense >= 0) || !std::isfinite(percent_dense)) bad("percent_dense must be finite and >= 0");
-  if (!(prune_opacity >= 0 && prune_opacity < 1)) bad("prune_opacity must be in [0, 1)");
-  if (opacity_reset_every < 0) bad("opacity_reset_every must be >= 0 (0 = never)");
-  if (!(max_screen_size >= 0) || !(max_world_size >= 0)) bad("max_screen_size and max_world_size must be >= 0");
 }
 
 int FreeTrainConfig::effective_sh_interval() const {
@@ -84,31 +68,7 @@ bool FreeTrainConfig::prune_big_at(int it) const {
 }
 
 nlohmann::json FreeTrainConfig::to_json() const {
-  return {{"iterations", iterations},
-          {"seed", seed},
-          {"sh_degree", sh_degree},
-          {"sh_interval", effective_sh_interval()},
-          {"lambda_ssim", lambda_ssim},
-          {"white_background", white_background},
-          {"init_opacity", init_opacity},
-          {"position_lr_init", position_lr_init},
-          {"position_lr_final", position_lr_final},
-          {"sh_dc_lr", sh_dc_lr},
-          {"sh_rest_lr", sh_rest_lr},
-          {"opacity_lr", opacity_lr},
-          {"scaling_lr", scaling_lr},
-          {"rotation_lr", rotation_lr},
-          {"adam", {{"beta1", adam.beta1}, {"beta2", adam.beta2}, {"eps", adam.eps}}},
-          {"densify",
-           {{"from", densify_from},
-            {"until", effective_densify_until()},
-            {"every", densify_every},
-            {"grad_threshold", grad_threshold},
-            {"percent_dense", percent_dense},
-            {"prune_opacity", prune_opacity},
-            {"opacity_reset_every", opacity_reset_every},
-            {"max_screen_size", max_screen_size},
-            {"max_world_size", max_world_size}}}};
+  return settings_to_json(free_train_settings(), *this);
 }
 
 // ------------------------------------------------------------------ parameters
