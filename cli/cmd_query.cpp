@@ -17,6 +17,7 @@
 #include "cli/commands.h"
 #include "cli/object_selection.h"
 #include "cli/run_guard.h"
+#include "cli/setting_options.h"
 #include "host/core/timing.h"
 #include "host/device/cl_runtime.h"
 #include "host/io/atomic_file.h"
@@ -28,6 +29,7 @@
 #include "host/scene/scene.h"
 #include "host/scene/scene_up.h"
 #include "queries/query.h"
+#include "queries/query_settings.h"
 #include "train/anchors/anchor_model.h"
 #include "train/stage3/clustering.h"
 #include "train/stage3/language.h"
@@ -119,26 +121,7 @@ void cmd_query(const GlobalOptions& global, QueryArgs a) {
 }  // namespace
 
 void add_query_config_options(CLI::App* sub, QueryConfig& c) {
-  sub->add_option("--min-weight", c.min_weight,
-                  "Grow along edges with exp(-|fi-fj|^2/(2 tau^2)) above this (default 0.9)")
-      ->check(finite_range(1e-6, 0.999999));
-  sub->add_option("--tau", c.tau, "Bilateral weight scale tau (default 0.05)")->check(finite_range(1e-6, 1e6));
-  sub->add_option("--text-margin", c.text_margin, "Text seeds: clusters within this of the best score (0.1)")
-      ->check(finite_range(0, 2));
-  sub->add_option("--graph-scale", c.graph_cell_scale, "Query graph neighbourhood in top voxels (default 2)")
-      ->check(CLI::Range(1, 1024));
-  sub->add_option("--click-candidates", c.click_candidates,
-                  "Click seed: of this many anchors nearest the clicked point, the one whose feature is closest to "
-                  "the pixel's rendered feature (default 8; 1 = the nearest anchor)")
-      ->check(CLI::Range(1, 4096));
-  sub->add_flag("--click-dominant,!--click-mean", c.click_dominant,
-                "Click depth and feature: of the feature group of anchors holding the most blending weight at the "
-                "pixel (default), "
-                "or --click-mean: the ray's mean depth and rendered feature");
-  sub->add_option("--click-front-weight", c.click_front_weight,
-                  "With --click-dominant: the nearest feature group along the ray holding at least this much of the "
-                  "pixel's blending weight instead of the heaviest (default 0.3; 0 = the heaviest)")
-      ->check(finite_range(0.0, 0.999));
+  add_setting_options(sub, query_settings(), c);
 }
 
 void add_query_request_options(CLI::App* sub, QueryRequest& r) {

@@ -13,6 +13,7 @@
 
 #include "host/core/quantile.h"
 #include "host/core/timing.h"
+#include "queries/query_settings.h"
 
 namespace ag2gs {
 
@@ -23,28 +24,13 @@ namespace {
 // ------------------------------------------------------------------ config
 
 nlohmann::json QueryConfig::to_json() const {
-  return {{"graph_cell_scale", graph_cell_scale},
-          {"tau", tau},
-          {"min_weight", min_weight},
-          {"text_margin", text_margin},
-          {"min_click_alpha", min_click_alpha},
-          {"mask_threshold", mask_threshold},
-          {"click_candidates", click_candidates},
-          {"click_dominant", click_dominant},
-          {"click_front_weight", click_front_weight},
-          {"grow", grow}};
+  return settings_to_json(query_settings(), *this);
 }
 
 void QueryConfig::validate() const {
-  auto bad = [](const std::string& what) { throw std::invalid_argument("query config: " + what); };
-  if (graph_cell_scale < 1 || graph_cell_scale > 1024) bad("graph_cell_scale must lie in 1..1024");
-  if (!(tau > 0) || !std::isfinite(tau)) bad("tau must be a positive finite number");
-  if (!(min_weight > 0 && min_weight < 1)) bad("min_weight (edge weight threshold) must lie in (0, 1)");
-  if (!(text_margin >= 0) || !std::isfinite(text_margin)) bad("text_margin must be >= 0");
-  if (!(min_click_alpha >= 0 && min_click_alpha <= 1)) bad("min_click_alpha must lie in [0, 1]");
-  if (!(mask_threshold >= 0 && mask_threshold < 1)) bad("mask_threshold must lie in [0, 1)");
-  if (click_candidates < 1 || click_candidates > 4096) bad("click_candidates must lie in 1..4096");
-  if (!(click_front_weight >= 0.f && click_front_weight < 1.f)) bad("click_front_weight must lie in [0, 1)");
+  // Each setting's range: queries/query_settings.cpp.
+  if (const std::string p = settings_problem(query_settings(), *this); !p.empty())
+    throw std::invalid_argument("query config: " + p);
 }
 
 double QueryConfig::equivalent_distance() const {

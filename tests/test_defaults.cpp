@@ -15,6 +15,7 @@
 #include "cli_test_util.h"
 #include "io_test_util.h"
 #include "queries/query.h"
+#include "queries/query_settings.h"
 #include "test_util.h"
 #include "train/anchors/voxel_rule.h"
 #include "train/baseline/free_train_settings.h"
@@ -375,6 +376,28 @@ TEST(Defaults, EveryBaselineSettingIsOneRowOfItsTable) {
     EXPECT_EQ(r.output.find("\"iterations\""), std::string::npos) << r.output;
   }
   EXPECT_FALSE(std::filesystem::exists("/nonexistent/b"));
+}
+
+// The query's settings (queries/query_settings.h) are a table as well: the
+// JSON has a key per row, `query --help` every flag of it, and the library
+// refuses a value out of range naming its key and flag.
+TEST(Defaults, EveryQuerySettingIsOneRowOfItsTable) {
+  const QueryConfig d;
+  const nlohmann::json j = d.to_json();
+  EXPECT_EQ(j.size(), query_settings().size());
+  const test::CliResult help = test::run_cli("query --help");
+  for (const QuerySetting& s : query_settings()) {
+    EXPECT_TRUE(j.contains(s.pointer())) << s.key;
+    if (s.is_flag()) EXPECT_NE(help.output.find(s.flag_name()), std::string::npos) << s.flag_name();
+  }
+  EXPECT_NE(help.output.find("--click-mean"), std::string::npos);
+  QueryConfig bad = d;
+  bad.click_candidates = 0;
+  test::expect_error_with<std::invalid_argument>([&] { bad.validate(); }, {"click_candidates", "--click-candidates"});
+  bad = d;
+  bad.mask_threshold = 1;  // no flag: named by its key
+  test::expect_error_with<std::invalid_argument>([&] { bad.validate(); }, {"mask_threshold"});
+  EXPECT_NO_THROW(d.validate());
 }
 
 // The same for `baseline` (FreeTrainConfig) and `query` (QueryConfig): with
