@@ -7,7 +7,7 @@
 // means into weighted means: sum_p w_p sum_c term / (3 sum_p w_p).
 //
 // Precision (float32, measured against a double reference in
-// tests/test_image_loss.cpp): loss within ~5e-7; gradient within ~2e-5 of
+// tests/host/losses/test_image_loss.cpp): loss within ~5e-7; gradient within ~2e-5 of
 // its largest entry, up to ~1e-4 on smooth low-contrast images, whose small
 // window variances make the SSIM partials large and cancelling (the same
 // formulation, and error, as 3DGS's autograd SSIM).

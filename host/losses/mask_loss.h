@@ -22,7 +22,7 @@
 // the terms that do not exist; nothing is ever NaN unless the inputs are.
 // Gradients use sign(0) = 0; the full chain through Gbar_j is included.
 //
-// Precision (float32 against the double reference, tests/test_mask_loss.cpp,
+// Precision (float32 against the double reference, tests/host/losses/test_mask_loss.cpp,
 // up to 160x120 and 40 masks): losses within ~1e-7 relative, gradients within
 // ~2e-7 of their largest entry. Means are float sums over a mask's pixels, so
 // the error grows slowly with mask size; where a pixel's feature lies within

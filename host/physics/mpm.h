@@ -61,7 +61,7 @@ struct MpmConfig {
   // Viscous drag on the grid's velocities (1/s): each substep divides them by
   // 1 + damping dt. 0 (default) leaves the dynamics undamped; a large value
   // removes inertia, so a collapse creeps to the state a slow release would
-  // reach (tests/test_mpm.cpp).
+  // reach (tests/host/physics/test_mpm.cpp).
   double damping = 0;
 };
 

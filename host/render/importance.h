@@ -11,7 +11,7 @@
 // so the result has the same bits on every run and thread count, and equals
 // the backward of an upstream gradient of 1 on feature channel 0 (a rendered
 // feature channel is sum_i w_i f_i, so that gradient of f_i is sum w_i);
-// tests/test_importance.cpp checks both. Views are added on the host in
+// tests/host/render/test_render_backward.cpp checks both. Views are added on the host in
 // double, in order.
 #pragma once
 

@@ -31,7 +31,7 @@ int sky_bake_count(int degree) {
   // Lattice spacings of about 8.3, 5.2, 4.5 and 3.7 degrees. On a generated
   // open-sky scene (degree 3) the .ply renders 46.1 dB from the model's
   // render with 2,000, 47.6 dB with 3,000 and 48.8 dB with 10,000; on
-  // tests/test_sky_bake.cpp's random skies the worst view is at 40-57 dB.
+  // tests/host/render/test_sky_bake.cpp's random skies the worst view is at 40-57 dB.
   static constexpr int kCount[] = {600, 1500, 2000, 3000};
   if (degree < 0 || degree > kSkyMaxDegree) throw std::invalid_argument("sky degree " + std::to_string(degree));
   return kCount[degree];

@@ -2,7 +2,7 @@
 // analytic backward), implementing docs/rasterizer.md literally: no tiles, every
 // pixel loops over all visible Gaussians in (z, index) order. The device kernels
 // are compared against it, and it is itself checked against central finite
-// differences (tests/test_reference_gradients.cpp).
+// differences (tests/host/render/test_reference_gradients.cpp).
 //
 // Culling by extent (step 9) uses the exact box [u - rx, u + rx] x [v - ry, v + ry]
 // without the kernels' 0.1% + 0.01 px widening: a Gaussian is visible when some

@@ -17,7 +17,7 @@
 // when no clustered Gaussian blends).
 //
 // Precision: the weights are the rendered float weights bit for bit; W_c is
-// their float sum in blending order (tests/test_clustering.cpp measures it
+// their float sum in blending order (tests/train/stage3/test_clustering.cpp measures it
 // against a double reference). Pixels whose exact W_c lies within that
 // rounding of min_fraction may go either way.
 //
