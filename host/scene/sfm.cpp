@@ -1,5 +1,7 @@
 #include "host/scene/sfm.h"
 
+#include <poll.h>
+#include <signal.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -18,6 +20,7 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 #include <regex>
+#include <sstream>
 #include <stdexcept>
 #include <thread>
 
@@ -37,8 +40,47 @@ void say(const SfmOptions& o, const std::string& line) {
   if (o.progress) o.progress(line);
 }
 
+// run_logged's status for a program that stopped making progress and was killed.
+constexpr int kStalled = -2;
+
+// Seconds without output and without CPU time after which a COLMAP step
+// counts as hung (AG2GS_SFM_STALL_SECONDS overrides; the tests use 2). A
+// working step prints or computes; COLMAP's feature extractor has been seen
+// to deadlock at 0% CPU on a busy 2-core machine, which would wait forever.
+int stall_seconds() {
+  if (const char* env = std::getenv("AG2GS_SFM_STALL_SECONDS"); env && *env) {
+    const int v = std::atoi(env);
+    if (v > 0) return v;
+  }
+  return 300;
+}
+
+// The process's CPU time so far in clock ticks (user + system, from
+// /proc/PID/stat), or -1 when it cannot be read.
+long long cpu_ticks(pid_t pid) {
+  std::ifstream f("/proc/" + std::to_string(static_cast<long>(pid)) + "/stat");
+  std::string stat;
+  if (!std::getline(f, stat)) return -1;
+  const size_t close = stat.rfind(')');  // the command name may hold spaces
+  if (close == std::string::npos) return -1;
+  std::istringstream rest(stat.substr(close + 1));
+  std::string field;
+  long long utime = -1, stime = -1;
+  for (int i = 3; rest >> field; ++i) {  // field 3 is the state
+    if (i == 14) utime = std::atoll(field.c_str());
+    if (i == 15) {
+      stime = std::atoll(field.c_str());
+      break;
+    }
+  }
+  return utime < 0 || stime < 0 ? -1 : utime + stime;
+}
+
 // Runs argv[0] with its arguments, appending stdout+stderr to `log`; `on_line`
-// sees every output line. Returns the exit status (-1 when it could not run).
+// sees every output line. Returns the exit status (-1 when it could not run,
+// kStalled when it printed nothing and used no CPU time for stall_seconds()
+// and was killed). It stays in our process group, so that Ctrl-C stops it
+// with us.
 int run_logged(const std::vector<std::string>& argv, std::ofstream& log, std::deque<std::string>& tail,
                const std::function<void(const std::string&)>& on_line) {
   log << "$";
@@ -70,10 +112,31 @@ int run_logged(const std::vector<std::string>& argv, std::ofstream& log, std::de
   ::close(fds[1]);
   std::string pending;
   char buf[4096];
+  using Clock = std::chrono::steady_clock;
+  const auto limit = std::chrono::seconds(stall_seconds());
+  auto active = Clock::now();
+  long long ticks = cpu_ticks(pid);
+  bool stalled = false;
   for (;;) {
+    pollfd pfd{fds[0], POLLIN, 0};
+    const int ready = ::poll(&pfd, 1, 1000);
+    if (ready < 0 && errno == EINTR) continue;
+    if (ready == 0) {
+      const long long now_ticks = cpu_ticks(pid);
+      if (now_ticks != ticks) {
+        ticks = now_ticks;
+        active = Clock::now();
+      } else if (Clock::now() - active > limit) {
+        ::kill(pid, SIGKILL);
+        stalled = true;
+        break;
+      }
+      continue;
+    }
     const ssize_t n = ::read(fds[0], buf, sizeof buf);
     if (n < 0 && errno == EINTR) continue;
     if (n <= 0) break;
+    active = Clock::now();
     log.write(buf, n);
     pending.append(buf, static_cast<size_t>(n));
     size_t pos;
@@ -90,6 +153,11 @@ int run_logged(const std::vector<std::string>& argv, std::ofstream& log, std::de
   log.flush();
   int status = 0;
   while (::waitpid(pid, &status, 0) < 0 && errno == EINTR) {
+  }
+  if (stalled) {
+    log << "[ag2gs] no output and no CPU time for " << stall_seconds() << " s: stopped\n";
+    log.flush();
+    return kStalled;
   }
   if (WIFEXITED(status)) return WEXITSTATUS(status);
   return -1;
@@ -160,7 +228,7 @@ void run_step(const Step& step, std::ofstream& log, const std::string& log_path,
   static const std::regex registering(R"(Registering image #(\d+) \((\d+)\))");
   auto last = t0;
   int last_decile = -1, shown = 0;
-  const int rc = run_logged(step.argv, log, tail, [&](const std::string& line) {
+  auto on_line = [&](const std::string& line) {
     const auto now = Clock::now();
     const double el = std::chrono::duration<double>(now - t0).count();
     const bool due = shown == 0 || now - last >= std::chrono::seconds(10);
@@ -184,8 +252,18 @@ void run_step(const Step& step, std::ofstream& log, const std::string& log_path,
     say(o, update);
     last = now;
     ++shown;
-  });
+  };
+  int rc = run_logged(step.argv, log, tail, on_line);
+  if (rc == kStalled) {
+    // A hang is not the input's fault: one more try.
+    say(o, step.name + ": colmap printed nothing and used no CPU time for " + std::to_string(stall_seconds()) +
+               " s; stopped it, trying the step once more");
+    rc = run_logged(step.argv, log, tail, on_line);
+  }
   const double s = std::chrono::duration<double>(Clock::now() - t0).count();
+  if (rc == kStalled)
+    throw std::runtime_error(step.name + " hung twice (colmap printed nothing and used no CPU time for " +
+                             std::to_string(stall_seconds()) + " s each time, and was stopped); full log: " + log_path);
   if (rc != 0) {
     std::string msg = step.name + " failed (colmap exit status " + std::to_string(rc) + ")";
     if (rc == 127) msg += "; could not run " + step.argv[0] + ": " + kInstallHint;

@@ -6,14 +6,15 @@
 
 #include <Eigen/Geometry>
 #include <Eigen/SVD>
+#include <chrono>
 #include <cmath>
 #include <filesystem>
 
 #include "host/io/colmap_reader.h"
 #include "host/scene/scene.h"
 #include "host/scene/sfm.h"
-#include "tests/io_test_util.h"
 #include "synth/synth_scene.h"
+#include "tests/io_test_util.h"
 
 namespace fs = std::filesystem;
 using namespace ag2gs;
@@ -125,6 +126,36 @@ TEST(Sfm, MissingColmapSaysHowToInstallIt) {
   expect_error_with<std::runtime_error>([&] { run_sfm(dir.file("photos"), dir.file("out"), o); },
                                         {"apt-get install colmap"});
   EXPECT_FALSE(fs::exists(dir.file("out")));
+}
+
+// A COLMAP step that hangs (no output, no CPU time) is stopped after the
+// stall limit, tried once more, and then reported by name; the output
+// folder is not created and the log says what happened. The stand-in
+// "colmap" sleeps (exec, so that killing it closes the pipe).
+TEST(Sfm, AHungColmapIsStoppedAndReported) {
+  ScratchDir dir("sfm");
+  fs::create_directories(dir.path() / "photos");
+  write_bytes(dir.file("photos/a.jpg"), "x");
+  write_bytes(dir.file("photos/b.jpg"), "y");
+  const std::string fake = dir.file("colmap");
+  write_bytes(fake, "#!/bin/sh\nexec sleep 1000\n");
+  fs::permissions(fake, fs::perms::owner_all);
+  ::setenv("AG2GS_SFM_STALL_SECONDS", "2", 1);
+  SfmOptions o;
+  o.colmap = fake;
+  std::vector<std::string> said;
+  o.progress = [&](const std::string& line) { said.push_back(line); };
+  const auto t0 = std::chrono::steady_clock::now();
+  expect_error_with<std::runtime_error>([&] { run_sfm(dir.file("photos"), dir.file("out"), o); },
+                                        {"hung twice", "no CPU time", "sfm_log"});
+  ::unsetenv("AG2GS_SFM_STALL_SECONDS");
+  EXPECT_LT(std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count(), 30.0);
+  EXPECT_FALSE(fs::exists(dir.file("out")));
+  bool retried = false;
+  for (const std::string& l : said) retried = retried || l.find("trying the step once more") != std::string::npos;
+  EXPECT_TRUE(retried);
+  const std::string log = ag2gs::test::read_bytes(dir.file("out.sfm_log.txt"));
+  EXPECT_NE(log.find("no output and no CPU time"), std::string::npos) << log;
 }
 
 TEST(Sfm, BadInputFoldersAreClearErrors) {
