@@ -240,7 +240,9 @@ cl::Program Runtime::program(const std::string& file, const std::map<std::string
   // A kernel may ask for its own vector width (the blend backward's plan).
   if (!defines.count("VW")) header += "#define VW " + std::to_string(vector_width_) + "\n";
   std::string source = header + kernel_source("layout.h") + kernel_source("common.cl") + "\n#line 1\n" + kernel_source(file);
-  std::string options = "-cl-std=CL1.2";
+  // Arg info: each launch checks its arguments against the kernel's own
+  // declaration (kernel_signature).
+  std::string options = "-cl-std=CL1.2 -cl-kernel-arg-info";
   // OpenCL lets x / y and sqrt be off by a few ulp, and a GPU compiler may
   // then divide differently in two kernels that share a helper (NVIDIA's
   // does: the mask loss's G = F / alpha came out with other bits in its
@@ -420,6 +422,69 @@ LaunchShape choose_launch_shape(Runtime& rt, const std::string& who, int work_gr
                                " work-items per group, fewer than " + std::to_string(shape.work_group));
     shape.work_group /= 2;
   }
+}
+
+// ------------------------------------------------------------------ kernel arguments
+std::shared_ptr<const KernelSignature> kernel_signature(const cl::Kernel& k) {
+  static std::mutex mutex;
+  static std::map<cl_kernel, std::shared_ptr<const KernelSignature>> signatures;
+  std::lock_guard<std::mutex> lock(mutex);
+  // Keyed by the handle, which OpenCL may give to another kernel once this
+  // one is released: an entry counts only while its name and count match.
+  const std::string name = k.getInfo<CL_KERNEL_FUNCTION_NAME>();
+  const size_t num_args = k.getInfo<CL_KERNEL_NUM_ARGS>();
+  std::shared_ptr<const KernelSignature>& entry = signatures[k()];
+  if (entry && entry->kernel == name && entry->num_args == num_args) return entry;
+  auto fresh = std::make_shared<KernelSignature>();
+  KernelSignature& sig = *fresh;
+  sig.kernel = name;
+  sig.num_args = num_args;
+  for (cl_uint i = 0; i < sig.num_args; ++i) {
+    KernelParam p;
+    cl_int e1 = CL_SUCCESS, e2 = CL_SUCCESS, e3 = CL_SUCCESS;
+    p.name = k.getArgInfo<CL_KERNEL_ARG_NAME>(i, &e1);
+    p.type = k.getArgInfo<CL_KERNEL_ARG_TYPE_NAME>(i, &e2);
+    p.space = k.getArgInfo<CL_KERNEL_ARG_ADDRESS_QUALIFIER>(i, &e3);
+    if (e1 != CL_SUCCESS || e2 != CL_SUCCESS || e3 != CL_SUCCESS) {
+      sig.params.clear();  // not reported: the count alone is checked
+      break;
+    }
+    // Some drivers end the names with NULs.
+    for (std::string* s : {&p.name, &p.type})
+      while (!s->empty() && s->back() == '\0') s->pop_back();
+    sig.params.push_back(p);
+  }
+  entry = fresh;
+  return entry;
+}
+
+void check_kernel_arg_count(const KernelSignature& sig, size_t given) {
+  if (given != sig.num_args)
+    throw std::invalid_argument("kernel " + sig.kernel + " takes " + std::to_string(sig.num_args) +
+                                " arguments; the host passed " + std::to_string(given));
+}
+
+void check_kernel_arg(const KernelSignature& sig, cl_uint index, HostArgKind given) {
+  if (index >= sig.params.size()) return;
+  const KernelParam& p = sig.params[index];
+  const bool pointer = !p.type.empty() && p.type.back() == '*';
+  const bool buffer = pointer && (p.space == CL_KERNEL_ARG_ADDRESS_GLOBAL || p.space == CL_KERNEL_ARG_ADDRESS_CONSTANT);
+  const bool local = p.space == CL_KERNEL_ARG_ADDRESS_LOCAL;
+  std::string wrong;
+  switch (given.kind) {
+    case HostArgKind::kBuffer:
+      if (!buffer) wrong = "a buffer";
+      break;
+    case HostArgKind::kLocal:
+      if (!local) wrong = "local memory";
+      break;
+    case HostArgKind::kScalar:
+      if (pointer || local || (*given.type && p.type != given.type)) wrong = std::string("a scalar ") + given.type;
+      break;
+  }
+  if (!wrong.empty())
+    throw std::invalid_argument("kernel " + sig.kernel + ": argument " + std::to_string(index) + " is '" + p.type +
+                                " " + p.name + "'; the host passed " + wrong + " there (arguments out of order?)");
 }
 
 }  // namespace ag2gs

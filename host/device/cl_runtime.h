@@ -12,6 +12,7 @@
 #include <mutex>
 #include <stdexcept>
 #include <string>
+#include <type_traits>
 #include <utility>
 #include <vector>
 
@@ -155,8 +156,64 @@ class DeviceBuffer {
   size_t capacity_ = 0;
 };
 
+// A kernel's parameters as its program declares them, read once per kernel
+// object: the count (CL_KERNEL_NUM_ARGS) always, and each parameter's name,
+// type name and address space where the device reports them (programs build
+// with -cl-kernel-arg-info; a device may still answer
+// CL_KERNEL_ARG_INFO_NOT_AVAILABLE, and then only the count is checked).
+struct KernelParam {
+  std::string name, type;  // "ranges", "int2*"; "width", "int"
+  cl_kernel_arg_address_qualifier space = CL_KERNEL_ARG_ADDRESS_PRIVATE;
+};
+struct KernelSignature {
+  std::string kernel;
+  size_t num_args = 0;
+  std::vector<KernelParam> params;  // empty without arg info
+};
+std::shared_ptr<const KernelSignature> kernel_signature(const cl::Kernel& k);
+
+// What a host argument is, for the check against the kernel's parameter:
+// a buffer (a __global or __constant pointer), local memory, or a scalar of
+// the OpenCL type `type` ("" when the host type has no checked name: only
+// its being a scalar is checked).
+struct HostArgKind {
+  enum { kBuffer, kLocal, kScalar } kind;
+  const char* type;
+};
+template <typename T>
+constexpr HostArgKind host_arg_kind() {
+  using U = std::decay_t<T>;
+  if constexpr (std::is_same_v<U, DeviceBuffer> || std::is_same_v<U, cl::Buffer>)
+    return {HostArgKind::kBuffer, ""};
+  else if constexpr (std::is_same_v<U, cl::LocalSpaceArg>)
+    return {HostArgKind::kLocal, ""};
+  else if constexpr (std::is_same_v<U, float>)
+    return {HostArgKind::kScalar, "float"};
+  else if constexpr (std::is_same_v<U, double>)
+    return {HostArgKind::kScalar, "double"};
+  else if constexpr (std::is_integral_v<U> && std::is_signed_v<U> && sizeof(U) == 4)
+    return {HostArgKind::kScalar, "int"};
+  else if constexpr (std::is_integral_v<U> && std::is_unsigned_v<U> && sizeof(U) == 4)
+    return {HostArgKind::kScalar, "uint"};
+  else if constexpr (std::is_integral_v<U> && std::is_signed_v<U> && sizeof(U) == 8)
+    return {HostArgKind::kScalar, "long"};
+  else if constexpr (std::is_integral_v<U> && std::is_unsigned_v<U> && sizeof(U) == 8)
+    return {HostArgKind::kScalar, "ulong"};
+  else
+    return {HostArgKind::kScalar, ""};
+}
+// Throws std::invalid_argument naming the kernel, the parameter (position,
+// name, declared type) and what the host passed, when the host argument
+// cannot be the parameter: a buffer for a scalar or the other way round, an
+// int for a float, a count that is not the kernel's.
+void check_kernel_arg(const KernelSignature& sig, cl_uint index, HostArgKind given);
+void check_kernel_arg_count(const KernelSignature& sig, size_t given);
+
 // Sets every argument of `k` in order; buffers pass as DeviceBuffer, scalars
-// as themselves. Errors name the call and the file:line (AG2GS_CL_CHECK).
+// as themselves. Each is first checked against the kernel's own declaration
+// (kernel_signature): a call that passes arguments in another order, or one
+// too few, fails with the parameter's name instead of computing garbage.
+// Errors of OpenCL itself name the call and the file:line (AG2GS_CL_CHECK).
 template <typename T>
 void set_kernel_arg(cl::Kernel& k, cl_uint i, const T& v) {
   AG2GS_CL_CHECK(k.setArg(i, v));
@@ -169,8 +226,10 @@ inline void set_kernel_arg(cl::Kernel& k, cl_uint i, DeviceBuffer& b) {
 }
 template <typename... Args>
 void set_kernel_args(cl::Kernel& k, Args&&... args) {
+  const std::shared_ptr<const KernelSignature> sig = kernel_signature(k);
+  check_kernel_arg_count(*sig, sizeof...(Args));
   cl_uint i = 0;
-  (set_kernel_arg(k, i++, std::forward<Args>(args)), ...);
+  ((check_kernel_arg(*sig, i, host_arg_kind<Args>()), set_kernel_arg(k, i, std::forward<Args>(args)), ++i), ...);
 }
 
 // Work-group size and pixels per work-item for a family of kernels that share

@@ -12,6 +12,7 @@
 #include "host/device/cl_runtime.h"
 #include "host/device/device_policy.h"
 #include "host/device/kernel_source.h"
+#include "tests/io_test_util.h"
 #include "tests/test_util.h"
 
 namespace fs = std::filesystem;
@@ -148,6 +149,40 @@ TEST(Runtime, BuffersGrowAndTimingsAreRecorded) {
   auto t = rt.take_timings();
   ASSERT_EQ(t.count("iota"), 1u);
   EXPECT_GE(t["iota"], 0.0);
+}
+
+// Each launch's arguments are checked against the kernel's own declaration:
+// iota(int n, __global uint* out). A buffer where the count goes, a float
+// for the int, or one argument too few are refused, naming the kernel and
+// the parameter, before anything runs; the right call passes.
+TEST(Runtime, KernelArgumentsAreCheckedAgainstTheDeclaration) {
+  Runtime rt;
+  DeviceBuffer b(&rt);
+  b.reserve(64 * sizeof(uint32_t));
+  cl::Kernel k = rt.kernel("bin.cl", "iota", {{"SCAN_BLOCK", "64"}, {"SCAN_WG", "64"}});
+  const std::shared_ptr<const KernelSignature> sig = kernel_signature(k);
+  EXPECT_EQ(sig->kernel, "iota");
+  EXPECT_EQ(sig->num_args, 2u);
+  test::expect_error_with<std::invalid_argument>([&] { set_kernel_args(k, 64); }, {"iota", "takes 2", "passed 1"});
+  // PoCL reports arg info (also for kernels loaded from the cache); where a
+  // device does not, the count alone is checked.
+  if (rt.info().platform.find("Portable Computing Language") != std::string::npos) {
+    ASSERT_EQ(sig->params.size(), 2u);
+    EXPECT_EQ(sig->params[1].name, "out");
+  }
+  if (sig->params.size() == 2) {
+    EXPECT_EQ(sig->params[0].type, "int");
+    test::expect_error_with<std::invalid_argument>([&] { set_kernel_args(k, b, 64); },
+                                                   {"iota", "argument 0", "a buffer"});
+    test::expect_error_with<std::invalid_argument>([&] { set_kernel_args(k, 64.f, b); },
+                                                   {"argument 0", "int", "a scalar float"});
+    test::expect_error_with<std::invalid_argument>([&] { set_kernel_args(k, 64, 7); }, {"argument 1", "uint*"});
+  }
+  set_kernel_args(k, 64, b);
+  rt.launch("iota", k, cl::NDRange(64), cl::NDRange(64));
+  std::vector<uint32_t> out;
+  b.download(out, 64);
+  for (uint32_t i = 0; i < 64; ++i) ASSERT_EQ(out[i], i);
 }
 
 // A store to one component of a vector element of a buffer (ranges[t].x = i)
