@@ -12,10 +12,10 @@
 
 #include "apps/removal/removal.h"
 #include "apps/simulation/simulate.h"
-#include "tests/cli_test_util.h"
-#include "tests/io_test_util.h"
 #include "queries/query.h"
 #include "queries/query_settings.h"
+#include "tests/cli_test_util.h"
+#include "tests/io_test_util.h"
 #include "tests/test_util.h"
 #include "train/anchors/voxel_rule.h"
 #include "train/baseline/free_train_settings.h"
@@ -60,7 +60,9 @@ SceneBounds bounds_of(double extent) {
 TEST(VoxelRule, FootprintGivesTheExpectedVoxel) {
   AnchorConfig c;  // defaults: voxel_size 0, top_cells 0 -> the footprint rule
   const std::vector<Camera> cams{forward_camera()};
-  const VoxelChoice v = choose_top_voxel(c, bounds_of(20), plane_points(500, 10, 1), cams);
+  // 4000 points over the 18 x 8 plane lie about 1 px apart: the spacing
+  // floor stays below the footprint.
+  const VoxelChoice v = choose_top_voxel(c, bounds_of(20), plane_points(4000, 10, 1), cams);
   EXPECT_EQ(v.rule, "footprint");
   EXPECT_NEAR(v.pixel_size, 0.1, 1e-12);
   EXPECT_NEAR(v.top_voxel, 16 * kFinestVoxelPixels * 0.1, 1e-12);
@@ -68,7 +70,7 @@ TEST(VoxelRule, FootprintGivesTheExpectedVoxel) {
   // Two layers of ratio 2: top = 2 x the finest.
   c.layers = 2;
   c.layer_ratio = 2;
-  EXPECT_NEAR(choose_top_voxel(c, bounds_of(20), plane_points(500, 10, 1), cams).top_voxel, 0.2, 1e-12);
+  EXPECT_NEAR(choose_top_voxel(c, bounds_of(20), plane_points(4000, 10, 1), cams).top_voxel, 0.2, 1e-12);
   // The describe line names the rule and the pixel size.
   EXPECT_NE(v.describe(3, 4).find("0.1 per pixel"), std::string::npos) << v.describe(3, 4);
 }
@@ -76,7 +78,7 @@ TEST(VoxelRule, FootprintGivesTheExpectedVoxel) {
 TEST(VoxelRule, OutliersDuplicatesAndFewPointsDoNotMoveIt) {
   AnchorConfig c;
   const std::vector<Camera> cams{forward_camera()};
-  std::vector<Eigen::Vector3d> p = plane_points(600, 10, 2);
+  std::vector<Eigen::Vector3d> p = plane_points(4000, 10, 2);
   const double clean = choose_top_voxel(c, bounds_of(20), p, cams).top_voxel;
   // 20% outliers far away and very near, behind the camera, non-finite, and
   // every point duplicated three times more.
@@ -95,6 +97,36 @@ TEST(VoxelRule, OutliersDuplicatesAndFewPointsDoNotMoveIt) {
   far.t = Eigen::Vector3d(0, 0, 10);  // the plane at depth 20: pixel 0.2
   const std::vector<Camera> three{forward_camera(), forward_camera(), far};
   EXPECT_NEAR(choose_top_voxel(c, bounds_of(20), p, three).top_voxel, clean, 1e-12);  // median view
+}
+
+// The floor: points a known distance apart on a grid (spacing 0.5 at a pixel
+// of 0.1, 5 px) make the finest voxel 0.5 / kPointSpacingPerFinestVoxel, not
+// one pixel; the spacing ignores duplicates and non-finite points, and the
+// log line names the rule. A grid 0.1 apart keeps the footprint.
+TEST(VoxelRule, SparsePointsSetTheFloor) {
+  AnchorConfig c;
+  const std::vector<Camera> cams{forward_camera()};
+  auto grid = [](double step) {
+    std::vector<Eigen::Vector3d> g;
+    for (double x = -8; x <= 8; x += step)
+      for (double y = -3.5; y <= 3.5; y += step) g.emplace_back(x, y, 10);
+    return g;
+  };
+  std::vector<Eigen::Vector3d> sparse = grid(0.5);
+  EXPECT_NEAR(median_point_spacing(sparse), 0.5, 1e-9);
+  const std::vector<Eigen::Vector3d> copy = sparse;
+  sparse.insert(sparse.end(), copy.begin(), copy.end());  // every point twice
+  sparse.emplace_back(NAN, 0, 10);
+  EXPECT_NEAR(median_point_spacing(sparse), 0.5, 1e-9);
+  const VoxelChoice v = choose_top_voxel(c, bounds_of(20), sparse, cams);
+  EXPECT_EQ(v.rule, "point spacing");
+  EXPECT_NEAR(v.pixel_size, 0.1, 1e-12);
+  EXPECT_NEAR(v.top_voxel, 16 * 0.5 / kPointSpacingPerFinestVoxel, 1e-9);
+  EXPECT_NE(v.describe(3, 4).find("median spacing"), std::string::npos) << v.describe(3, 4);
+  const VoxelChoice dense = choose_top_voxel(c, bounds_of(20), grid(0.1), cams);
+  EXPECT_EQ(dense.rule, "footprint");
+  EXPECT_NEAR(dense.top_voxel, 16 * 0.1, 1e-12);
+  EXPECT_EQ(median_point_spacing({Eigen::Vector3d(1, 2, 3)}), 0.0);
 }
 
 TEST(VoxelRule, OverridesAndFallback) {

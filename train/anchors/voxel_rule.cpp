@@ -5,6 +5,8 @@
 #include <cstdio>
 #include <stdexcept>
 
+#include "host/core/nearest.h"
+
 namespace ag2gs {
 namespace {
 
@@ -44,6 +46,19 @@ double median_pixel_size(const std::vector<Eigen::Vector3d>& points, const std::
   return per_view.empty() ? 0.0 : median_of(per_view);
 }
 
+double median_point_spacing(const std::vector<Eigen::Vector3d>& points) {
+  std::vector<Eigen::Vector3d> distinct;
+  for (const Eigen::Vector3d& p : points)
+    if (p.allFinite()) distinct.push_back(p);
+  std::sort(distinct.begin(), distinct.end(), [](const Eigen::Vector3d& a, const Eigen::Vector3d& b) {
+    return std::lexicographical_compare(a.data(), a.data() + 3, b.data(), b.data() + 3);
+  });
+  distinct.erase(std::unique(distinct.begin(), distinct.end()), distinct.end());
+  if (distinct.size() < 2) return 0.0;
+  std::vector<double> d = nearest_squared_distances(distinct, 1);
+  return std::sqrt(median_of(d));
+}
+
 VoxelChoice choose_top_voxel(const AnchorConfig& config, const SceneBounds& bounds,
                              const std::vector<Eigen::Vector3d>& points, const std::vector<Camera>& cameras) {
   VoxelChoice c;
@@ -59,8 +74,11 @@ VoxelChoice choose_top_voxel(const AnchorConfig& config, const SceneBounds& boun
     c.pixel_size = median_pixel_size(points, cameras, &c.views_used);
     const double layers_factor = std::pow(static_cast<double>(config.layer_ratio), config.layers - 1);
     if (c.pixel_size > 0 && std::isfinite(c.pixel_size)) {
-      c.top_voxel = kFinestVoxelPixels * c.pixel_size * layers_factor;
-      c.rule = "footprint";
+      c.point_spacing = median_point_spacing(points);
+      const double footprint = kFinestVoxelPixels * c.pixel_size;
+      const double floor = c.point_spacing / kPointSpacingPerFinestVoxel;
+      c.rule = floor > footprint ? "point spacing" : "footprint";
+      c.top_voxel = std::max(footprint, floor) * layers_factor;
     } else {
       c.top_voxel = c.extent / kFallbackTopCells;
       c.rule = "fallback";
@@ -76,10 +94,13 @@ VoxelChoice choose_top_voxel(const AnchorConfig& config, const SceneBounds& boun
 std::string VoxelChoice::describe(int layers, int layer_ratio) const {
   const double finest = top_voxel / std::pow(static_cast<double>(layer_ratio), layers - 1);
   std::string why;
-  if (rule == "footprint")
+  if (rule == "footprint" || rule == "point spacing") {
     why = "a finest voxel of " + fmt_g(finest / pixel_size) + " px at the points' median depth (" + fmt_g(pixel_size) +
           " per pixel, " + std::to_string(views_used) + " views)";
-  else if (rule == "fallback")
+    const std::string spacing = "the SfM points' median spacing (" + fmt_g(point_spacing) + ", " +
+                                fmt_g(point_spacing / pixel_size) + " px) / " + fmt_g(kPointSpacingPerFinestVoxel);
+    why += rule == "footprint" ? "; " + spacing + " is finer" : ": " + spacing + ", coarser than 1 px";
+  } else if (rule == "fallback")
     why = "no training view sees a SfM point: the robust extent / " + std::to_string(kFallbackTopCells);
   else
     why = "as given by " + rule;

@@ -16,6 +16,15 @@
 // no point in front of any view the rule falls back to the robust extent of
 // the points divided by kFallbackTopCells.
 //
+// Floor (point spacing): the finest voxel is also at least the SfM points'
+// median spacing (each distinct point's distance to its nearest other one)
+// divided by kPointSpacingPerFinestVoxel. A pixel shrinks with the training
+// resolution while the points that seed the anchors do not get denser: at
+// 530x946 the fox's points lie 3.5 px apart and one-pixel voxels seeded
+// nearly an anchor per point, growing 56% more Gaussians than at half the
+// size, where the baseline's count does not grow. Growth still adds finer
+// anchors where the images ask (docs/benchmarks.md, "The voxel floor").
+//
 // Measured against fixed cell counts on the panel (README, train section).
 #pragma once
 
@@ -31,13 +40,19 @@ namespace ag2gs {
 
 // Pixels covered by a finest-layer voxel edge at the points' median depth.
 inline constexpr double kFinestVoxelPixels = 1.0;
+// The finest voxel is at least the points' median spacing / this. The
+// generated scenes' points lie 1.2-2.3 px apart and keep one-pixel voxels;
+// the sparse captures (kumamon, the fox at 530x946: 3.4-3.5 px) get 1.5 px.
+inline constexpr double kPointSpacingPerFinestVoxel = 2.25;
 // Top-layer cells along the robust extent when the footprint has no data.
 inline constexpr int kFallbackTopCells = 25;
 
 struct VoxelChoice {
   double top_voxel = 0;   // edge of a top-layer voxel, world units
-  std::string rule;       // which rule chose it, for the log ("--voxel-size", "--top-cells", "footprint", ...)
+  std::string rule;       // which rule chose it, for the log ("--voxel-size", "--top-cells", "footprint",
+                          // "point spacing", "fallback")
   double pixel_size = 0;  // footprint rule: world size of one pixel at the median depth (0 otherwise)
+  double point_spacing = 0;  // footprint rule: the points' median nearest-neighbour distance (0: fewer than 2)
   int views_used = 0;     // footprint rule: views with at least one point in front and inside
   double extent = 0;      // the robust extent of the points
   // One line for the log: the value and why.
@@ -51,9 +66,14 @@ struct VoxelChoice {
 double median_pixel_size(const std::vector<Eigen::Vector3d>& points, const std::vector<Camera>& cameras,
                          int* views_used = nullptr);
 
+// The median over the distinct finite points of the distance to the nearest
+// other one; 0 with fewer than two distinct points.
+double median_point_spacing(const std::vector<Eigen::Vector3d>& points);
+
 // --voxel-size (config.voxel_size > 0) wins, then --top-cells (> 0, the
 // robust extent / top_cells), then the footprint rule above on `cameras`
-// (the training views at the loaded resolution), then the fallback.
+// (the training views at the loaded resolution) with its point-spacing
+// floor, then the fallback.
 // Throws std::invalid_argument when the result is not a positive finite
 // number (no spread of points and no camera sees one).
 VoxelChoice choose_top_voxel(const AnchorConfig& config, const SceneBounds& bounds,

@@ -7,11 +7,11 @@
 #include <cmath>
 #include <filesystem>
 #include <limits>
-#include <numeric>
 #include <stdexcept>
 
 #include "host/core/counter_rng.h"
 #include "host/core/gaussians.h"
+#include "host/core/nearest.h"
 #include "host/core/scalar_math.h"
 #include "host/io/ply_io.h"
 #include "train/baseline/free_train_settings.h"
@@ -87,43 +87,15 @@ FreeGaussians FreeGaussians::from_points(const std::vector<Eigen::Vector3d>& poi
   for (size_t i = 0; i < points.size(); ++i)
     if (points[i].allFinite()) ids.push_back(static_cast<int>(i));
   const size_t n = ids.size();
-  // Mean squared distance to the 3 nearest other points (3DGS's distCUDA2),
-  // by a sweep along x: candidates are scanned outwards in x order until
-  // the x gap alone exceeds the third-best distance.
-  std::vector<int> order(n);
-  std::iota(order.begin(), order.end(), 0);
-  std::sort(order.begin(), order.end(), [&](int a, int b) {
-    const double xa = points[ids[a]].x(), xb = points[ids[b]].x();
-    return xa < xb || (xa == xb && a < b);
-  });
+  // Mean squared distance to the 3 nearest other points (3DGS's distCUDA2).
+  const std::vector<double> nearest = nearest_squared_distances(points, 3);
   std::vector<double> dist2(n, 0.0);
-  for (size_t oi = 0; oi < n; ++oi) {
-    const Eigen::Vector3d& p = points[ids[order[oi]]];
-    double best[3] = {std::numeric_limits<double>::infinity(), std::numeric_limits<double>::infinity(),
-                      std::numeric_limits<double>::infinity()};
-    auto consider = [&](size_t oj) {
-      const double d = (points[ids[order[oj]]] - p).squaredNorm();
-      if (d < best[2]) {
-        best[2] = d;
-        if (best[2] < best[1]) std::swap(best[1], best[2]);
-        if (best[1] < best[0]) std::swap(best[0], best[1]);
-      }
-    };
-    for (size_t oj = oi + 1; oj < n; ++oj) {
-      const double dx = points[ids[order[oj]]].x() - p.x();
-      if (dx * dx > best[2]) break;
-      consider(oj);
-    }
-    for (size_t oj = oi; oj-- > 0;) {
-      const double dx = p.x() - points[ids[order[oj]]].x();
-      if (dx * dx > best[2]) break;
-      consider(oj);
-    }
+  for (size_t i = 0; i < n; ++i) {
     double sum = 0;
     int k = 0;
-    for (double b : best)
-      if (std::isfinite(b)) sum += b, ++k;
-    dist2[order[oi]] = k > 0 ? sum / k : 1.0;  // a lone point: unit scale
+    for (int j = 0; j < 3; ++j)
+      if (const double b = nearest[static_cast<size_t>(ids[i]) * 3 + j]; std::isfinite(b)) sum += b, ++k;
+    dist2[i] = k > 0 ? sum / k : 1.0;  // a lone point: unit scale
   }
   FreeGaussians g;
   g.resize(n);

@@ -1,0 +1,47 @@
+#include "host/core/nearest.h"
+
+#include <algorithm>
+#include <limits>
+#include <numeric>
+#include <stdexcept>
+
+namespace ag2gs {
+
+std::vector<double> nearest_squared_distances(const std::vector<Eigen::Vector3d>& points, int k) {
+  if (k < 1) throw std::invalid_argument("nearest_squared_distances: k must be >= 1");
+  const double inf = std::numeric_limits<double>::infinity();
+  const size_t kk = static_cast<size_t>(k);
+  std::vector<double> out(points.size() * kk, inf);
+  std::vector<int> order;
+  for (size_t i = 0; i < points.size(); ++i)
+    if (points[i].allFinite()) order.push_back(static_cast<int>(i));
+  std::sort(order.begin(), order.end(), [&](int a, int b) {
+    const double xa = points[a].x(), xb = points[b].x();
+    return xa < xb || (xa == xb && a < b);
+  });
+  const size_t n = order.size();
+  for (size_t oi = 0; oi < n; ++oi) {
+    const Eigen::Vector3d& p = points[order[oi]];
+    double* best = out.data() + static_cast<size_t>(order[oi]) * kk;  // ascending
+    auto consider = [&](size_t oj) {
+      double d = (points[order[oj]] - p).squaredNorm();
+      if (!(d < best[kk - 1])) return;
+      size_t j = kk - 1;
+      for (; j > 0 && best[j - 1] > d; --j) best[j] = best[j - 1];
+      best[j] = d;
+    };
+    for (size_t oj = oi + 1; oj < n; ++oj) {
+      const double dx = points[order[oj]].x() - p.x();
+      if (dx * dx > best[kk - 1]) break;
+      consider(oj);
+    }
+    for (size_t oj = oi; oj-- > 0;) {
+      const double dx = p.x() - points[order[oj]].x();
+      if (dx * dx > best[kk - 1]) break;
+      consider(oj);
+    }
+  }
+  return out;
+}
+
+}  // namespace ag2gs
