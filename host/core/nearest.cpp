@@ -15,8 +15,16 @@ std::vector<double> nearest_squared_distances(const std::vector<Eigen::Vector3d>
   std::vector<int> order;
   for (size_t i = 0; i < points.size(); ++i)
     if (points[i].allFinite()) order.push_back(static_cast<int>(i));
+  // Sweep along the axis of widest spread: points on a plane across x would
+  // make an x sweep visit every pair.
+  int axis = 0;
+  if (!order.empty()) {
+    Eigen::Vector3d lo = points[order[0]], hi = lo;
+    for (int i : order) lo = lo.cwiseMin(points[i]), hi = hi.cwiseMax(points[i]);
+    (hi - lo).maxCoeff(&axis);
+  }
   std::sort(order.begin(), order.end(), [&](int a, int b) {
-    const double xa = points[a].x(), xb = points[b].x();
+    const double xa = points[a][axis], xb = points[b][axis];
     return xa < xb || (xa == xb && a < b);
   });
   const size_t n = order.size();
@@ -31,12 +39,12 @@ std::vector<double> nearest_squared_distances(const std::vector<Eigen::Vector3d>
       best[j] = d;
     };
     for (size_t oj = oi + 1; oj < n; ++oj) {
-      const double dx = points[order[oj]].x() - p.x();
+      const double dx = points[order[oj]][axis] - p[axis];
       if (dx * dx > best[kk - 1]) break;
       consider(oj);
     }
     for (size_t oj = oi; oj-- > 0;) {
-      const double dx = p.x() - points[order[oj]].x();
+      const double dx = p[axis] - points[order[oj]][axis];
       if (dx * dx > best[kk - 1]) break;
       consider(oj);
     }
