@@ -7,6 +7,7 @@
 #include <cstdlib>
 #include <stdexcept>
 
+#include "host/device/kernel_call.h"
 #include "kernels/layout.h"
 
 namespace ag2gs {
@@ -163,8 +164,24 @@ void Renderer::bin(const DeviceGaussians& g, const Camera& cam, const RenderSett
   size_t M = 0;
   if (n > 0) {
     cl::Kernel project = rt_.kernel("project.cl", "project_fwd", pdef);
-    set_kernel_args(project, ni, cam_buf_, g.means, g.scales, g.quats, g.opacities, g.sh, g.features, tiles_x_,
-                    tiles_y_, records_, rects_, tile_counts_, depth_keys_, radii_);
+    const size_t f4 = sizeof(float), K = sh_coeffs_for_degree(g.sh_degree);
+    KernelCall(project)
+        .arg("n", ni)
+        .buffer("cam", cam_buf_, CAM_SIZE * f4)
+        .buffer("means", g.means, n * 3 * f4)
+        .buffer("scales", g.scales, n * 3 * f4)
+        .buffer("quats", g.quats, n * 4 * f4)
+        .buffer("opacities", g.opacities, n * f4)
+        .buffer("sh", g.sh, n * K * 3 * f4)
+        .buffer("features", g.features, n * 3 * f4)
+        .arg("tiles_x", tiles_x_)
+        .arg("tiles_y", tiles_y_)
+        .buffer("records", records_, n * REC_SIZE * f4)
+        .buffer("rects", rects_, n * 4 * f4)
+        .buffer("tile_counts", tile_counts_, n * 4)
+        .buffer("depth_keys", depth_keys_, n * 4)
+        .buffer("radii", radii_, n * 4)
+        .done();
     rt_.launch("project", project, cl::NDRange(n), cl::NDRange(64));
 
     // Depth order of the Gaussians (stable: ties keep index order).
@@ -253,8 +270,25 @@ void Renderer::forward(const DeviceGaussians& g, const Camera& cam, const Render
                                 {{"BATCH", std::to_string(std::max(64, wg))},
                                  {"NO_STAGING", staged_ ? "0" : "1"},
                                  {"WITH_FEAT", settings.features ? "1" : "0"}});
-  set_kernel_args(blend, cam.width, cam.height, tiles_x_, cam_buf_, ranges_, *sorted_isect_vals_, isect_gid_, records_,
-                  out_rgb_, out_feat_, out_depth_, out_alpha_, out_dist_, out_aux_, out_last_, out_count_);
+  const size_t M = stats_.n_intersections, f4 = sizeof(float);
+  KernelCall(blend)
+      .arg("width", cam.width)
+      .arg("height", cam.height)
+      .arg("tiles_x", tiles_x_)
+      .buffer("cam", cam_buf_, CAM_SIZE * f4)
+      .buffer("ranges", ranges_, static_cast<size_t>(ntiles) * 8)
+      .buffer("isect_vals", *sorted_isect_vals_, M * 4)
+      .buffer("isect_gid", isect_gid_, M * 4)
+      .buffer("records", records_, gaussians_->n * REC_SIZE * f4)
+      .buffer("out_rgb", out_rgb_, npix * 3 * f4)
+      .buffer("out_feat", out_feat_, npix * 3 * f4)
+      .buffer("out_depth", out_depth_, npix * f4)
+      .buffer("out_alpha", out_alpha_, npix * f4)
+      .buffer("out_dist", out_dist_, npix * f4)
+      .buffer("out_aux", out_aux_, npix * 4 * f4)
+      .buffer("out_last", out_last_, npix * 4)
+      .buffer("out_count", out_count_, npix * 4)
+      .done();
   rt_.launch("blend_fwd", blend, cl::NDRange(static_cast<size_t>(ntiles) * wg), cl::NDRange(wg));
   have_images_ = true;
   frame_features_ = settings.features;
@@ -343,9 +377,31 @@ void Renderer::backward_from(const DeviceBuffer& g_rgb, const DeviceBuffer& g_fe
                                           {"GRAD_DIST", flag(present.distortion)}};
   const cl::NDRange local = blend_bwd_layout(defs);
   cl::Kernel blend = rt_.kernel("blend_bwd.cl", "blend_bwd", defs);
-  set_kernel_args(blend, cam_.width, cam_.height, tiles_x_, cam_buf_, ranges_, *sorted_isect_vals_, isect_gid_,
-                  records_, out_rgb_, out_feat_, out_depth_, out_aux_, out_last_, g_rgb, g_feat, g_depth, g_alpha,
-                  g_dist, isect_grads_);
+  // An upstream gradient that is not present is not read (its term is
+  // compiled out): any buffer will do there.
+  const size_t npix = static_cast<size_t>(cam_.width) * cam_.height, M = stats_.n_intersections, f4 = sizeof(float);
+  auto plane = [&](bool present, size_t channels) { return present ? npix * channels * f4 : 0; };
+  KernelCall(blend)
+      .arg("width", cam_.width)
+      .arg("height", cam_.height)
+      .arg("tiles_x", tiles_x_)
+      .buffer("cam", cam_buf_, CAM_SIZE * f4)
+      .buffer("ranges", ranges_, static_cast<size_t>(tiles_x_) * tiles_y_ * 8)
+      .buffer("isect_vals", *sorted_isect_vals_, M * 4)
+      .buffer("isect_gid", isect_gid_, M * 4)
+      .buffer("records", records_, gaussians_->n * REC_SIZE * f4)
+      .buffer("out_rgb", out_rgb_, npix * 3 * f4)
+      .buffer("out_feat", out_feat_, npix * 3 * f4)
+      .buffer("out_depth", out_depth_, npix * f4)
+      .buffer("out_aux", out_aux_, npix * 4 * f4)
+      .buffer("out_last", out_last_, npix * 4)
+      .buffer("v_rgb", g_rgb, plane(present.rgb, 3))
+      .buffer("v_feat", g_feat, plane(present.feature, 3))
+      .buffer("v_depth", g_depth, plane(present.depth, 1))
+      .buffer("v_alpha", g_alpha, plane(present.alpha, 1))
+      .buffer("v_dist", g_dist, plane(present.distortion, 1))
+      .buffer("isect_grads", isect_grads_, M * G2_SIZE * f4)
+      .done();
   rt_.launch("blend_bwd", blend, cl::NDRange(static_cast<size_t>(tiles_x_) * tiles_y_ * local[0]), local);
   project_backward();
 }
@@ -394,9 +450,26 @@ void Renderer::project_backward() {
   if (g.n == 0) return;
   std::map<std::string, std::string> pdef{{"SH_K", std::to_string(K)}, {"SH_ACTIVE", std::to_string(sh_active_)}};
   cl::Kernel pb = rt_.kernel("project_bwd.cl", "project_bwd", pdef);
-  set_kernel_args(pb, static_cast<int>(g.n), cam_buf_, g.means, g.scales, g.quats, g.sh, records_, tile_counts_,
-                  isect_start_, isect_grads_, v_means_, v_scales_, v_quats_, v_opacities_, v_sh_, v_features_,
-                  v_means2d_);
+  const size_t f4 = sizeof(float), M = stats_.n_intersections;
+  KernelCall(pb)
+      .arg("n", static_cast<int>(g.n))
+      .buffer("cam", cam_buf_, CAM_SIZE * f4)
+      .buffer("means", g.means, g.n * 3 * f4)
+      .buffer("scales", g.scales, g.n * 3 * f4)
+      .buffer("quats", g.quats, g.n * 4 * f4)
+      .buffer("sh", g.sh, g.n * K * 3 * f4)
+      .buffer("records", records_, g.n * REC_SIZE * f4)
+      .buffer("tile_counts", tile_counts_, g.n * 4)
+      .buffer("isect_start", isect_start_, g.n * 4)
+      .buffer("isect_grads", isect_grads_, M * G2_SIZE * f4)
+      .buffer("v_means", v_means_, g.n * 3 * f4)
+      .buffer("v_scales", v_scales_, g.n * 3 * f4)
+      .buffer("v_quats", v_quats_, g.n * 4 * f4)
+      .buffer("v_opacities", v_opacities_, g.n * f4)
+      .buffer("v_sh", v_sh_, g.n * K * 3 * f4)
+      .buffer("v_features", v_features_, g.n * 3 * f4)
+      .buffer("v_means2d", v_means2d_, g.n * 2 * f4)
+      .done();
   rt_.launch("project_bwd", pb, cl::NDRange(g.n), cl::NDRange(64));
 }
 

@@ -11,6 +11,7 @@
 
 #include "host/device/cl_runtime.h"
 #include "host/device/device_policy.h"
+#include "host/device/kernel_call.h"
 #include "host/device/kernel_source.h"
 #include "tests/io_test_util.h"
 #include "tests/test_util.h"
@@ -179,6 +180,27 @@ TEST(Runtime, KernelArgumentsAreCheckedAgainstTheDeclaration) {
     test::expect_error_with<std::invalid_argument>([&] { set_kernel_args(k, 64, 7); }, {"argument 1", "uint*"});
   }
   set_kernel_args(k, 64, b);
+  rt.launch("iota", k, cl::NDRange(64), cl::NDRange(64));
+  std::vector<uint32_t> out;
+  b.download(out, 64);
+  for (uint32_t i = 0; i < 64; ++i) ASSERT_EQ(out[i], i);
+}
+
+// KernelCall sets arguments by name: a name that is not the parameter at
+// its position, a buffer smaller than the bytes the kernel reaches, or a
+// missing argument are refused naming the kernel; the right call runs.
+TEST(Runtime, KernelCallChecksNamesAndBufferSizes) {
+  Runtime rt;
+  DeviceBuffer b(&rt);
+  b.reserve(64 * sizeof(uint32_t));
+  cl::Kernel k = rt.kernel("bin.cl", "iota", {{"SCAN_BLOCK", "64"}, {"SCAN_WG", "64"}});
+  if (!kernel_signature(k)->params.empty())
+    test::expect_error_with<std::invalid_argument>([&] { KernelCall(k).arg("count", 64); },
+                                                   {"iota", "argument 0", "'int n'", "'count'"});
+  test::expect_error_with<std::logic_error>([&] { KernelCall(k).arg("n", 64).buffer("out", b, 65 * 4); },
+                                            {"iota", "'out'", "256 bytes", "reaches 260"});
+  test::expect_error_with<std::invalid_argument>([&] { KernelCall(k).arg("n", 64).done(); }, {"iota", "takes 2"});
+  KernelCall(k).arg("n", 64).buffer("out", b, 64 * 4).done();
   rt.launch("iota", k, cl::NDRange(64), cl::NDRange(64));
   std::vector<uint32_t> out;
   b.download(out, 64);
