@@ -1,8 +1,5 @@
 #include "train/train_settings.h"
 
-#include <algorithm>
-#include <cmath>
-#include <cstdio>
 #include <limits>
 #include <stdexcept>
 
