@@ -1,8 +1,8 @@
 #include "host/core/nearest.h"
 
 #include <algorithm>
+#include <cstddef>
 #include <limits>
-#include <numeric>
 #include <stdexcept>
 
 namespace ag2gs {
@@ -15,13 +15,20 @@ std::vector<double> nearest_squared_distances(const std::vector<Eigen::Vector3d>
   std::vector<int> order;
   for (size_t i = 0; i < points.size(); ++i)
     if (points[i].allFinite()) order.push_back(static_cast<int>(i));
-  // Sweep along the axis of widest spread: points on a plane across x would
-  // make an x sweep visit every pair.
+  // Sweep along the axis of widest spread, from the 5th to the 95th
+  // percentile so that a few far points do not choose it: points on a plane
+  // across the sweep's axis would make it visit every pair.
   int axis = 0;
-  if (!order.empty()) {
-    Eigen::Vector3d lo = points[order[0]], hi = lo;
-    for (int i : order) lo = lo.cwiseMin(points[i]), hi = hi.cwiseMax(points[i]);
-    (hi - lo).maxCoeff(&axis);
+  double widest = -1;
+  for (int a = 0; a < 3 && !order.empty(); ++a) {
+    std::vector<double> v;
+    v.reserve(order.size());
+    for (int i : order) v.push_back(points[i][a]);
+    const size_t lo = v.size() / 20, hi = v.size() - 1 - v.size() / 20;
+    std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(lo), v.end());
+    const double vlo = v[lo];
+    std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(hi), v.end());
+    if (v[hi] - vlo > widest) widest = v[hi] - vlo, axis = a;
   }
   std::sort(order.begin(), order.end(), [&](int a, int b) {
     const double xa = points[a][axis], xb = points[b][axis];

@@ -1,6 +1,6 @@
 // The k nearest other points of every point of a small 3-d set (SfM points:
 // thousands to a few hundred thousand), exactly, by a sweep along the axis
-// of widest spread: each point's candidates are scanned outwards in that
+// of widest spread (5th to 95th percentile): each point's candidates are scanned outwards in that
 // order until the gap along the axis alone exceeds its k-th best distance.
 // Deterministic (ties keep index order); the distances do not depend on the
 // axis.

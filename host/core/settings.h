@@ -142,9 +142,14 @@ struct Setting {
     const std::string is = name + " is " + j.dump();
     if (!std::isfinite(v)) return is + "; it must be a finite number";
     switch (check) {
-      case Check::kRange:
-        if (!(v >= lo && v <= hi)) return is + "; it must lie in [" + text(lo) + ", " + text(hi) + "]";
+      case Check::kRange: {
+        // A float field holds the bounds as floats too (0.999 is stored as
+        // 0.99900001f, which the flag's own check accepted).
+        double l = lo, h = hi;
+        if (std::holds_alternative<Field<float>>(field)) l = static_cast<float>(lo), h = static_cast<float>(hi);
+        if (!(v >= l && v <= h)) return is + "; it must lie in [" + text(lo) + ", " + text(hi) + "]";
         break;
+      }
       case Check::kNonNegative:
         if (!(v >= 0)) return is + "; it must be >= 0";
         break;

@@ -449,9 +449,14 @@ std::shared_ptr<const KernelSignature> kernel_signature(const cl::Kernel& k) {
       sig.params.clear();  // not reported: the count alone is checked
       break;
     }
-    // Some drivers end the names with NULs.
+    // Some drivers end the names with NULs; an empty name or type is no
+    // information either.
     for (std::string* s : {&p.name, &p.type})
       while (!s->empty() && s->back() == '\0') s->pop_back();
+    if (p.name.empty() || p.type.empty()) {
+      sig.params.clear();
+      break;
+    }
     sig.params.push_back(p);
   }
   entry = fresh;
@@ -463,6 +468,27 @@ void check_kernel_arg_count(const KernelSignature& sig, size_t given) {
     throw std::invalid_argument("kernel " + sig.kernel + " takes " + std::to_string(sig.num_args) +
                                 " arguments; the host passed " + std::to_string(given));
 }
+
+namespace {
+
+// A scalar type name as the spec spells it ("uint" for "unsigned int", which
+// a driver might report), and whether it is one the check compares (a
+// typedef or a vector type is checked for its kind alone).
+std::string scalar_name(std::string t) {
+  static const std::pair<const char*, const char*> spelled[] = {
+      {"unsigned int", "uint"}, {"unsigned long", "ulong"}, {"unsigned short", "ushort"}, {"unsigned char", "uchar"}};
+  for (const auto& [longer, shorter] : spelled)
+    if (t == longer) t = shorter;
+  return t;
+}
+bool is_checked_scalar(const std::string& t) {
+  const std::string n = scalar_name(t);
+  for (const char* k : {"int", "uint", "long", "ulong", "float", "double"})
+    if (n == k) return true;
+  return false;
+}
+
+}  // namespace
 
 void check_kernel_arg(const KernelSignature& sig, cl_uint index, HostArgKind given) {
   if (index >= sig.params.size()) return;
@@ -479,7 +505,8 @@ void check_kernel_arg(const KernelSignature& sig, cl_uint index, HostArgKind giv
       if (!local) wrong = "local memory";
       break;
     case HostArgKind::kScalar:
-      if (pointer || local || (*given.type && p.type != given.type)) wrong = std::string("a scalar ") + given.type;
+      if (pointer || local || (*given.type && is_checked_scalar(p.type) && scalar_name(p.type) != given.type))
+        wrong = std::string("a scalar ") + given.type;
       break;
   }
   if (!wrong.empty())

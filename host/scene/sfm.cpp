@@ -55,32 +55,54 @@ int stall_seconds() {
   return 300;
 }
 
-// The process's CPU time so far in clock ticks (user + system, from
-// /proc/PID/stat), or -1 when it cannot be read.
-long long cpu_ticks(pid_t pid) {
-  std::ifstream f("/proc/" + std::to_string(static_cast<long>(pid)) + "/stat");
-  std::string stat;
-  if (!std::getline(f, stat)) return -1;
-  const size_t close = stat.rfind(')');  // the command name may hold spaces
-  if (close == std::string::npos) return -1;
-  std::istringstream rest(stat.substr(close + 1));
-  std::string field;
-  long long utime = -1, stime = -1;
-  for (int i = 3; rest >> field; ++i) {  // field 3 is the state
-    if (i == 14) utime = std::atoll(field.c_str());
-    if (i == 15) {
-      stime = std::atoll(field.c_str());
-      break;
+// The CPU time so far, in clock ticks (user + system, /proc/PID/stat), of
+// `root` and every process below it (a wrapper script's colmap counts), and
+// their ids in *tree; -1 when /proc cannot be read.
+long long tree_cpu_ticks(pid_t root, std::vector<pid_t>* tree) {
+  struct Proc {
+    pid_t ppid;
+    long long ticks;
+  };
+  std::map<pid_t, Proc> procs;
+  std::error_code ec;
+  for (const auto& entry : fs::directory_iterator("/proc", ec)) {
+    const std::string name = entry.path().filename().string();
+    if (name.empty() || !std::isdigit(static_cast<unsigned char>(name[0]))) continue;
+    std::ifstream f(entry.path() / "stat");
+    std::string stat;
+    if (!std::getline(f, stat)) continue;
+    const size_t close = stat.rfind(')');  // the command name may hold spaces
+    if (close == std::string::npos) continue;
+    std::istringstream rest(stat.substr(close + 1));
+    std::string field;
+    long long ppid = -1, utime = -1, stime = -1;
+    for (int k = 3; rest >> field; ++k) {  // field 3 is the state
+      if (k == 4) ppid = std::atoll(field.c_str());
+      if (k == 14) utime = std::atoll(field.c_str());
+      if (k == 15) {
+        stime = std::atoll(field.c_str());
+        break;
+      }
     }
+    if (ppid >= 0 && utime >= 0 && stime >= 0)
+      procs[static_cast<pid_t>(std::atol(name.c_str()))] = {static_cast<pid_t>(ppid), utime + stime};
   }
-  return utime < 0 || stime < 0 ? -1 : utime + stime;
+  if (!procs.count(root)) return -1;
+  tree->assign(1, root);
+  long long total = 0;
+  for (size_t k = 0; k < tree->size(); ++k) {
+    total += procs[(*tree)[k]].ticks;
+    for (const auto& [id, proc] : procs)
+      if (proc.ppid == (*tree)[k]) tree->push_back(id);
+  }
+  return total;
 }
 
 // Runs argv[0] with its arguments, appending stdout+stderr to `log`; `on_line`
 // sees every output line. Returns the exit status (-1 when it could not run,
 // kStalled when it printed nothing and used no CPU time for stall_seconds()
-// and was killed). It stays in our process group, so that Ctrl-C stops it
-// with us.
+// and was killed with the processes it started). It stays in our process
+// group, so that Ctrl-C stops it with us.
 int run_logged(const std::vector<std::string>& argv, std::ofstream& log, std::deque<std::string>& tail,
                const std::function<void(const std::string&)>& on_line) {
   log << "$";
@@ -115,19 +137,27 @@ int run_logged(const std::vector<std::string>& argv, std::ofstream& log, std::de
   using Clock = std::chrono::steady_clock;
   const auto limit = std::chrono::seconds(stall_seconds());
   auto active = Clock::now();
-  long long ticks = cpu_ticks(pid);
-  bool stalled = false;
+  std::vector<pid_t> tree;
+  long long ticks = tree_cpu_ticks(pid, &tree);
+  const bool watch = ticks >= 0;  // without /proc, no watchdog
+  bool stalled = false, reaped = false;
+  int status = 0;
   for (;;) {
     pollfd pfd{fds[0], POLLIN, 0};
     const int ready = ::poll(&pfd, 1, 1000);
     if (ready < 0 && errno == EINTR) continue;
     if (ready == 0) {
-      const long long now_ticks = cpu_ticks(pid);
+      if (::waitpid(pid, &status, WNOHANG) == pid) {  // gone; something else holds the pipe
+        reaped = true;
+        break;
+      }
+      if (!watch) continue;
+      const long long now_ticks = tree_cpu_ticks(pid, &tree);
       if (now_ticks != ticks) {
         ticks = now_ticks;
         active = Clock::now();
       } else if (Clock::now() - active > limit) {
-        ::kill(pid, SIGKILL);
+        for (pid_t p : tree) ::kill(p, SIGKILL);
         stalled = true;
         break;
       }
@@ -151,8 +181,7 @@ int run_logged(const std::vector<std::string>& argv, std::ofstream& log, std::de
   }
   ::close(fds[0]);
   log.flush();
-  int status = 0;
-  while (::waitpid(pid, &status, 0) < 0 && errno == EINTR) {
+  while (!reaped && ::waitpid(pid, &status, 0) < 0 && errno == EINTR) {
   }
   if (stalled) {
     log << "[ag2gs] no output and no CPU time for " << stall_seconds() << " s: stopped\n";

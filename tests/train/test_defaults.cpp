@@ -426,6 +426,12 @@ TEST(Defaults, EveryQuerySettingIsOneRowOfItsTable) {
   QueryConfig bad = d;
   bad.click_candidates = 0;
   test::expect_error_with<std::invalid_argument>([&] { bad.validate(); }, {"click_candidates", "--click-candidates"});
+  // A float field's bounds are floats too: the flag's own limits pass.
+  QueryConfig edge = d;
+  edge.click_front_weight = 0.999f;
+  edge.min_weight = 1e-6f;
+  edge.tau = 1e-6f;
+  EXPECT_NO_THROW(edge.validate());
   bad = d;
   bad.mask_threshold = 1;  // no flag: named by its key
   test::expect_error_with<std::invalid_argument>([&] { bad.validate(); }, {"mask_threshold"});

@@ -99,7 +99,10 @@ std::string VoxelChoice::describe(int layers, int layer_ratio) const {
           " per pixel, " + std::to_string(views_used) + " views)";
     const std::string spacing = "the SfM points' median spacing (" + fmt_g(point_spacing) + ", " +
                                 fmt_g(point_spacing / pixel_size) + " px) / " + fmt_g(kPointSpacingPerFinestVoxel);
-    why += rule == "footprint" ? "; " + spacing + " is finer" : ": " + spacing + ", coarser than 1 px";
+    if (rule == "point spacing")
+      why += ": " + spacing + ", coarser than " + fmt_g(kFinestVoxelPixels) + " px";
+    else if (point_spacing > 0)
+      why += "; " + spacing + " is finer";
   } else if (rule == "fallback")
     why = "no training view sees a SfM point: the robust extent / " + std::to_string(kFallbackTopCells);
   else

@@ -131,14 +131,15 @@ TEST(Sfm, MissingColmapSaysHowToInstallIt) {
 // A COLMAP step that hangs (no output, no CPU time) is stopped after the
 // stall limit, tried once more, and then reported by name; the output
 // folder is not created and the log says what happened. The stand-in
-// "colmap" sleeps (exec, so that killing it closes the pipe).
+// "colmap" is a script whose child sleeps: both are stopped, which closes
+// the pipe.
 TEST(Sfm, AHungColmapIsStoppedAndReported) {
   ScratchDir dir("sfm");
   fs::create_directories(dir.path() / "photos");
   write_bytes(dir.file("photos/a.jpg"), "x");
   write_bytes(dir.file("photos/b.jpg"), "y");
   const std::string fake = dir.file("colmap");
-  write_bytes(fake, "#!/bin/sh\nexec sleep 1000\n");
+  write_bytes(fake, "#!/bin/sh\nsleep 1000\necho done\n");
   fs::permissions(fake, fs::perms::owner_all);
   ::setenv("AG2GS_SFM_STALL_SECONDS", "2", 1);
   SfmOptions o;
