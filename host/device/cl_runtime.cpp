@@ -445,15 +445,11 @@ std::shared_ptr<const KernelSignature> kernel_signature(const cl::Kernel& k) {
     p.name = k.getArgInfo<CL_KERNEL_ARG_NAME>(i, &e1);
     p.type = k.getArgInfo<CL_KERNEL_ARG_TYPE_NAME>(i, &e2);
     p.space = k.getArgInfo<CL_KERNEL_ARG_ADDRESS_QUALIFIER>(i, &e3);
-    if (e1 != CL_SUCCESS || e2 != CL_SUCCESS || e3 != CL_SUCCESS) {
-      sig.params.clear();  // not reported: the count alone is checked
-      break;
-    }
-    // Some drivers end the names with NULs; an empty name or type is no
-    // information either.
+    // Some drivers end the names with NULs.
     for (std::string* s : {&p.name, &p.type})
       while (!s->empty() && s->back() == '\0') s->pop_back();
-    if (p.name.empty() || p.type.empty()) {
+    // Not reported (an error, or empty names): the count alone is checked.
+    if (e1 != CL_SUCCESS || e2 != CL_SUCCESS || e3 != CL_SUCCESS || p.name.empty() || p.type.empty()) {
       sig.params.clear();
       break;
     }
