@@ -11,10 +11,12 @@
 #include <string>
 
 #include "apps/removal/removal.h"
+#include "apps/removal/removal_settings.h"
 #include "cli/commands.h"
 #include "cli/object_selection.h"
 #include "cli/run_driver.h"
 #include "cli/run_guard.h"
+#include "cli/setting_options.h"
 #include "host/device/cl_runtime.h"
 #include "host/io/atomic_file.h"
 #include "host/io/image_io.h"
@@ -37,10 +39,8 @@ double seconds_since(std::chrono::steady_clock::time_point t0) {
 
 struct RemoveArgs {
   ObjectArgs obj;
-  std::string inpaint = "telea", inpainted;
-  std::string tune_targets = "inpainted";
-  bool no_fill = false;
-  RemovalSettings settings;
+  std::string inpainted;
+  RemovalSettings settings;  // the flags set its fields (apps/removal/removal_settings.h)
 };
 
 // The image an external inpainter wrote for `view`: DIR/<stem>.png (`stem`:
@@ -69,17 +69,10 @@ std::vector<std::string> train_view_stems(const Scene& scene) {
 }
 
 // The settings of the flags that are not RemovalSettings' own fields.
-void fold_flags(RemoveArgs& a) {
-  a.settings.inpaint = parse_inpaint_method(a.inpaint);
-  a.settings.fill_holes = !a.no_fill;
-  a.settings.tune_to_fill = a.tune_targets == "fill";
-}
-
 void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
   const auto t_start = std::chrono::steady_clock::now();
   // ---- everything that can be checked before any work
   check_selection_request(a.obj.request, a.obj.selection);
-  fold_flags(a);
   const RemovalSettings& rs = a.settings;
   rs.validate();
   a.obj.config.validate();
@@ -141,7 +134,7 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
                      all_cameras);
   }
   report.update(result.report);
-  report["inpaint"] = a.inpainted.empty() ? a.inpaint : "external: " + a.inpainted;
+  report["inpaint"] = a.inpainted.empty() ? rs.to_json()["inpaint"] : nlohmann::json("external: " + a.inpainted);
   report["seconds"]["query"] = sel.query_ms / 1000.0;
   report["seconds"]["total"] = seconds_since(t_start);
   AtomicFile f((tmp / "removal.json").string());
@@ -165,63 +158,13 @@ void register_remove(CLI::App& app, GlobalOptions& global) {
   add_object_options(r, a->obj, "Remove",
                      "New folder for the model without the object: model.ag2gs, point_cloud.ply, holes/, targets/, "
                      "removal.json");
-  r->add_option("--inpaint", a->inpaint,
-                "Fill the holes of the targets by telea (default), ns (Navier-Stokes) or none");
   r->add_option("--inpainted", a->inpainted,
                 "Folder of targets from an external inpainter: <view stem>.png per training view, at the size the "
                 "view is rendered at (used as they are)");
-  r->add_option("--dilate", a->settings.holes.dilate,
-                "Grow each hole by this many pixels (default 5: the object's blurred rim and contact shadow)")
-      ->check(CLI::Range(0, 64));
-  r->add_option("--iters", a->settings.iters,
-                "Fine-tune the fill and the anchors near it for N iterations against the photos outside the object "
-                "and the inpainted targets in the holes (default " +
-                    std::to_string(RemovalSettings{}.iters) +
-                    ": the fill as placed, measured better with per-view inpainting)")
-      ->check(CLI::Range(0, 100000000));
-  r->add_option("--fill-views", a->settings.fill.min_views,
-                "A fill anchor needs hole pixels of this many views in its voxel (default 2)")
-      ->check(CLI::Range(1, 1000000));
-  r->add_option("--fill-alpha", a->settings.fill.max_alpha,
-                "Hole pixels the model without the object still covers with this alpha or more get no fill "
-                "(default 0.5; 1: every hole pixel)");
-  r->add_option("--fill-quantile", a->settings.fill.colour_quantile,
-                "The fill's colour: of the views' colour estimates at a fill voxel, ranked by brightness, the one at "
-                "this quantile (default 0.75: shadows only darken; 0.5 the median)");
-  r->add_option("--fill-opacity", a->settings.fill.opacity, "Opacity of the fill's children (default 0.3)")
-      ->check(finite_range(1e-4, 0.9999));
-  r->add_option("--fill-near", a->settings.fill.near,
-                "Kept anchors within this many of their voxel edges of the holes' 3D footprint are fine-tuned "
-                "with the fill (default 1.5; 0: the fill alone)")
-      ->check(finite_range(0, 1000));
-  r->add_flag("!--keep-stray", a->settings.clear_stray,
-              "Keep the children of kept anchors that sit among the object's Gaussians with its colour (by default "
-              "they are cleared with it)");
-  r->add_option("--stray-colour", a->settings.stray_colour,
-                "A kept child near the object's Gaussians is the object's when its colour is within this of theirs "
-                "(mean absolute difference, 0..1) and nearer to it than to the kept Gaussians' there (default 0.2)")
-      ->check(finite_range(0.0, 1.0));
-  r->add_option("--stray-reach", a->settings.stray_reach,
-                "How near: finest-layer voxels within this many of a kept child's own along each axis (default 3; 0: "
-                "its own voxel)")
-      ->check(CLI::Range(0, 16));
-  r->add_flag("!--keep-hidden", a->settings.clear_hidden,
-              "Keep the kept anchors near the object (within --stray-reach) that the training views saw only through "
-              "it (by default they are removed with it, and the fill may take their voxels)");
-  r->add_option("--hidden-fraction", a->settings.hidden_fraction,
-                "Such an anchor is hidden when, for each of its visible children, the views saw less than this "
-                "fraction of it outside the object's silhouette (default 0.1)")
-      ->check(finite_range(0.0, 1.0));
-  r->add_option("--tune-targets", a->tune_targets,
-                "What the fine-tune fits inside the holes: inpainted (the targets/ images) or fill (the filled "
-                "model's own render, so only the seams around the holes move)")
-      ->check(CLI::IsMember({"inpainted", "fill"}));
-  r->add_flag("--no-fill", a->no_fill, "Delete only: no fill anchors and no fine-tune");
-  r->add_option("--seed", a->settings.seed, "Random seed of the fill (default 1)")->check(seed_number());
+  add_setting_options(r, removal_settings(), a->settings);
   auto print_config = add_print_config_flag(r, "remove with");
   set_action(r, [&global, a, print_config] {
     if (*print_config) {
-      fold_flags(*a);
       return print_config_json(a->settings);
     }
     cmd_remove(global, *a);

@@ -15,10 +15,12 @@
 #include <string>
 
 #include "apps/simulation/simulate.h"
+#include "apps/simulation/simulation_settings.h"
 #include "cli/commands.h"
 #include "cli/object_selection.h"
 #include "cli/run_driver.h"
 #include "cli/run_guard.h"
+#include "cli/setting_options.h"
 #include "host/device/cl_runtime.h"
 #include "host/io/atomic_file.h"
 #include "host/io/image_io.h"
@@ -32,7 +34,7 @@ namespace {
 
 struct SimulateArgs {
   ObjectArgs obj;
-  std::string gravity, force, force_frames = "0:3", up, views;
+  std::string views;
   int ply_every = 10;
   SimulationRequest req;  // with the library's defaults, which are the program's; flags set its fields
 };
@@ -59,13 +61,8 @@ std::vector<int> render_views(const Scene& scene, const std::string& list, const
 // The request's fields from the flags that are not its own.
 void fold_flags(SimulateArgs& a) {
   SimulationSettings& ss = a.req.settings;
-  ss.object.kind = parse_material(a.req.material);
   ss.background.density = ss.object.density;  // --density is every material's
   ss.frame_time = 1.0 / a.req.fps;
-  if (!a.gravity.empty()) ss.gravity = parse_vector(a.gravity, "--gravity");
-  if (!a.up.empty()) ss.up = parse_vector(a.up, "--up");
-  if (!a.force.empty()) a.req.force = parse_vector(a.force, "--force");
-  a.req.force_frames = parse_frames(a.force_frames);
 }
 
 void cmd_simulate(const GlobalOptions& global, SimulateArgs a) {
@@ -161,60 +158,7 @@ void register_simulate(CLI::App& app, GlobalOptions& global) {
                                "Simulate a selected object (by a click or by text) with MLS-MPM and render the scene "
                                "as it moves; writes frames, PLYs and simulation.json to a new folder");
   add_object_options(r, a->obj, "Simulate", "New folder for frames/, ply/ and simulation.json");
-  r->add_option("--material", a->req.material, "The object's material: jelly (default), metal, sand or plasticine")
-      ->check(CLI::IsMember({"jelly", "metal", "sand", "plasticine"}));
-  r->add_option("--E", a->req.settings.object.E,
-                "The object's Young's modulus in Pa (default 2e6; the paper's 2e8 is 100x stiffer and takes 10x "
-                "the substeps)")
-      ->check(positive_number());
-  r->add_option("--nu", a->req.settings.object.nu, "The object's Poisson's ratio (default 0.4)");
-  r->add_option("--density", a->req.settings.object.density, "Density in kg/m^3 of every material (default 1000)")
-      ->check(finite_range(0.1, 1e5));
-  r->add_option("--background-E", a->req.settings.background.E,
-                "Young's modulus of the other Gaussians inside the simulation box (default 2e6; von Mises)")
-      ->check(positive_number());
-  r->add_option("--background-nu", a->req.settings.background.nu, "Their Poisson's ratio (default 0.3)");
-  r->add_flag("--background,!--no-background", a->req.settings.with_background,
-              "Also simulate the other Gaussians inside the simulation box above the ground, as --background-E "
-              "material (the paper's setting; default off: the rest of the scene stays still)");
-  r->add_flag("!--keep-hidden", a->req.move_hidden,
-              "Leave in place the kept anchors inside the object that the training views saw only through it (by "
-              "default they move with it, as `remove` takes them with it)");
-  r->add_option("--frames", a->req.frames, "Frames to simulate (default 30; frame 0, the start, is written too)")
-      ->check(CLI::Range(1, 100000));
-  r->add_option("--fps", a->req.fps, "Frames per second of simulated time (default 25)")->check(positive_number());
-  r->add_option("--max-substeps", a->req.max_substeps,
-                "Refuse a run that needs more substeps than this (default 2e6; the cup's defaults take ~18k)")
-      ->check(positive_number());
-  r->add_option("--dt", a->req.settings.dt,
-                "Substep in s (default: the largest stable one at the current speed; a value above the stable "
-                "substep is refused)")
-      ->check(non_negative_number());
-  r->add_option("--grid", a->req.settings.grid, "Grid cells per side of the simulation box (default 64)")
-      ->check(CLI::Range(16, 512));
-  r->add_option("--gravity", a->gravity, "Gravity X,Y,Z in the world frame, m/s^2 (default 9.8 against --up)");
-  r->add_option("--force", a->force,
-                "Acceleration X,Y,Z (m/s^2, world frame) on the object during --force-frames (default: --push "
-                "along the first view's right, across up)");
-  r->add_option("--push", a->req.push, "Size of the default force in m/s^2 (default 10; 0 = none)")
-      ->check(non_negative_number());
-  r->add_option("--force-frames", a->force_frames, "Frames A:B (A to B-1) during which the force acts (default 0:3)");
-  r->add_option("--up", a->up, "Up direction X,Y,Z in the world (default: the cameras' mean up)");
-  r->add_option("--ground", a->req.settings.ground,
-                "Height of the ground plane along up, world units (default: the surface the SfM points show under "
-                "the object)")
-      ->check(finite_range(-1e9, 1e9));
-  r->add_option("--friction", a->req.settings.friction,
-                "Coulomb friction of the ground plane (default 0.5; 0: things slide on it freely)")
-      ->check(non_negative_number());
-  r->add_option("--damping", a->req.settings.damping,
-                "Drag on the motion, per second (default 0: none; e.g. 30 lets a pile creep to rest without "
-                "inertia)")
-      ->check(non_negative_number());
-  r->add_option("--object-size", a->req.settings.object_size,
-                "The object's largest side in the simulation's metres (default 0.4; the box is 1 m across)");
-  r->add_option("--min-opacity", a->req.settings.min_opacity,
-                "Gaussians at or below this opacity stay out of the simulation (default 0.02)");
+  add_setting_options(r, simulation_settings(), a->req);
   r->add_option("--views", a->views,
                 "Views to render, comma-separated names or stems (default: the first training view)");
   r->add_option("--ply-every", a->ply_every, "Write ply/frame_NNNN.ply every K frames (default 10; 0 = none)")

@@ -261,31 +261,4 @@ int run_selected(CLI::App& app, const GlobalOptions& global) {
   return 2;
 }
 
-// "X,Y,Z" -> a vector; throws naming the flag.
-Eigen::Vector3d parse_vector(const std::string& text, const std::string& flag) {
-  std::stringstream ss(text);
-  Eigen::Vector3d v;
-  char comma = 0;
-  if (!(ss >> v(0) >> comma) || comma != ',' || !(ss >> v(1) >> comma) || comma != ',' || !(ss >> v(2)) || !ss.eof() ||
-      !v.allFinite())
-    throw std::invalid_argument(flag + " " + text + ": give three numbers as X,Y,Z");
-  return v;
-}
-
-// "A:B" -> [A, B): the frames whose substeps the force acts in.
-std::pair<int, int> parse_frames(const std::string& text) {
-  const size_t c = text.find(':');
-  try {
-    if (c == std::string::npos) throw std::invalid_argument("");
-    size_t used = 0;
-    const int a = std::stoi(text.substr(0, c), &used);
-    if (used != c) throw std::invalid_argument("");
-    const int b = std::stoi(text.substr(c + 1), &used);
-    if (used != text.size() - c - 1 || a < 0 || b < a) throw std::invalid_argument("");
-    return {a, b};
-  } catch (const std::exception&) {
-    throw std::invalid_argument("--force-frames " + text + ": give A:B with 0 <= A <= B (frames A to B-1)");
-  }
-}
-
 }  // namespace ag2gs::cli

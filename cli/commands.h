@@ -39,10 +39,6 @@ CLI::Validator finite_range(double lo, double hi);
 CLI::Validator seed_number();
 // An output path: not empty (`-o ''` wrote into the current folder).
 CLI::Validator output_path();
-// "X,Y,Z" -> a vector of three finite numbers; throws naming `flag`.
-Eigen::Vector3d parse_vector(const std::string& text, const std::string& flag);
-// "A:B" -> [A, B), 0 <= A <= B: the frames of --force-frames.
-std::pair<int, int> parse_frames(const std::string& text);
 
 // --print-config: "Print the settings this command would <verb> ... and
 // exit"; the flag's value lives as long as the action holding it.

@@ -6,6 +6,8 @@
 
 #include <CLI/CLI.hpp>
 #include <limits>
+#include <stdexcept>
+#include <string>
 #include <type_traits>
 #include <variant>
 #include <vector>
@@ -15,20 +17,51 @@
 
 namespace ag2gs::cli {
 
+// The type a row's flag reads: the field's, or text for a Custom row.
+template <class F>
+struct SettingValue {
+  using type = std::string;
+};
+template <class T, class Config>
+struct SettingValue<T& (*)(Config&)> {
+  using type = T;
+};
+
 template <class Config>
 void add_setting_option(CLI::App* sub, const Setting<Config>& s, Config& c) {
   using Check = typename Setting<Config>::Check;
+  using Custom = typename Setting<Config>::Custom;
   std::visit(
       [&](auto field) {
-        auto& ref = field(c);
-        using T = std::decay_t<decltype(ref)>;
-        if constexpr (std::is_same_v<T, bool>) {
-          if (!s.takes_value) {
-            sub->add_flag(s.flag, ref, s.help);
-            return;
+        CLI::Option* o = nullptr;
+        using T = typename SettingValue<decltype(field)>::type;
+        if constexpr (std::is_same_v<decltype(field), Custom>) {
+          // The flag's text goes through the row's parser when CLI11 reads it.
+          o = sub->add_option_function<std::string>(
+              s.flag,
+              [&c, parse = field.parse, name = s.flag_name()](const std::string& text) {
+                try {
+                  parse(c, text);
+                } catch (const std::invalid_argument& e) {
+                  // CLI11 prints it and exits non-zero; the message names the flag.
+                  const std::string what = e.what();
+                  throw what.find(name) == std::string::npos ? CLI::ValidationError(name, what)
+                                                             : CLI::ValidationError(what);
+                }
+              },
+              s.help);
+          if (!s.choices.empty()) o->check(CLI::IsMember(s.choices));
+          if (!s.type_name.empty()) o->type_name(s.type_name);
+        } else {
+          auto& ref = field(c);
+          if constexpr (std::is_same_v<T, bool>) {
+            if (!s.takes_value) {
+              sub->add_flag(s.flag, ref, s.help);
+              return;
+            }
           }
+          o = sub->add_option(s.flag, ref, s.help);
         }
-        CLI::Option* o = sub->add_option(s.flag, ref, s.help);
         switch (s.check) {
           case Check::kRange:
             if constexpr (std::is_integral_v<T> && !std::is_same_v<T, bool>) {

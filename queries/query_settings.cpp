@@ -6,9 +6,7 @@ namespace ag2gs {
 namespace {
 
 template <class T>
-QuerySetting::Field<T> field(QuerySetting::Field<T> f) {
-  return f;
-}
+constexpr auto field = &QuerySetting::of<T>;  // a row's field from a lambda
 
 std::vector<QuerySetting> build_table() {
   SettingRows<QueryConfig> add;

@@ -12,9 +12,7 @@ namespace {
 constexpr std::nullopt_t kKeep = std::nullopt;  // a preset that keeps the initialiser
 
 template <class T>
-TrainSetting::Field<T> field(TrainSetting::Field<T> f) {
-  return f;
-}
+constexpr auto field = &TrainSetting::of<T>;  // a row's field from a lambda
 
 using Rows = SettingRows<TrainConfig>;
 

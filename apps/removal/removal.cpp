@@ -10,6 +10,7 @@
 #include <utility>
 
 #include "apps/backdrop.h"
+#include "apps/removal/removal_settings.h"
 #include "host/core/timing.h"
 #include "host/render/renderer.h"
 #include "host/render/sky.h"
@@ -190,41 +191,16 @@ nlohmann::json or_null(bool on, const nlohmann::json& v) { return on ? v : nlohm
 }  // namespace
 
 void RemovalSettings::validate() const {
+  if (const std::string p = settings_problem(removal_settings(), *this); !p.empty()) throw std::invalid_argument(p);
   holes.validate();
   fill.validate();
   if (!fill_holes && iters > 0)
     throw std::invalid_argument("--no-fill deletes only; --iters " + std::to_string(iters) +
                                 " would fine-tune a fill it does not place (leave one of them out)");
-  if (iters < 0) throw std::invalid_argument("--iters must be 0 or more");
 }
 
 nlohmann::json RemovalSettings::to_json() const {
-  const char* method = inpaint == InpaintMethod::kTelea          ? "telea"
-                       : inpaint == InpaintMethod::kNavierStokes ? "ns"
-                                                                 : "none";
-  return {{"inpaint", method},
-          {"iters", iters},
-          {"fill_holes", fill_holes},
-          {"clear_stray", clear_stray},
-          {"stray_colour", stray_colour},
-          {"stray_reach", stray_reach},
-          {"clear_hidden", clear_hidden},
-          {"hidden_fraction", hidden_fraction},
-          {"tune_targets", tune_to_fill ? "fill" : "inpainted"},
-          {"seed", seed},
-          {"fill",
-           {{"min_views", fill.min_views},
-            {"max_anchors", fill.max_anchors},
-            {"opacity", fill.opacity},
-            {"near", fill.near},
-            {"prune_opacity", fill.prune_opacity},
-            {"max_alpha", fill.max_alpha},
-            {"colour_quantile", fill.colour_quantile}}},
-          {"holes",
-           {{"object_weight", holes.object_weight},
-            {"alpha_min", holes.alpha_min},
-            {"behind", holes.behind},
-            {"dilate", holes.dilate}}}};
+  return settings_to_json(removal_settings(), *this);
 }
 
 RemovalResult remove_object(Runtime& rt, const RemovalRequest& req) {

@@ -10,6 +10,7 @@
 
 #include "apps/backdrop.h"
 #include "apps/removal/fill.h"  // hidden_anchors
+#include "apps/simulation/simulation_settings.h"
 #include "host/core/timing.h"
 #include "host/render/renderer.h"
 #include "host/scene/scene_up.h"
@@ -49,20 +50,6 @@ nlohmann::json frame_json(const SimFrameStats& s) {
                         {"object_max_strain", s.object.max_strain}};
 }
 
-nlohmann::json vec_or_null(const std::optional<Eigen::Vector3d>& v) {
-  return v ? nlohmann::json::array({(*v)(0), (*v)(1), (*v)(2)}) : nlohmann::json(nullptr);
-}
-
-nlohmann::json material_json(const MpmMaterial& m) {
-  return {{"kind", material_name(m.kind)},
-          {"E", m.E},
-          {"nu", m.nu},
-          {"density", m.density},
-          {"yield_stress", m.yield_stress},
-          {"friction_deg", m.friction_deg},
-          {"softening", m.softening}};
-}
-
 void check_request(const SimulationRequest& req) {
   req.object.check("simulate_object");
   if (req.views.empty()) throw std::invalid_argument("simulate_object: no view to render");
@@ -75,40 +62,16 @@ void check_request(const SimulationRequest& req) {
 }  // namespace
 
 void SimulationRequest::validate() const {
-  if (frames < 1) throw std::invalid_argument("--frames must be at least 1");
-  if (!(fps > 0) || !std::isfinite(fps)) throw std::invalid_argument("--fps must be a number > 0");
+  if (const std::string p = settings_problem(simulation_settings(), *this); !p.empty()) throw std::invalid_argument(p);
   if (force_frames.first < 0 || force_frames.second < force_frames.first)
     throw std::invalid_argument("--force-frames: give A:B with 0 <= A <= B (frames A to B-1)");
-  if (!(max_substeps > 0)) throw std::invalid_argument("--max-substeps must be a number > 0");
   SimulationSettings ss = settings;
   ss.frame_time = 1.0 / fps;
   ss.validate();
 }
 
 nlohmann::json SimulationRequest::to_json() const {
-  const SimulationSettings& s = settings;
-  return {{"material", material},
-          {"frames", frames},
-          {"fps", fps},
-          {"force_frames", {force_frames.first, force_frames.second}},
-          {"force", vec_or_null(force)},
-          {"push", push},
-          {"move_hidden", move_hidden},
-          {"max_substeps", max_substeps},
-          {"settings",
-           {{"object", material_json(s.object)},
-            {"background", material_json(s.background)},
-            {"with_background", s.with_background},
-            {"grid", s.grid},
-            {"frame_time", s.frame_time},
-            {"dt", s.dt},
-            {"gravity", vec_or_null(s.gravity)},
-            {"up", vec_or_null(s.up)},
-            {"ground", s.ground ? nlohmann::json(*s.ground) : nlohmann::json(nullptr)},
-            {"friction", s.friction},
-            {"damping", s.damping},
-            {"min_opacity", s.min_opacity},
-            {"object_size", s.object_size}}}};
+  return settings_to_json(simulation_settings(), *this);
 }
 
 SimulationResult simulate_object(Runtime& rt, const SimulationRequest& req) {

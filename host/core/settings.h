@@ -28,7 +28,18 @@ struct Setting {
   // The field, as an accessor of its type.
   template <class T>
   using Field = T& (*)(Config&);
-  using Access = std::variant<Field<int>, Field<int64_t>, Field<uint64_t>, Field<float>, Field<double>, Field<bool>>;
+  // A setting that is not one number or switch: a name (an enum, or a bool
+  // spelled as two words), a vector, a pair, a value that may be unset. The
+  // JSON holds what get() returns; set() takes it back; the flag's text goes
+  // through parse(). set() and parse() throw std::invalid_argument naming
+  // the flag for a value they refuse.
+  struct Custom {
+    nlohmann::json (*get)(const Config&);
+    void (*set)(Config&, const nlohmann::json&);
+    void (*parse)(Config&, const std::string&);
+  };
+  using Access =
+      std::variant<Field<int>, Field<int64_t>, Field<uint64_t>, Field<float>, Field<double>, Field<bool>, Custom>;
   // How a value is checked, by validate() and by the flag's parser.
   enum class Check {
     kNone,         // booleans, and the settings without a flag
@@ -60,6 +71,10 @@ struct Setting {
   // value the rule gives, which to_json records; null: the field itself.
   int (*effective_value)(const Config&) = nullptr;
   bool takes_value = true;  // false for a boolean switch (--white-bg), true for --far-shell true|false
+  // A Custom row's flag: the names it accepts (--help lists them), and the
+  // type --help shows ("TEXT" when empty).
+  std::vector<std::string> choices;
+  std::string type_name;
 
   // Table-building steps.
   Setting& range(double l, double h) { return check = Check::kRange, lo = l, hi = h, *this; }
@@ -73,6 +88,14 @@ struct Setting {
   }
   Setting& effective(int (*f)(const Config&)) { return effective_value = f, *this; }
   Setting& with_value() { return takes_value = true, *this; }
+  Setting& one_of(std::vector<std::string> names) { return choices = std::move(names), *this; }
+  Setting& shown_as(std::string type) { return type_name = std::move(type), *this; }
+
+  // A row's field from a lambda: Setting::of<float>([](C& c) -> float& { return c.x; }).
+  template <class T>
+  static Field<T> of(Field<T> f) {
+    return f;
+  }
 
   bool is_flag() const { return !flag.empty(); }
   bool in_a_preset() const { return in_default.has_value() || in_paper.has_value(); }
@@ -103,7 +126,14 @@ struct Setting {
   // The field's value as JSON, in its own type.
   nlohmann::json get(const Config& c) const {
     Config& m = const_cast<Config&>(c);  // the accessors only read here
-    return std::visit([&m](auto f) { return nlohmann::json(f(m)); }, field);
+    return std::visit(
+        [&m](auto f) {
+          if constexpr (std::is_same_v<decltype(f), Custom>)
+            return f.get(m);
+          else
+            return nlohmann::json(f(m));
+        },
+        field);
   }
   // What to_json records: effective_value where there is one.
   nlohmann::json recorded(const Config& c) const {
@@ -114,19 +144,27 @@ struct Setting {
   void set(Config& c, const nlohmann::json& v) const {
     std::visit(
         [&](auto f) {
-          using T = std::decay_t<decltype(f(c))>;
-          f(c) = v.get<T>();
+          if constexpr (std::is_same_v<decltype(f), Custom>) {
+            f.set(c, v);
+          } else {
+            using T = std::decay_t<decltype(f(c))>;
+            f(c) = v.get<T>();
+          }
         },
         field);
   }
   void assign(Config& c, double v) const {
     std::visit(
         [&](auto f) {
-          using T = std::decay_t<decltype(f(c))>;
-          if constexpr (std::is_same_v<T, bool>)
-            f(c) = v != 0;
-          else
-            f(c) = static_cast<T>(v);
+          if constexpr (std::is_same_v<decltype(f), Custom>) {
+            f.set(c, nlohmann::json(v));
+          } else {
+            using T = std::decay_t<decltype(f(c))>;
+            if constexpr (std::is_same_v<T, bool>)
+              f(c) = v != 0;
+            else
+              f(c) = static_cast<T>(v);
+          }
         },
         field);
   }
@@ -136,6 +174,7 @@ struct Setting {
   std::string problem(const Config& c) const {
     if (check == Check::kNone || check == Check::kSeed) return {};  // every uint64 is a seed
     const nlohmann::json j = get(c);
+    if (!j.is_number()) return {};  // a Custom row's name, vector or unset value: its set() checks it
     const double v = j.get<double>();
     if (auto_value && v == *auto_value) return {};
     const std::string name = key + (is_flag() ? " (" + flag_name() + ")" : "");

@@ -3,15 +3,19 @@
 // and the program's default training on a small generated scene.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <fstream>
 #include <nlohmann/json.hpp>
 #include <random>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "apps/removal/removal.h"
+#include "apps/removal/removal_settings.h"
 #include "apps/simulation/simulate.h"
+#include "apps/simulation/simulation_settings.h"
 #include "queries/query.h"
 #include "queries/query_settings.h"
 #include "tests/cli_test_util.h"
@@ -464,6 +468,91 @@ TEST(Defaults, BaselineAndQueryUseTheLibrarysDefaults) {
   EXPECT_NE(bad.output.find("--tau"), std::string::npos) << bad.output;
   EXPECT_FALSE(std::filesystem::exists("/nonexistent/b"));
   EXPECT_FALSE(std::filesystem::exists("/nonexistent/q"));
+}
+
+// The JSON leaves of a config (an array is one leaf: a vector setting).
+size_t json_leaves(const nlohmann::json& j) {
+  if (!j.is_object()) return 1;
+  size_t n = 0;
+  for (const auto& [k, v] : j.items()) n += json_leaves(v);
+  return n;
+}
+
+// Every row of `table` has its key in `c`'s JSON (one row per leaf), every
+// flag is in `command`'s --help, and each row's value goes back through its
+// set(): a changed config, written and read back row by row, is the same.
+template <class Config>
+void expect_table_matches(const std::vector<Setting<Config>>& table, const Config& changed,
+                          const std::string& command) {
+  const nlohmann::json j = Config{}.to_json();
+  EXPECT_EQ(json_leaves(j), table.size()) << command;
+  const test::CliResult help = test::run_cli(command + " --help");
+  for (const Setting<Config>& s : table) {
+    EXPECT_TRUE(j.contains(s.pointer())) << s.key;
+    if (s.is_flag()) EXPECT_NE(help.output.find(s.flag_name()), std::string::npos) << s.flag_name();
+  }
+  const nlohmann::json want = changed.to_json();
+  EXPECT_NE(want, j) << command;
+  Config back;
+  for (const Setting<Config>& s : table) s.set(back, want.at(s.pointer()));
+  EXPECT_EQ(back.to_json(), want) << command;
+}
+
+// remove's and simulate's settings are tables too (apps/removal/
+// removal_settings.h, apps/simulation/simulation_settings.h), with rows for
+// names, vectors, a frame range and an unset ground (Custom rows).
+TEST(Defaults, EveryRemovalAndSimulationSettingIsOneRowOfItsTable) {
+  RemovalSettings r;
+  r.inpaint = InpaintMethod::kNone;
+  r.tune_to_fill = true;
+  r.fill.max_anchors = 12;
+  r.holes.behind = 3;
+  expect_table_matches(removal_settings(), r, "remove");
+  SimulationRequest s;
+  s.material = "sand";
+  s.settings.object.kind = MaterialKind::kSand;
+  s.settings.gravity = Eigen::Vector3d(0, -9.8, 0);
+  s.settings.ground = -0.25;
+  s.force = Eigen::Vector3d(1, 2, 3);
+  s.force_frames = {2, 5};
+  s.settings.background.softening = 2;
+  expect_table_matches(simulation_settings(), s, "simulate");
+
+  // The library refuses what the flags refuse, naming key and flag.
+  RemovalSettings bad_r;
+  bad_r.fill.colour_quantile = 1.5f;
+  test::expect_error_with<std::invalid_argument>([&] { bad_r.validate(); },
+                                                 {"fill.colour_quantile", "--fill-quantile"});
+  bad_r = RemovalSettings{};
+  bad_r.holes.alpha_min = 1;  // no flag: named by its key
+  test::expect_error_with<std::invalid_argument>([&] { bad_r.validate(); }, {"holes.alpha_min"});
+  SimulationRequest bad_s;
+  bad_s.settings.grid = 8;
+  test::expect_error_with<std::invalid_argument>([&] { bad_s.validate(); }, {"settings.grid", "--grid"});
+  const SimulationSetting& material = *std::find_if(simulation_settings().begin(), simulation_settings().end(),
+                                                    [](const SimulationSetting& x) { return x.key == "material"; });
+  test::expect_error_with<std::invalid_argument>([&] { material.set(bad_s, "rubber"); }, {"rubber"});
+  const SimulationSetting& frames = *std::find_if(simulation_settings().begin(), simulation_settings().end(),
+                                                  [](const SimulationSetting& x) { return x.key == "force_frames"; });
+  test::expect_error_with<std::invalid_argument>(
+      [&] {
+        frames.set(bad_s, nlohmann::json::array({4, 1}));
+      },
+      {"--force-frames"});
+  // A Custom row's flag that does not parse is refused by the flag, before
+  // anything is read or written.
+  const std::string object = " /nonexistent/m --scene " + sample_scene() + " --selection s.json -o /nonexistent/o";
+  for (const auto& [command, flag] : std::vector<std::pair<std::string, std::string>>{
+           {"simulate" + object + " --up 0,1", "--up"},
+           {"simulate" + object + " --force-frames 3", "--force-frames"},
+           {"remove" + object + " --inpaint lama", "--inpaint"},
+           {"remove" + object + " --tune-targets both", "--tune-targets"}}) {
+    const test::CliResult bad = test::run_cli(command + " --print-config");
+    EXPECT_NE(bad.code, 0) << command;
+    EXPECT_NE(bad.output.find(flag), std::string::npos) << bad.output;
+    EXPECT_EQ(bad.output.find("\n  \""), std::string::npos) << bad.output;  // no JSON printed
+  }
+  EXPECT_FALSE(std::filesystem::exists("/nonexistent/o"));
 }
 
 // remove and simulate print the settings they would run with; with no flags

@@ -6,9 +6,7 @@ namespace ag2gs {
 namespace {
 
 template <class T>
-FreeTrainSetting::Field<T> field(FreeTrainSetting::Field<T> f) {
-  return f;
-}
+constexpr auto field = &FreeTrainSetting::of<T>;  // a row's field from a lambda
 
 std::vector<FreeTrainSetting> build_table() {
   SettingRows<FreeTrainConfig> add;
