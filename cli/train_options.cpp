@@ -11,6 +11,7 @@
 
 #include "cli/setting_options.h"
 #include "cli/train_command.h"
+#include "train/stage3/stage3_settings.h"
 
 namespace ag2gs::cli {
 
@@ -83,22 +84,7 @@ void register_train(CLI::App& app, GlobalOptions& global) {
                   "model (e.g. --stages 3 re-clusters a trained model)")
       ->delimiter(',')
       ->check(CLI::Range(1, 3));
-  Stage3Config& s3 = a->stage3;
-  sub->add_option("--cluster-distance", s3.cluster.max_distance,
-                  "Stage 3: join graph neighbours whose feature distance is below this (default 0.01)")
-      ->check(finite_range(1e-9, 1e6));
-  sub->add_option("--min-cluster-size", s3.cluster.min_cluster_size,
-                  "Stage 3: clusters with fewer anchors are skipped (default 5)")
-      ->check(CLI::Range(1, std::numeric_limits<int>::max()));
-  sub->add_option("--match-score", s3.language.min_score,
-                  "Stage 3: a cluster takes a mask's CLIP feature when their score S exceeds this (default 0.3)")
-      ->check(finite_range(-1, 1));
-  sub->add_option("--match-softmax", s3.language.softmax_scale,
-                  "Stage 3: the matches' weights are softmax(scale * S) (default 10)")
-      ->check(finite_range(0.001, 80.0));
-  sub->add_option("--instance-fraction", s3.language.instance_fraction,
-                  "Stage 3: a pixel belongs to a cluster holding at least this share of its weight (default 0.5)")
-      ->check(finite_range(0.5, 0.999));
+  add_setting_options(sub, stage3_settings(), a->stage3);
   sub->add_option("--preset", a->preset, preset_help())->check(CLI::IsMember({"default", "appearance", "paper"}));
   auto print_config = std::make_shared<bool>(false);
   sub->add_flag("--print-config", *print_config,

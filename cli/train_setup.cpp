@@ -14,6 +14,7 @@
 #include "host/io/model_io.h"
 #include "train/eta.h"
 #include "train/stage3/language.h"
+#include "train/stage3/stage3_settings.h"
 
 namespace fs = std::filesystem;
 
@@ -56,14 +57,7 @@ void stage3_only(const GlobalOptions& global, TrainArgs& a) {
 }
 
 nlohmann::json run_record(const TrainArgs& a) {
-  const Stage3Config& s = a.stage3;
-  return {{"stages", a.stages},
-          {"stage3",
-           {{"cluster_distance", s.cluster.max_distance},
-            {"min_cluster_size", s.cluster.min_cluster_size},
-            {"match_score", s.language.min_score},
-            {"match_softmax", s.language.softmax_scale},
-            {"instance_fraction", s.language.instance_fraction}}}};
+  return {{"stages", a.stages}, {"stage3", stage3_to_json(a.stage3)}};
 }
 
 namespace {
@@ -76,13 +70,7 @@ void adopt_run_record(const nlohmann::json& run, TrainArgs& a) {
   const nlohmann::json given = run_record(a)["stage3"];
   const nlohmann::json defaults = run_record(TrainArgs{})["stage3"];
   if (given != defaults || !run.contains("stage3")) return;
-  const nlohmann::json& s3 = run["stage3"];
-  Stage3Config& s = a.stage3;
-  s.cluster.max_distance = s3.value("cluster_distance", s.cluster.max_distance);
-  s.cluster.min_cluster_size = s3.value("min_cluster_size", s.cluster.min_cluster_size);
-  s.language.min_score = s3.value("match_score", s.language.min_score);
-  s.language.softmax_scale = s3.value("match_softmax", s.language.softmax_scale);
-  s.language.instance_fraction = s3.value("instance_fraction", s.language.instance_fraction);
+  stage3_from_json(run["stage3"], a.stage3);
 }
 
 }  // namespace

@@ -26,6 +26,8 @@
 #include "train/baseline/free_trainer.h"
 #include "train/divergence_guard.h"
 #include "train/train_config.h"
+#include "train/stage3/language.h"
+#include "train/stage3/stage3_settings.h"
 #include "train/train_settings.h"
 
 namespace ag2gs {
@@ -553,6 +555,21 @@ TEST(Defaults, EveryRemovalAndSimulationSettingIsOneRowOfItsTable) {
     EXPECT_EQ(bad.output.find("\n  \""), std::string::npos) << bad.output;  // no JSON printed
   }
   EXPECT_FALSE(std::filesystem::exists("/nonexistent/o"));
+
+  // train's stage-3 settings (train/stage3/stage3_settings.h): a flag per
+  // row, and the run record a checkpoint keeps round-trips.
+  const test::CliResult train_help = test::run_cli("train --help");
+  for (const Stage3Setting& row : stage3_settings())
+    EXPECT_NE(train_help.output.find(row.flag_name()), std::string::npos) << row.flag_name();
+  Stage3Config s3;
+  s3.cluster.min_cluster_size = 9;
+  s3.language.min_score = 0.25f;
+  const nlohmann::json record = stage3_to_json(s3);
+  EXPECT_EQ(record.size(), stage3_settings().size());
+  Stage3Config back3;
+  stage3_from_json(record, back3);
+  EXPECT_EQ(stage3_to_json(back3), record);
+  EXPECT_NE(record, stage3_to_json(Stage3Config{}));
 }
 
 // remove and simulate print the settings they would run with; with no flags
