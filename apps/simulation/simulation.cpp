@@ -206,6 +206,13 @@ Simulation::Simulation(Runtime& rt, const GaussianSet& scene, const std::vector<
     throw std::runtime_error("the selection has no Gaussian above opacity " + std::to_string(settings_.min_opacity) +
                              ": nothing to simulate (try another click or phrase)");
 
+  place_box(object, cameras, points);
+  start_solver(add_particles(selected));
+  upload_gaussians();
+}
+
+void Simulation::place_box(const std::vector<Eigen::Vector3d>& object, const std::vector<Camera>& cameras,
+                           const std::vector<Eigen::Vector3d>& points) {
   // ---- the box: up to +z, the object centred across, the ground (or the
   // object's base, when lower) at z = 0.15
   std::optional<Plane> floor;
@@ -245,7 +252,13 @@ Simulation::Simulation(Runtime& rt, const GaussianSet& scene, const std::vector<
   frame_.box = Eigen::Vector3d(0.5, 0.5, floor_box);
   frame_.ground_box = frame_.to_box(frame_.A.transpose() * Eigen::Vector3d(0, 0, frame_.ground_world))(2);
   frame_.ground_box = std::clamp(frame_.ground_box, 0.0, 0.95);
+}
 
+std::vector<MpmMaterial> Simulation::add_particles(const std::vector<uint8_t>& selected) {
+  const GaussianSet& scene = scene_;
+  auto position = [&](size_t i) {
+    return Eigen::Vector3d(scene.means[3 * i], scene.means[3 * i + 1], scene.means[3 * i + 2]);
+  };
   // ---- particles: the object's Gaussians, its filled interior, the background
   const int g = settings_.grid;
   const double dx = 1.0 / g, lo_box = 3.0 * dx + 1e-6, hi_box = 1 - 3.0 * dx - 1e-6;
@@ -305,7 +318,11 @@ Simulation::Simulation(Runtime& rt, const GaussianSet& scene, const std::vector<
     particles_.add({static_cast<float>(xs[p](0)), static_cast<float>(xs[p](1)), static_cast<float>(xs[p](2))}, vol,
                    mats[p], materials[mats[p]].density);
   }
+  return materials;
+}
 
+void Simulation::start_solver(const std::vector<MpmMaterial>& materials) {
+  const int g = settings_.grid;
   MpmConfig config;
   config.grid = g;
   config.ground = frame_.ground_box;
@@ -317,7 +334,7 @@ Simulation::Simulation(Runtime& rt, const GaussianSet& scene, const std::vector<
   std::vector<MpmMaterial> mm = materials;
   const Eigen::Vector3d force = frame_.A * settings_.force;
   mm[0].force = {force(0), force(1), force(2)};
-  solver_ = std::make_unique<MpmSolver>(rt, config, mm);
+  solver_ = std::make_unique<MpmSolver>(rt_, config, mm);
   solver_->upload(particles_);
   if (settings_.dt > 0 && settings_.dt > solver_->max_stable_dt(0)) {
     char buf[256];
@@ -332,7 +349,9 @@ Simulation::Simulation(Runtime& rt, const GaussianSet& scene, const std::vector<
   // The speed gravity and the force can add within one frame.
   speed_gain_ = (gravity.norm() + force.norm()) * settings_.frame_time;
   max_speed_ = speed_gain_;
+}
 
+void Simulation::upload_gaussians() {
   // The trained Gaussians of the particles, for mpm_gaussians.
   const size_t m = moving_.size();
   const int K = scene_.sh_coeffs();

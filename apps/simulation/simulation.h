@@ -138,6 +138,15 @@ class Simulation {
   MpmSolver& solver() { return *solver_; }
 
  private:
+  // The constructor's steps: the box around `object` (world points), the
+  // particles (returns the materials in use), the solver, the trained
+  // Gaussians of the particles on the device.
+  void place_box(const std::vector<Eigen::Vector3d>& object, const std::vector<Camera>& cameras,
+                 const std::vector<Eigen::Vector3d>& points);
+  std::vector<MpmMaterial> add_particles(const std::vector<uint8_t>& selected);
+  void start_solver(const std::vector<MpmMaterial>& materials);
+  void upload_gaussians();
+
   Runtime& rt_;
   SimulationSettings settings_;
   SimulationFrame frame_;

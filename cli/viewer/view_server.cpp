@@ -282,17 +282,12 @@ void LiveTraining::asked_for_picture() {
 ViewServer::ViewServer(std::function<ViewSession&()> session, LiveTraining* live, const ServeOptions& options)
     : svr_(std::make_unique<httplib::Server>()), options_(options) {
   if (options.port < 0 || options.port > 65535) throw std::invalid_argument("--port: from 0 (any free port) to 65535");
-  // Renders that carry `client=ID` (the page sends one per page load): a
-  // request still waiting for the lock when a newer one of its client
-  // arrives is answered 204 without rendering (X-Superseded: 1), so a
-  // client that asks faster than the device renders gets its latest
-  // camera next, not a backlog of old ones.
-  struct Clients {
-    std::mutex lock;
-    std::map<std::string, uint64_t> latest;  // client -> arrival number of its newest render
-    uint64_t arrivals = 0;
-  };
-  auto clients = std::make_shared<Clients>();
+  configure(options);
+  add_routes(std::move(session), live);
+}
+
+// Limits, sockets, the host check and the error answers.
+void ViewServer::configure(const ServeOptions& options) {
   httplib::Server& svr = *svr_;
   svr.set_payload_max_length(kMaxBody);
   svr.set_read_timeout(10, 0);
@@ -339,7 +334,22 @@ ViewServer::ViewServer(std::function<ViewSession&()> session, LiveTraining* live
                                    : "HTTP " + std::to_string(res.status));
     return httplib::Server::HandlerResponse::Handled;
   }));
+}
 
+// The page and the API.
+void ViewServer::add_routes(std::function<ViewSession&()> session, LiveTraining* live) {
+  // Renders that carry `client=ID` (the page sends one per page load): a
+  // request still waiting for the lock when a newer one of its client
+  // arrives is answered 204 without rendering (X-Superseded: 1), so a
+  // client that asks faster than the device renders gets its latest
+  // camera next, not a backlog of old ones.
+  struct Clients {
+    std::mutex lock;
+    std::map<std::string, uint64_t> latest;  // client -> arrival number of its newest render
+    uint64_t arrivals = 0;
+  };
+  auto clients = std::make_shared<Clients>();
+  httplib::Server& svr = *svr_;
   svr.Get("/", [](const httplib::Request&, httplib::Response& res) {
     res.set_header("Cache-Control", "no-store");
     res.set_content(viewer_page(), "text/html; charset=utf-8");

@@ -10,6 +10,7 @@
 #include <nlohmann/json.hpp>
 #include <optional>
 #include <string>
+#include <utility>
 
 #include "cli/viewer/view_session.h"
 #include "host/io/model_io.h"
@@ -82,6 +83,9 @@ class ViewServer {
   void stop();
 
  private:
+  void configure(const ServeOptions& options);
+  void add_routes(std::function<ViewSession&()> session, LiveTraining* live);
+
   std::unique_ptr<httplib::Server> svr_;
   ServeOptions options_;
   std::mutex lock_;  // one request at a time touches the session
