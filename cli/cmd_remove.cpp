@@ -95,11 +95,7 @@ void cmd_remove(const GlobalOptions& global, RemoveArgs a) {
   // ---- selection
   Runtime rt(global.device);
   nlohmann::json report;
-  report["model"] = tm.file;
-  report["scene"] = a.obj.scene;
-  report["resolution"] = a.obj.resolution;
-  const SelectedObject sel = select_object(rt, tm, *scene, a.obj.request, a.obj.selection, a.obj.config,
-                                           opened.embedding, a.obj.resolution, report, "remove");
+  const SelectedObject sel = select_object(rt, opened, a.obj, report, "remove");
   if (sel.count == tm.model.size())
     throw std::runtime_error("the query selected all " + std::to_string(tm.model.size()) +
                              " anchors: removing them would leave an empty model");

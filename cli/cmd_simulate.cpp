@@ -83,11 +83,7 @@ void cmd_simulate(const GlobalOptions& global, SimulateArgs a) {
 
   Runtime rt(global.device);
   nlohmann::json report;
-  report["model"] = tm.file;
-  report["scene"] = a.obj.scene;
-  report["resolution"] = a.obj.resolution;
-  const SelectedObject sel = select_object(rt, tm, *scene, a.obj.request, a.obj.selection, a.obj.config,
-                                           opened.embedding, a.obj.resolution, report, "simulate");
+  const SelectedObject sel = select_object(rt, opened, a.obj, report, "simulate");
   req.object = object_in_model(opened, sel);
 
   InterruptGuard interrupts;

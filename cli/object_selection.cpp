@@ -121,10 +121,16 @@ void check_selection_request(const QueryRequest& request, const std::string& sel
     throw std::invalid_argument("--view and --vocab belong to a click or text query, not to --selection");
 }
 
-SelectedObject select_object(Runtime& rt, const TrainedModel& tm, const Scene& scene, const QueryRequest& request,
-                             const std::string& selection_file, const QueryConfig& config,
-                             const std::vector<float>& embedding, int resolution, nlohmann::json& report,
+SelectedObject select_object(Runtime& rt, const OpenedModel& opened, const ObjectArgs& a, nlohmann::json& report,
                              const std::string& action) {
+  const TrainedModel& tm = opened.tm;
+  const Scene& scene = *opened.scene;
+  const QueryRequest& request = a.request;
+  const std::string& selection_file = a.selection;
+  const QueryConfig& config = a.config;
+  report["model"] = tm.file;
+  report["scene"] = a.scene;
+  report["resolution"] = a.resolution;
   const AnchorModel& model = tm.model;
   std::vector<int32_t> selected;
   SelectedObject out;
@@ -135,7 +141,8 @@ SelectedObject select_object(Runtime& rt, const TrainedModel& tm, const Scene& s
     QueryEngine engine(rt, model, config);
     if (request.by_text()) engine.set_language(tm.clustering, tm.language);
     if (request.by_click()) prepare_click(engine, request.click_by, tm.archive.meta, scene, &report);
-    selected = run_query(engine, scene, request, embedding, resolution, config.text_margin, report, &out.query_ms);
+    selected =
+        run_query(engine, scene, request, opened.embedding, a.resolution, config.text_margin, report, &out.query_ms);
   }
   out.anchors.assign(model.size(), 0);
   for (int32_t s : selected) out.anchors[s] = 1;

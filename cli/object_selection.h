@@ -60,12 +60,6 @@ struct SelectedObject {
   size_t count = 0;              // selected anchors
   double query_ms = 0;
 };
-// The selected anchors (report["query"] etc. record how); refuses an empty
-// selection, saying that there is nothing to `action`.
-SelectedObject select_object(Runtime& rt, const TrainedModel& tm, const Scene& scene, const QueryRequest& request,
-                             const std::string& selection_file, const QueryConfig& config,
-                             const std::vector<float>& embedding, int resolution, nlohmann::json& report,
-                             const std::string& action);
 
 // The arguments remove and simulate share, and their options: the model
 // folder, --scene, -o, the object (a click, a phrase or --selection), -r and
@@ -92,6 +86,12 @@ struct OpenedModel {
 OpenedModel open_model_and_scene(const std::string& model_dir, const std::string& scene_dir, int& resolution,
                                  const std::string& sparse, const QueryRequest& request,
                                  const std::string& selection_file);
+// The anchors `a` selects in `opened` (a query, or --selection's file).
+// `report` records the model, the scene, the resolution and how the anchors
+// were selected ("query"); an empty selection is refused, saying that there
+// is nothing to `action`.
+SelectedObject select_object(Runtime& rt, const OpenedModel& opened, const ObjectArgs& a, nlohmann::json& report,
+                             const std::string& action);
 // The model, its scene and the selection as the applications take them
 // (apps/backdrop.h); `opened` must outlive the result.
 ObjectInModel object_in_model(const OpenedModel& opened, const SelectedObject& sel);

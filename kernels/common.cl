@@ -73,6 +73,22 @@ inline float sigmoid(float x) { return 1.f / (1.f + exp(-x)); }
 // ds/dx = s (1 - s) = sigmoid(x) sigmoid(-x): no cancellation in 1 - s when s -> 1.
 inline float sigmoid_vjp(float x, float v_s) { return v_s * (sigmoid(x) * sigmoid(-x)); }
 
+// SH coefficients per channel above the DC term at degree 3: the trainers
+// store a Gaussian's SH split, DC [N,3] and rest [N,SH_REST,3].
+#define SH_REST 15
+
+// What both trainers' activations (kernels/expander.cl, kernels/free_trainer.cl)
+// write alike for Gaussian g: the quaternion as stored, the opacity's
+// sigmoid, and the first sh_out SH coefficients (DC, then the rest).
+ALWAYS_INLINE void store_quat_opacity_sh(int g, __global const float* quat, __global const float* opacity_logit,
+                                         __global const float* sh_dc, __global const float* sh_rest, int sh_out,
+                                         __global float* quats, __global float* opacities, __global float* sh) {
+  vstore4(vload4(g, quat), g, quats);
+  opacities[g] = sigmoid(opacity_logit[g]);
+  vstore3(vload3(g, sh_dc), (size_t)g * sh_out, sh);
+  for (int k = 1; k < sh_out; ++k) vstore3(vload3((size_t)g * SH_REST + k - 1, sh_rest), (size_t)g * sh_out + k, sh);
+}
+
 #ifndef EXPF
 #define EXPF native_exp
 #endif

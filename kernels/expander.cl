@@ -8,7 +8,6 @@
 // The SH of a child are stored split, DC [N,3] and rest [N,15,3], so the
 // optimiser can step them with different learning rates.
 
-#define SH_REST 15
 #ifndef SCALE_CAP
 #define SCALE_CAP 1.0f
 #endif
@@ -45,10 +44,7 @@ __kernel void expand_fwd(
   vstore3(vload3(a, pos) + vload3(g, offset) * l, g, means);
   const float3 sl = vload3(g, scale_logit);
   vstore3((float3)(sigmoid(sl.x), sigmoid(sl.y), sigmoid(sl.z)) * (l * cap_of(l, cap_edge)), g, scales);
-  vstore4(vload4(g, quat), g, quats);
-  opacities[g] = sigmoid(opacity_logit[g]);
-  vstore3(vload3(g, sh_dc), (size_t)g * sh_out, sh);
-  for (int k = 1; k < sh_out; ++k) vstore3(vload3((size_t)g * SH_REST + k - 1, sh_rest), (size_t)g * sh_out + k, sh);
+  store_quat_opacity_sh(g, quat, opacity_logit, sh_dc, sh_rest, sh_out, quats, opacities, sh);
   vstore3(vload3(a, feature), g, features);
 }
 

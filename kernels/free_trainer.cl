@@ -5,7 +5,6 @@
 // The SH are stored split, DC [N,3] and rest [N,15,3], so that the optimiser
 // can give the two their own learning rates (as kernels/expander.cl does).
 
-#define SH_REST 15
 
 // scale = exp(log_scale), opacity = sigmoid(opacity_logit), mean and quat as
 // stored, sh = (dc, rest[0 .. sh_out-2]), feature = 0 (no semantic feature).
@@ -28,10 +27,7 @@ __kernel void free_activate(
   if (g >= n) return;
   vstore3(vload3(g, mean), g, means);
   vstore3(exp(vload3(g, log_scale)), g, scales);
-  vstore4(vload4(g, quat), g, quats);
-  opacities[g] = sigmoid(opacity_logit[g]);
-  vstore3(vload3(g, sh_dc), (size_t)g * sh_out, sh);
-  for (int k = 1; k < sh_out; ++k) vstore3(vload3((size_t)g * SH_REST + k - 1, sh_rest), (size_t)g * sh_out + k, sh);
+  store_quat_opacity_sh(g, quat, opacity_logit, sh_dc, sh_rest, sh_out, quats, opacities, sh);
   vstore3((float3)(0.f), g, features);
 }
 
