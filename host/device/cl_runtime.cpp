@@ -448,6 +448,10 @@ std::shared_ptr<const KernelSignature> kernel_signature(const cl::Kernel& k) {
     // Some drivers end the names with NULs.
     for (std::string* s : {&p.name, &p.type})
       while (!s->empty() && s->back() == '\0') s->pop_back();
+    // PoCL's headers rename the builtin functions by macro (#define step
+    // _cl_step), which renames a parameter of that name too (growth_accumulate's
+    // step): the kernel declares it without the prefix.
+    if (p.name.rfind("_cl_", 0) == 0) p.name.erase(0, 4);
     // Not reported (an error, or empty names): the count alone is checked.
     if (e1 != CL_SUCCESS || e2 != CL_SUCCESS || e3 != CL_SUCCESS || p.name.empty() || p.type.empty()) {
       sig.params.clear();

@@ -207,6 +207,17 @@ TEST(Runtime, KernelCallChecksNamesAndBufferSizes) {
   for (uint32_t i = 0; i < 64; ++i) ASSERT_EQ(out[i], i);
 }
 
+// PoCL's headers rename the builtin functions by macro (#define step
+// _cl_step), and with them a parameter of the same name: the signature keeps
+// the name the kernel declares.
+TEST(Runtime, KernelSignatureNamesAParameterLikeABuiltinAsDeclared) {
+  Runtime rt;
+  cl::Kernel k = rt.kernel("anchor_growth.cl", "growth_accumulate", {});
+  const std::shared_ptr<const KernelSignature> sig = kernel_signature(k);
+  if (sig->params.empty()) GTEST_SKIP() << "the device reports no argument names";
+  EXPECT_EQ(sig->params[5].name, "step");
+}
+
 // A store to one component of a vector element of a buffer (ranges[t].x = i)
 // may be compiled as a load and a store of the whole vector; two work-items
 // writing the two halves then lose one of the values. NVIDIA's OpenCL does
