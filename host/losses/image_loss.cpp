@@ -6,6 +6,8 @@
 #include <stdexcept>
 #include <string>
 
+#include "host/device/kernel_call.h"
+
 namespace ag2gs {
 
 namespace {
@@ -106,11 +108,31 @@ void ImageLoss::enqueue(const DeviceBuffer& rendered, const DeviceBuffer& target
   const auto defs = loss_defines(wg_, lanes_);
   const cl::NDRange global(items), local(wg_);
   cl::Kernel blur_h = rt_.kernel("image_loss.cl", "ssim_blur_h", defs);
-  set_kernel_args(blur_h, width, height, planar, rendered, target, blur_);
+  const size_t f4 = sizeof(float);
+  KernelCall(blur_h)
+      .arg("width", width)
+      .arg("height", height)
+      .arg("planar", planar)
+      .buffer("x", rendered, npix * 3 * f4)
+      .buffer("y", target, npix * 3 * f4)
+      .buffer("h", blur_, npix * kBlurPlanes * f4)
+      .done();
   rt_.launch("loss_blur_h", blur_h, global, local);
   cl::Kernel map = rt_.kernel("image_loss.cl", "ssim_map", defs);
-  set_kernel_args(map, width, height, planar, lambda, want_grad ? 1 : 0, has_weights, rendered, target, blur_, w, coef_,
-                  partials_);
+  KernelCall(map)
+      .arg("width", width)
+      .arg("height", height)
+      .arg("planar", planar)
+      .arg("lambda", lambda)
+      .arg("want_grad", want_grad ? 1 : 0)
+      .arg("has_weights", has_weights)
+      .buffer("x", rendered, npix * 3 * f4)
+      .buffer("y", target, npix * 3 * f4)
+      .buffer("h", blur_, npix * kBlurPlanes * f4)
+      .buffer("weights", w, weights ? npix * f4 : 0)
+      .buffer("coef", coef_, want_grad ? npix * kCoefPlanes * f4 : 0)
+      .buffer("partials", partials_, static_cast<size_t>(groups_) * 4 * f4)
+      .done();
   rt_.launch("loss_map", map, global, local);
   if (!want_grad) return;
 
@@ -123,7 +145,19 @@ void ImageLoss::enqueue(const DeviceBuffer& rendered, const DeviceBuffer& target
   set_kernel_args(coef_h, width, height, coef_, blur_);
   rt_.launch("loss_coef_blur_h", coef_h, global, local);
   cl::Kernel grad = rt_.kernel("image_loss.cl", "image_loss_grad", defs);
-  set_kernel_args(grad, width, height, planar, lambda, has_weights, rendered, target, w, blur_, norm_, *grad_out);
+  KernelCall(grad)
+      .arg("width", width)
+      .arg("height", height)
+      .arg("planar", planar)
+      .arg("lambda", lambda)
+      .arg("has_weights", has_weights)
+      .buffer("x", rendered, npix * 3 * f4)
+      .buffer("y", target, npix * 3 * f4)
+      .buffer("weights", w, weights ? npix * f4 : 0)
+      .buffer("hc", blur_, npix * kCoefPlanes * f4)
+      .buffer("norm", norm_, f4)
+      .buffer("grad", *grad_out, npix * 3 * f4)
+      .done();
   rt_.launch("loss_grad", grad, global, local);
 }
 

@@ -7,6 +7,8 @@
 #include <stdexcept>
 #include <string>
 
+#include "host/device/kernel_call.h"
+
 namespace ag2gs {
 
 namespace {
@@ -122,6 +124,7 @@ bool MaskLoss::set_masks(const ViewMasks& masks, int64_t key) {
   layers_ = layers;
   count_ = count;
   chunks_ = mask_chunks[count];
+  entries_ = static_cast<int>(pixels.size());
   key_ = key;
   loaded_ = true;
   return true;
@@ -162,24 +165,54 @@ void MaskLoss::enqueue(const DeviceBuffer& feature, const DeviceBuffer* alpha, i
 
   const auto defs = mask_defines(wg_, lanes_);
   const cl::NDRange local(wg_);
+  const size_t f4 = sizeof(float), i4 = sizeof(int);
+  const size_t mask_bytes = static_cast<size_t>(count_) * 4 * f4, chunk_bytes = static_cast<size_t>(chunks_) * 4 * f4;
+  // Passes 1 and 3 gather the same mask pixels.
+  auto gather_call = [&](cl::Kernel& k) {
+    KernelCall call(k);
+    call.arg("planar", planar)
+        .arg("has_alpha", has_alpha)
+        .arg("npix", n)
+        .buffer("feature", feature, npix * 3 * f4)
+        .buffer("alpha", a, alpha ? npix * f4 : 0)
+        .buffer("pixels", pixels_, static_cast<size_t>(entries_) * i4)
+        .buffer("chunks", chunk_table_, static_cast<size_t>(chunks_) * 4 * i4);
+    return call;
+  };
   if (chunks_ > 0) {
     cl::Kernel k = rt_.kernel("mask_loss.cl", "mask_chunk_sums", defs);
-    set_kernel_args(k, planar, has_alpha, n, feature, a, pixels_, chunk_table_, sums_);
+    gather_call(k).buffer("partials", sums_, chunk_bytes).done();
     rt_.launch("mask_chunk_sums", k, cl::NDRange(static_cast<size_t>(chunks_) * wg_), local);
   }
   {
     cl::Kernel k = rt_.kernel("mask_loss.cl", "mask_means", defs);
-    set_kernel_args(k, count_, mask_chunks_, sums_, means_, stats_);
+    KernelCall(k)
+        .arg("masks", count_)
+        .buffer("mask_chunks", mask_chunks_, (static_cast<size_t>(count_) + 1) * i4)
+        .buffer("partials", sums_, chunk_bytes)
+        .buffer("means", means_, mask_bytes)
+        .buffer("stats", stats_, 2 * i4)
+        .done();
     rt_.launch("mask_means", k, local, local);
   }
   if (chunks_ > 0) {
     cl::Kernel k = rt_.kernel("mask_loss.cl", "mask_chunk_abs", defs);
-    set_kernel_args(k, planar, has_alpha, n, feature, a, pixels_, chunk_table_, means_, abs_);
+    gather_call(k).buffer("means", means_, mask_bytes).buffer("partials", abs_, chunk_bytes).done();
     rt_.launch("mask_chunk_abs", k, cl::NDRange(static_cast<size_t>(chunks_) * wg_), local);
   }
   if (count_ > 0) {
     cl::Kernel k = rt_.kernel("mask_loss.cl", "mask_coef", defs);
-    set_kernel_args(k, count_, w_is, w_ic, mask_chunks_, abs_, means_, stats_, coef_, terms_);
+    KernelCall(k)
+        .arg("masks", count_)
+        .arg("w_is", w_is)
+        .arg("w_ic", w_ic)
+        .buffer("mask_chunks", mask_chunks_, (static_cast<size_t>(count_) + 1) * i4)
+        .buffer("partials", abs_, chunk_bytes)
+        .buffer("means", means_, mask_bytes)
+        .buffer("stats", stats_, 2 * i4)
+        .buffer("coef", coef_, mask_bytes)
+        .buffer("terms", terms_, static_cast<size_t>(count_) * 2 * f4)
+        .done();
     rt_.launch("mask_coef", k, cl::NDRange(count_), local);
   }
   if (grad_feature || grad_alpha) {
@@ -190,8 +223,22 @@ void MaskLoss::enqueue(const DeviceBuffer& feature, const DeviceBuffer* alpha, i
     const int want_alpha_grad = grad_alpha ? 1 : 0;
     DeviceBuffer& ga = grad_alpha ? *grad_alpha : terms_;  // never written without grad_alpha
     cl::Kernel k = rt_.kernel("mask_loss.cl", "mask_grad", defs);
-    set_kernel_args(k, layers_, n, planar, has_alpha, want_alpha_grad, w_is, feature, a, labels_, means_, coef_, stats_,
-                    *gf, ga);
+    KernelCall(k)
+        .arg("layers", layers_)
+        .arg("npix", n)
+        .arg("planar", planar)
+        .arg("has_alpha", has_alpha)
+        .arg("want_alpha_grad", want_alpha_grad)
+        .arg("w_is", w_is)
+        .buffer("feature", feature, npix * 3 * f4)
+        .buffer("alpha", a, alpha ? npix * f4 : 0)
+        .buffer("labels", labels_, static_cast<size_t>(layers_) * npix * i4)
+        .buffer("means", means_, mask_bytes)
+        .buffer("coef", coef_, mask_bytes)
+        .buffer("stats", stats_, 2 * i4)
+        .buffer("grad_feature", *gf, npix * 3 * f4)
+        .buffer("grad_alpha", ga, grad_alpha ? npix * f4 : 0)
+        .done();
     const size_t items = (npix + lanes_ - 1) / lanes_;
     rt_.launch("mask_grad", k, cl::NDRange(items), local);
   }

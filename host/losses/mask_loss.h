@@ -117,6 +117,7 @@ class MaskLoss {
   int64_t key_ = -1;
   bool loaded_ = false, enqueued_ = false;
   int enqueued_count_ = 0;  // masks of the last enqueue()
+  int entries_ = 0;         // pixels_ entries, every mask's pixel list
   int width_ = 0, height_ = 0, layers_ = 0, count_ = 0, chunks_ = 0;
   DeviceBuffer labels_, pixels_, chunk_table_, mask_chunks_;  // per view
   DeviceBuffer sums_, means_, stats_, abs_, coef_, terms_;    // per call
