@@ -7,6 +7,8 @@
 #include <map>
 #include <stdexcept>
 
+#include "host/device/kernel_call.h"
+
 namespace ag2gs {
 
 namespace {
@@ -63,7 +65,14 @@ void gather_rows(Runtime& rt, const DeviceBuffer& src, size_t src_rows, DeviceBu
   dst.reserve(std::max<size_t>(n * sizeof(float), 4));
   if (n == 0) return;
   cl::Kernel k = rt.kernel("adam.cl", "gather_rows", kNoDefines);
-  set_kernel_args(k, static_cast<cl_ulong>(n), row_size, static_cast<cl_ulong>(src_rows), index, src, dst);
+  KernelCall(k)
+      .arg("n_out", static_cast<cl_ulong>(n))
+      .arg("row_size", row_size)
+      .arg("src_rows", static_cast<cl_ulong>(src_rows))
+      .buffer("index", index, out_rows * sizeof(int))
+      .buffer("src", src, src_rows * row_size * sizeof(float))
+      .buffer("dst", dst, n * sizeof(float))
+      .done();
   rt.launch("adam", k, cl::NDRange(n), cl::NDRange(pick_work_group(rt, {"gather_rows"})));
 }
 
@@ -165,6 +174,23 @@ void check_step(const AdamGroup& g, const DeviceBuffer& param, const DeviceBuffe
   check_floats(grad, g.size(), "gradient", g.name());
 }
 
+// The arguments every step kernel ends with: the group's parameter, gradient
+// and moments ([rows, row_size] each) and the step's coefficients.
+void step_args(KernelCall& call, DeviceBuffer& param, const DeviceBuffer& grad, AdamGroup& group, const StepCoeffs& c) {
+  const size_t bytes = group.size() * sizeof(float);
+  call.buffer("param", param, bytes)
+      .buffer("grad", grad, bytes)
+      .buffer("exp_avg", group.exp_avg(), bytes)
+      .buffer("exp_avg_sq", group.exp_avg_sq(), bytes)
+      .arg("one_minus_beta1", c.one_minus_beta1)
+      .arg("beta2", c.beta2)
+      .arg("one_minus_beta2", c.one_minus_beta2)
+      .arg("eps", c.eps)
+      .arg("step_size", c.step_size)
+      .arg("bc2_sqrt", c.bc2_sqrt)
+      .done();
+}
+
 }  // namespace
 
 void Adam::step(AdamGroup& group, DeviceBuffer& param, const DeviceBuffer& grad, double lr) {
@@ -174,8 +200,7 @@ void Adam::step(AdamGroup& group, DeviceBuffer& param, const DeviceBuffer& grad,
   const size_t n = group.size();
   if (n == 0) return;
   cl::Kernel k = rt_.kernel("adam.cl", "adam_step", kNoDefines);
-  set_kernel_args(k, static_cast<cl_ulong>(n), param, grad, group.exp_avg(), group.exp_avg_sq(), c.one_minus_beta1,
-                  c.beta2, c.one_minus_beta2, c.eps, c.step_size, c.bc2_sqrt);
+  step_args(KernelCall(k).arg("n", static_cast<cl_ulong>(n)), param, grad, group, c);
   rt_.launch("adam", k, cl::NDRange(n), cl::NDRange(wg_));
 }
 
@@ -192,8 +217,8 @@ void Adam::step_cols(AdamGroup& group, DeviceBuffer& param, const DeviceBuffer& 
   const size_t n = group.rows() * static_cast<size_t>(cols);
   if (n == 0) return;
   cl::Kernel k = rt_.kernel("adam.cl", "adam_step_cols", kNoDefines);
-  set_kernel_args(k, static_cast<cl_ulong>(n), group.row_size(), cols, param, grad, group.exp_avg(), group.exp_avg_sq(),
-                  c.one_minus_beta1, c.beta2, c.one_minus_beta2, c.eps, c.step_size, c.bc2_sqrt);
+  step_args(KernelCall(k).arg("n", static_cast<cl_ulong>(n)).arg("row_size", group.row_size()).arg("cols", cols), param,
+            grad, group, c);
   rt_.launch("adam", k, cl::NDRange(n), cl::NDRange(wg_));
 }
 
@@ -210,8 +235,11 @@ void Adam::step_visible(AdamGroup& group, DeviceBuffer& param, const DeviceBuffe
   const size_t n = group.size();
   if (n == 0) return;
   cl::Kernel k = rt_.kernel("adam.cl", "adam_step_visible", kNoDefines);
-  set_kernel_args(k, static_cast<cl_ulong>(n), group.row_size(), visible, param, grad, group.exp_avg(),
-                  group.exp_avg_sq(), c.one_minus_beta1, c.beta2, c.one_minus_beta2, c.eps, c.step_size, c.bc2_sqrt);
+  step_args(KernelCall(k)
+                .arg("n", static_cast<cl_ulong>(n))
+                .arg("row_size", group.row_size())
+                .buffer("visible", visible, group.rows() * sizeof(int)),
+            param, grad, group, c);
   rt_.launch("adam", k, cl::NDRange(n), cl::NDRange(wg_));
 }
 
@@ -246,7 +274,13 @@ void Adam::accumulate_nonfinite_cols(const DeviceBuffer& buf, size_t rows, int r
   constexpr size_t kChunk = 16;  // NONFINITE_CHUNK in adam.cl
   const size_t groups = (n + kChunk * wg_ - 1) / (kChunk * wg_);
   cl::Kernel k = rt_.kernel("adam.cl", "count_nonfinite_cols", kNoDefines);
-  set_kernel_args(k, static_cast<cl_ulong>(n), row_size, cols, buf, counter_);
+  KernelCall(k)
+      .arg("n", static_cast<cl_ulong>(n))
+      .arg("row_size", row_size)
+      .arg("cols", cols)
+      .buffer("v", buf, rows * static_cast<size_t>(row_size) * sizeof(float))
+      .buffer("count", counter_, sizeof(cl_uint))
+      .done();
   rt_.launch("adam", k, cl::NDRange(groups * wg_), cl::NDRange(wg_));
 }
 
