@@ -7,6 +7,8 @@
 #include <stdexcept>
 #include <vector>
 
+#include "host/device/kernel_call.h"
+
 namespace ag2gs {
 
 namespace {
@@ -247,7 +249,13 @@ double MpmSolver::max_stable_dt(double max_speed) const {
 void MpmSolver::sort_by_cell() {
   const int g = config_.grid;
   cl::Kernel kk = rt_.kernel("mpm.cl", "mpm_keys", kNoDefines);
-  set_kernel_args(kk, static_cast<cl_int>(n_), static_cast<float>(g), static_cast<cl_int>(g), x_, keys_);
+  KernelCall(kk)
+      .arg("n", static_cast<cl_int>(n_))
+      .arg("inv_dx", static_cast<float>(g))
+      .arg("grid", static_cast<cl_int>(g))
+      .buffer("x", x_, n_ * 3 * sizeof(float))
+      .buffer("keys", keys_, n_ * sizeof(int32_t))
+      .done();
   rt_.launch("mpm_keys", kk, cl::NDRange(round_up(n_, 64)), cl::NDRange(64));
   keys_.download(keys_host_, n_);
   // The cell box the particles occupy, then a stable counting sort over it.
@@ -302,9 +310,25 @@ void MpmSolver::step(double dt, bool forces_on) {
   sort_by_cell();
   const int wg = 64;
 
+  const size_t f4 = sizeof(float), i4 = sizeof(int32_t);
   cl::Kernel ks = rt_.kernel("mpm.cl", "mpm_particle_stress", kNoDefines);
-  set_kernel_args(ks, static_cast<cl_int>(n_), static_cast<float>(dt), inv_dx, static_cast<cl_int>(forces_on), order_,
-                  x_, v_, F_, C_, volume_, mass_, plastic_, material_, mat_params_, pdata_);
+  KernelCall(ks)
+      .arg("n", static_cast<cl_int>(n_))
+      .arg("dt", static_cast<float>(dt))
+      .arg("inv_dx", inv_dx)
+      .arg("forces_on", static_cast<cl_int>(forces_on))
+      .buffer("order", order_, n_ * i4)
+      .buffer("x", x_, n_ * 3 * f4)
+      .buffer("v", v_, n_ * 3 * f4)
+      .buffer("F", F_, n_ * 9 * f4)
+      .buffer("C", C_, n_ * 9 * f4)
+      .buffer("volume", volume_, n_ * f4)
+      .buffer("mass", mass_, n_ * f4)
+      .buffer("plastic", plastic_, n_ * f4)
+      .buffer("material", material_, n_ * i4)
+      .buffer("mat_params", mat_params_, materials_.size() * kMatSize * f4)
+      .buffer("pdata", pdata_, n_ * kPdSize * f4)
+      .done();
   rt_.launch("mpm_particle_stress", ks, cl::NDRange(round_up(n_, wg)), cl::NDRange(wg));
 
   // Nodes the particles reach: their base cells plus 2 on each axis.
@@ -318,14 +342,38 @@ void MpmSolver::step(double dt, bool forces_on) {
   gravity.s[3] = 0.f;
   cl::Kernel kg = rt_.kernel("mpm.cl", "mpm_grid", kNoDefines);
   const size_t n_active = active_host_.size();
-  set_kernel_args(kg, static_cast<cl_int>(n_active), static_cast<cl_int>(g), static_cast<float>(dt), dx, inv_dx, clo,
-                  ndim, clo, cdim, gravity, static_cast<float>(config_.ground), static_cast<float>(config_.friction),
-                  static_cast<float>(1.0 / (1.0 + config_.damping * dt)), active_, cell_start_, pdata_, grid_v_);
+  // The grid size, the substep and the node box (its low corner is the cell
+  // box's), as both grid kernels take them after their count.
+  auto grid_args = [&](KernelCall& call) -> KernelCall& {
+    return call.arg("grid", static_cast<cl_int>(g))
+        .arg("dt", static_cast<float>(dt))
+        .arg("dx", dx)
+        .arg("inv_dx", inv_dx)
+        .arg("nlo", clo)
+        .arg("ndim", ndim);
+  };
+  grid_args(KernelCall(kg).arg("n_active", static_cast<cl_int>(n_active)))
+      .arg("clo", clo)
+      .arg("cdim", cdim)
+      .arg("gravity", gravity)
+      .arg("ground", static_cast<float>(config_.ground))
+      .arg("friction", static_cast<float>(config_.friction))
+      .arg("keep_speed", static_cast<float>(1.0 / (1.0 + config_.damping * dt)))
+      .buffer("active", active_, n_active * i4)
+      .buffer("cell_start", cell_start_, start_host_.size() * i4)
+      .buffer("pdata", pdata_, n_ * kPdSize * f4)
+      .buffer("grid_v", grid_v_, nodes * 4 * f4)
+      .done();
   rt_.launch("mpm_grid", kg, cl::NDRange(round_up(n_active, wg)), cl::NDRange(wg));
 
   cl::Kernel kp = rt_.kernel("mpm.cl", "mpm_g2p", kNoDefines);
-  set_kernel_args(kp, static_cast<cl_int>(n_), static_cast<cl_int>(g), static_cast<float>(dt), dx, inv_dx, clo, ndim,
-                  grid_v_, x_, v_, F_, C_);
+  grid_args(KernelCall(kp).arg("n", static_cast<cl_int>(n_)))
+      .buffer("grid_v", grid_v_, nodes * 4 * f4)
+      .buffer("x", x_, n_ * 3 * f4)
+      .buffer("v", v_, n_ * 3 * f4)
+      .buffer("F", F_, n_ * 9 * f4)
+      .buffer("C", C_, n_ * 9 * f4)
+      .done();
   rt_.launch("mpm_g2p", kp, cl::NDRange(round_up(n_, wg)), cl::NDRange(wg));
 }
 
