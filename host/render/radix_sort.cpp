@@ -7,6 +7,7 @@
 #include <vector>
 
 #include "host/device/device_policy.h"
+#include "host/device/kernel_call.h"
 
 namespace ag2gs {
 
@@ -44,6 +45,17 @@ void check_plan(const RadixSortPlan& p, const std::string& where) {
     throw bad("work-group of " + std::to_string(p.work_group));
   if (p.keys_per_item < 0 || p.keys_per_item > 32) throw bad(std::to_string(p.keys_per_item) + " keys per work-item");
   if (p.max_groups < 0) throw bad(std::to_string(p.max_groups) + " groups");
+}
+
+// A scatter's keys and values, n of each: read from keys and vals, written to
+// keys_out and vals_out.
+KernelCall& scatter_buffers(KernelCall& call, const DeviceBuffer& keys, const DeviceBuffer& vals,
+                            const DeviceBuffer& keys_out, const DeviceBuffer& vals_out, size_t n) {
+  const size_t bytes = n * sizeof(cl_uint);
+  return call.buffer("keys_in", keys, bytes)
+      .buffer("vals_in", vals, bytes)
+      .buffer("keys_out", keys_out, bytes)
+      .buffer("vals_out", vals_out, bytes);
 }
 
 }  // namespace
@@ -157,12 +169,22 @@ void RadixSort::sort_block(DeviceBuffer*& keys, DeviceBuffer*& vals, DeviceBuffe
   cl::Kernel scan = rt_.kernel("radix_sort.cl", "radix_scan", defs);
   cl::Kernel scatter = rt_.kernel("radix_sort.cl", "radix_scatter", defs);
   const int ni = static_cast<int>(n);
+  const size_t key_bytes = n * sizeof(cl_uint), count_bytes = sizeof(cl_uint) * 256 * nblocks;
   for (int shift = 0; shift < bits; shift += 8) {
-    set_kernel_args(hist, ni, shift, *keys, counts_, nblocks);
+    KernelCall(hist)
+        .arg("n", ni)
+        .arg("shift", shift)
+        .buffer("keys", *keys, key_bytes)
+        .buffer("counts", counts_, count_bytes)
+        .arg("nblocks", nblocks)
+        .done();
     rt_.launch(label, hist, cl::NDRange(nblocks));
     set_kernel_args(scan, nblocks, counts_);
     rt_.launch(label, scan, cl::NDRange(256), cl::NDRange(256));
-    set_kernel_args(scatter, ni, shift, *keys, *vals, *keys_tmp, *vals_tmp, counts_, nblocks);
+    scatter_buffers(KernelCall(scatter).arg("n", ni).arg("shift", shift), *keys, *vals, *keys_tmp, *vals_tmp, n)
+        .buffer("counts", counts_, count_bytes)
+        .arg("nblocks", nblocks)
+        .done();
     rt_.launch(label, scatter, cl::NDRange(nblocks));
     std::swap(keys, keys_tmp);
     std::swap(vals, vals_tmp);
@@ -187,12 +209,22 @@ void RadixSort::sort_group(DeviceBuffer*& keys, DeviceBuffer*& vals, DeviceBuffe
   const cl_uint nu = static_cast<cl_uint>(n), tpg = static_cast<cl_uint>(tiles_per_group),
                 gu = static_cast<cl_uint>(groups);
   const cl::NDRange global(groups * plan_.work_group), local(plan_.work_group);
+  const size_t key_bytes = n * sizeof(cl_uint), count_bytes = sizeof(cl_uint) * bins * groups;
   for (int shift = 0; shift < bits; shift += plan_.digit_bits) {
-    set_kernel_args(count, nu, shift, tpg, *keys, counts_);
+    KernelCall(count)
+        .arg("n", nu)
+        .arg("shift", shift)
+        .arg("tiles_per_group", tpg)
+        .buffer("keys", *keys, key_bytes)
+        .buffer("counts", counts_, count_bytes)
+        .done();
     rt_.launch(label, count, global, local);
     set_kernel_args(scan, gu, counts_);
     rt_.launch(label, scan, local, local);
-    set_kernel_args(scatter, nu, shift, tpg, *keys, *vals, *keys_tmp, *vals_tmp, counts_);
+    scatter_buffers(KernelCall(scatter).arg("n", nu).arg("shift", shift).arg("tiles_per_group", tpg), *keys, *vals,
+                    *keys_tmp, *vals_tmp, n)
+        .buffer("offsets", counts_, count_bytes)
+        .done();
     rt_.launch(label, scatter, global, local);
     std::swap(keys, keys_tmp);
     std::swap(vals, vals_tmp);

@@ -8,6 +8,7 @@
 #include <stdexcept>
 
 #include "host/device/kernel_call.h"
+#include "host/render/gaussian_buffers.h"
 #include "kernels/layout.h"
 
 namespace ag2gs {
@@ -164,16 +165,8 @@ void Renderer::bin(const DeviceGaussians& g, const Camera& cam, const RenderSett
   size_t M = 0;
   if (n > 0) {
     cl::Kernel project = rt_.kernel("project.cl", "project_fwd", pdef);
-    const size_t f4 = sizeof(float), K = sh_coeffs_for_degree(g.sh_degree);
-    KernelCall(project)
-        .arg("n", ni)
-        .buffer("cam", cam_buf_, CAM_SIZE * f4)
-        .buffer("means", g.means, n * 3 * f4)
-        .buffer("scales", g.scales, n * 3 * f4)
-        .buffer("quats", g.quats, n * 4 * f4)
-        .buffer("opacities", g.opacities, n * f4)
-        .buffer("sh", g.sh, n * K * 3 * f4)
-        .buffer("features", g.features, n * 3 * f4)
+    const size_t f4 = sizeof(float);
+    gaussian_buffers(KernelCall(project).arg("n", ni).buffer("cam", cam_buf_, CAM_SIZE * f4), g)
         .arg("tiles_x", tiles_x_)
         .arg("tiles_y", tiles_y_)
         .buffer("records", records_, n * REC_SIZE * f4)
@@ -235,8 +228,20 @@ void Renderer::bin(const DeviceGaussians& g, const Camera& cam, const RenderSett
   sorted_isect_vals_ = &isect_vals_;
   if (M > 0) {
     cl::Kernel emit = rt_.kernel("bin.cl", "emit_isects", bin_defines());
-    set_kernel_args(emit, ni, *sorted_order_, rects_, records_, offsets_, counts_sorted_, tiles_x_, tile_keys_, isect_vals_,
-                    isect_gid_, isect_start_);
+    const size_t f4 = sizeof(float);
+    KernelCall(emit)
+        .arg("n", ni)
+        .buffer("order", *sorted_order_, n * 4)
+        .buffer("rects", rects_, n * 4 * f4)
+        .buffer("records", records_, n * REC_SIZE * f4)
+        .buffer("offsets", offsets_, n * 4)
+        .buffer("counts_sorted", counts_sorted_, n * 4)
+        .arg("tiles_x", tiles_x_)
+        .buffer("tile_keys", tile_keys_, M * 4)
+        .buffer("isect_vals", isect_vals_, M * 4)
+        .buffer("isect_gid", isect_gid_, M * 4)
+        .buffer("isect_start", isect_start_, n * 4)
+        .done();
     rt_.launch("bin", emit, cl::NDRange(n), cl::NDRange(64));
     int bits = 1;
     while ((1 << bits) < ntiles) ++bits;
@@ -411,8 +416,17 @@ void Renderer::blend_weights() {
   std::map<std::string, std::string> defs;
   const cl::NDRange local = blend_bwd_layout(defs);
   cl::Kernel weights = rt_.kernel("blend_bwd.cl", "blend_weights", defs);
-  set_kernel_args(weights, cam_.width, cam_.height, tiles_x_, ranges_, *sorted_isect_vals_, isect_gid_, records_,
-                  isect_grads_);
+  const size_t M = stats_.n_intersections, f4 = sizeof(float);
+  KernelCall(weights)
+      .arg("width", cam_.width)
+      .arg("height", cam_.height)
+      .arg("tiles_x", tiles_x_)
+      .buffer("ranges", ranges_, static_cast<size_t>(tiles_x_) * tiles_y_ * 8)
+      .buffer("isect_vals", *sorted_isect_vals_, M * 4)
+      .buffer("isect_gid", isect_gid_, M * 4)
+      .buffer("records", records_, gaussians_->n * REC_SIZE * f4)
+      .buffer("isect_grads", isect_grads_, M * G2_SIZE * f4)
+      .done();
   rt_.launch("blend_weights", weights, cl::NDRange(static_cast<size_t>(tiles_x_) * tiles_y_ * local[0]), local);
   const DeviceGaussians& g = *gaussians_;
   weight_sums_.reserve(std::max<size_t>(g.n, 1) * 4);
@@ -422,7 +436,13 @@ void Renderer::blend_weights() {
   std::map<std::string, std::string> pdef{{"SH_K", std::to_string(sh_coeffs_for_degree(g.sh_degree))},
                                           {"SH_ACTIVE", std::to_string(sh_active_)}};
   cl::Kernel sums = rt_.kernel("project_bwd.cl", "weight_sums", pdef);
-  set_kernel_args(sums, static_cast<int>(g.n), tile_counts_, isect_start_, isect_grads_, weight_sums_);
+  KernelCall(sums)
+      .arg("n", static_cast<int>(g.n))
+      .buffer("tile_counts", tile_counts_, g.n * 4)
+      .buffer("isect_start", isect_start_, g.n * 4)
+      .buffer("isect_grads", isect_grads_, M * G2_SIZE * f4)
+      .buffer("sums", weight_sums_, g.n * f4)
+      .done();
   rt_.launch("blend_weights", sums, cl::NDRange(g.n), cl::NDRange(64));
 }
 

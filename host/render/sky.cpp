@@ -6,8 +6,11 @@
 #include <cstring>
 #include <map>
 #include <opencv2/imgproc.hpp>
+#include <optional>
 #include <stdexcept>
 #include <string>
+
+#include "host/device/kernel_call.h"
 
 namespace ag2gs {
 
@@ -31,6 +34,16 @@ SkyCamera sky_camera(const Camera& c) {
   }
   s.intr = {{static_cast<float>(c.fx), static_cast<float>(c.fy), static_cast<float>(c.cx), static_cast<float>(c.cy)}};
   return s;
+}
+
+// A sky kernel's call with its leading parameters set: the image size, the
+// pixels per partial row (the kernels that write partial rows) and the view.
+KernelCall sky_call(cl::Kernel& k, const Camera& camera, const SkyCamera& sc, std::optional<size_t> chunk = {}) {
+  KernelCall call(k);
+  call.arg("w", static_cast<cl_int>(camera.width)).arg("h", static_cast<cl_int>(camera.height));
+  if (chunk) call.arg("chunk", static_cast<cl_int>(*chunk));
+  call.arg("r0", sc.r[0]).arg("r1", sc.r[1]).arg("r2", sc.r[2]).arg("intr", sc.intr);
+  return call;
 }
 
 }  // namespace
@@ -105,8 +118,14 @@ const DeviceBuffer& Sky::compose(const DeviceBuffer& rgb, const DeviceBuffer& al
   sky_.reserve(npix * 3 * sizeof(float));
   const SkyCamera sc = sky_camera(camera);
   cl::Kernel k = rt_.kernel("sky.cl", "sky_compose", defines());
-  set_kernel_args(k, static_cast<cl_int>(camera.width), static_cast<cl_int>(camera.height), sc.r[0], sc.r[1], sc.r[2],
-                  sc.intr, coef_, rgb, alpha, out_, sky_);
+  const size_t f4 = sizeof(float);
+  sky_call(k, camera, sc)
+      .buffer("coef", coef_, values_ * f4)
+      .buffer("rgb", rgb, npix * 3 * f4)
+      .buffer("alpha", alpha, npix * f4)
+      .buffer("out", out_, npix * 3 * f4)
+      .buffer("sky_out", sky_, npix * 3 * f4)
+      .done();
   rt_.launch("sky_compose", k, cl::NDRange((npix + 63) / 64 * 64), cl::NDRange(64));
   composed_.width = camera.width;
   composed_.height = camera.height;
@@ -125,21 +144,28 @@ void Sky::backward(const DeviceBuffer& grad_out, const DeviceBuffer& alpha, cons
   grad_alpha.reserve(npix * sizeof(float));
   partial_.reserve(std::max<size_t>(rows, 1) * values_ * sizeof(float));
   const SkyCamera sc = sky_camera(camera);
+  const size_t f4 = sizeof(float);
   if (!same_camera(composed_.args, sc, camera.width, camera.height, composed_.width, composed_.height)) {
     sky_.reserve(npix * 3 * sizeof(float));
     cl::Kernel c = rt_.kernel("sky.cl", "sky_colours", defines());
-    set_kernel_args(c, static_cast<cl_int>(camera.width), static_cast<cl_int>(camera.height), sc.r[0], sc.r[1], sc.r[2],
-                    sc.intr, coef_, sky_);
+    sky_call(c, camera, sc).buffer("coef", coef_, values_ * f4).buffer("sky_out", sky_, npix * 3 * f4).done();
     rt_.launch("sky_compose", c, cl::NDRange((npix + 63) / 64 * 64), cl::NDRange(64));
     composed_.width = camera.width;
     composed_.height = camera.height;
     std::memcpy(composed_.args, &sc, sizeof(sc));
   }
   cl::Kernel k = rt_.kernel("sky.cl", "sky_grad_partial", defines());
-  set_kernel_args(k, static_cast<cl_int>(camera.width), static_cast<cl_int>(camera.height), static_cast<cl_int>(chunk),
-                  sc.r[0], sc.r[1], sc.r[2], sc.intr, sky_, grad_out, alpha, static_cast<cl_int>(weight ? 1 : 0),
-                  weight ? *weight : coef_, static_cast<cl_int>(add ? 1 : 0), grad_alpha, static_cast<cl_int>(rows),
-                  partial_);
+  sky_call(k, camera, sc, chunk)
+      .buffer("sky", sky_, npix * 3 * f4)
+      .buffer("grad_out", grad_out, npix * 3 * f4)
+      .buffer("alpha", alpha, npix * f4)
+      .arg("use_weight", static_cast<cl_int>(weight ? 1 : 0))
+      .buffer("weight", weight ? *weight : coef_, weight ? npix * f4 : 0)
+      .arg("add_base", static_cast<cl_int>(add ? 1 : 0))
+      .buffer("grad_alpha", grad_alpha, npix * f4)
+      .arg("rows", static_cast<cl_int>(rows))
+      .buffer("partial", partial_, rows * values_ * f4)
+      .done();
   rt_.launch("sky_grad_partial", k, cl::NDRange((rows + 63) / 64 * 64), cl::NDRange(64));
   cl::Kernel r = rt_.kernel("sky.cl", "sky_grad_reduce", defines());
   set_kernel_args(r, static_cast<cl_int>(rows), static_cast<cl_int>(values_), partial_, grad_);
@@ -159,9 +185,14 @@ void Sky::add_fit(const DeviceBuffer& image, const Camera& camera, Eigen::Matrix
   sums.reserve(values * sizeof(float));
   const SkyCamera sc = sky_camera(camera);
   cl::Kernel k = rt_.kernel("sky.cl", "sky_fit_partial", defines());
-  set_kernel_args(k, static_cast<cl_int>(camera.width), static_cast<cl_int>(camera.height), static_cast<cl_int>(chunk),
-                  sc.r[0], sc.r[1], sc.r[2], sc.intr, image, static_cast<cl_int>(weight ? 1 : 0),
-                  weight ? *weight : coef_, static_cast<cl_int>(rows), partial_);
+  const size_t f4 = sizeof(float);
+  sky_call(k, camera, sc, chunk)
+      .buffer("image", image, npix * 3 * f4)
+      .arg("use_weight", static_cast<cl_int>(weight ? 1 : 0))
+      .buffer("weight", weight ? *weight : coef_, weight ? npix * f4 : 0)
+      .arg("rows", static_cast<cl_int>(rows))
+      .buffer("partial", partial_, rows * values * f4)
+      .done();
   rt_.launch("sky_fit_partial", k, cl::NDRange((rows + 63) / 64 * 64), cl::NDRange(64));
   cl::Kernel r = rt_.kernel("sky.cl", "sky_grad_reduce", defines());
   set_kernel_args(r, static_cast<cl_int>(rows), static_cast<cl_int>(values), partial_, sums);
