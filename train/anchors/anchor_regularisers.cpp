@@ -1,5 +1,7 @@
 #include "train/anchors/anchor_regularisers.h"
 
+#include "host/device/kernel_call.h"
+
 namespace ag2gs {
 
 void enqueue_offset_regulariser(Runtime& rt, size_t n, float weight, const DeviceBuffer& offset, DeviceBuffer& grad,
@@ -7,7 +9,13 @@ void enqueue_offset_regulariser(Runtime& rt, size_t n, float weight, const Devic
   if (n == 0) return;
   value.reserve(n * 4);
   cl::Kernel k = rt.kernel("anchor_regularisers.cl", "offset_reg", {});
-  set_kernel_args(k, static_cast<cl_int>(n), weight / static_cast<float>(n), offset, grad, value);
+  KernelCall(k)
+      .arg("n", static_cast<cl_int>(n))
+      .arg("scale", weight / static_cast<float>(n))
+      .buffer("offset", offset, n * 3 * sizeof(float))
+      .buffer("grad", grad, n * 3 * sizeof(float))
+      .buffer("value", value, n * sizeof(float))
+      .done();
   rt.launch("offset_reg", k, cl::NDRange(n), cl::NDRange(64));
 }
 

@@ -8,6 +8,8 @@
 #include <stdexcept>
 #include <string>
 
+#include "host/render/gaussian_buffers.h"
+
 namespace ag2gs {
 
 namespace {
@@ -154,9 +156,21 @@ void Expander::forward(const DeviceAnchors& anchors, DeviceGaussians& out, int a
   reserve_floats(out.features, n * 3);
   if (n == 0) return;
   cl::Kernel k = rt_.kernel("expander.cl", "expand_fwd", expand_defines(anchors));
-  set_kernel_args(k, static_cast<int>(n), anchors.pos, anchors.voxel, anchors.feature, anchors.offset,
-                  anchors.scale_logit, anchors.quat, anchors.opacity_logit, anchors.sh_dc, anchors.sh_rest, sh_out,
-                  anchors.cap_edge, out.means, out.scales, out.quats, out.opacities, out.sh, out.features);
+  const size_t a = anchors.anchors, f4 = sizeof(float);
+  KernelCall call(k);
+  call.arg("n", static_cast<int>(n))
+      .buffer("pos", anchors.pos, a * 3 * f4)
+      .buffer("voxel", anchors.voxel, a * f4)
+      .buffer("feature", anchors.feature, a * 3 * f4)
+      .buffer("offset", anchors.offset, n * 3 * f4)
+      .buffer("scale_logit", anchors.scale_logit, n * 3 * f4)
+      .buffer("quat", anchors.quat, n * 4 * f4)
+      .buffer("opacity_logit", anchors.opacity_logit, n * f4)
+      .buffer("sh_dc", anchors.sh_dc, n * 3 * f4)
+      .buffer("sh_rest", anchors.sh_rest, sh_out > 1 ? n * kShRestCoeffs * 3 * f4 : 0)
+      .arg("sh_out", sh_out)
+      .arg("cap_edge", anchors.cap_edge);
+  gaussian_buffers(call, out).done();
   rt_.launch("expand", k, cl::NDRange(n), cl::NDRange(kWorkGroup));
 }
 
@@ -187,9 +201,26 @@ void Expander::backward(const DeviceAnchors& anchors, const DeviceGaussianGrads&
   if (n == 0) return;
   const std::map<std::string, std::string> defines = expand_defines(anchors);
   cl::Kernel k = rt_.kernel("expander.cl", "expand_bwd", defines);
-  set_kernel_args(k, static_cast<int>(n), anchors.voxel, anchors.scale_logit, anchors.opacity_logit, *grads.means,
-                  *grads.scales, *grads.quats, *grads.opacities, *grads.sh, sh_in, anchors.cap_edge, out.offset,
-                  out.scale_logit, out.quat, out.opacity_logit, out.sh_dc, out.sh_rest);
+  const size_t f4 = sizeof(float);
+  KernelCall(k)
+      .arg("n", static_cast<int>(n))
+      .buffer("voxel", anchors.voxel, anchors.anchors * f4)
+      .buffer("scale_logit", anchors.scale_logit, n * 3 * f4)
+      .buffer("opacity_logit", anchors.opacity_logit, n * f4)
+      .buffer("v_means", *grads.means, n * 3 * f4)
+      .buffer("v_scales", *grads.scales, n * 3 * f4)
+      .buffer("v_quats", *grads.quats, n * 4 * f4)
+      .buffer("v_opacities", *grads.opacities, n * f4)
+      .buffer("v_sh", *grads.sh, n * sh_in * 3 * f4)
+      .arg("sh_in", sh_in)
+      .arg("cap_edge", anchors.cap_edge)
+      .buffer("v_offset", out.offset, n * 3 * f4)
+      .buffer("v_scale_logit", out.scale_logit, n * 3 * f4)
+      .buffer("v_quat", out.quat, n * 4 * f4)
+      .buffer("v_opacity_logit", out.opacity_logit, n * f4)
+      .buffer("v_sh_dc", out.sh_dc, n * 3 * f4)
+      .buffer("v_sh_rest", out.sh_rest, n * kShRestCoeffs * 3 * f4)
+      .done();
   rt_.launch("expand_bwd", k, cl::NDRange(n), cl::NDRange(kWorkGroup));
   cl::Kernel kf = rt_.kernel("expander.cl", "expand_bwd_feature", defines);
   set_kernel_args(kf, static_cast<int>(anchors.anchors), *grads.features, out.feature);

@@ -13,7 +13,9 @@
 #include "host/core/gaussians.h"
 #include "host/core/nearest.h"
 #include "host/core/scalar_math.h"
+#include "host/device/kernel_call.h"
 #include "host/io/ply_io.h"
+#include "host/render/gaussian_buffers.h"
 #include "train/baseline/free_train_settings.h"
 
 namespace fs = std::filesystem;
@@ -355,9 +357,17 @@ void FreeTrainer::activate(int sh_degree) {
   gaussians_.sh.reserve(nb * 3 * sh_out);
   gaussians_.features.reserve(nb * 3);
   cl::Kernel k = rt_.kernel("free_trainer.cl", "free_activate", {});
-  set_kernel_args(k, static_cast<cl_int>(n_), mean_, log_scale_, quat_, opacity_logit_, sh_dc_, sh_rest_,
-                  static_cast<cl_int>(sh_out), gaussians_.means, gaussians_.scales, gaussians_.quats,
-                  gaussians_.opacities, gaussians_.sh, gaussians_.features);
+  const size_t f4 = sizeof(float);
+  KernelCall call(k);
+  call.arg("n", static_cast<cl_int>(n_))
+      .buffer("mean", mean_, n_ * 3 * f4)
+      .buffer("log_scale", log_scale_, n_ * 3 * f4)
+      .buffer("quat", quat_, n_ * 4 * f4)
+      .buffer("opacity_logit", opacity_logit_, n_ * f4)
+      .buffer("sh_dc", sh_dc_, n_ * 3 * f4)
+      .buffer("sh_rest", sh_rest_, sh_out > 1 ? n_ * kRest * 3 * f4 : 0)
+      .arg("sh_out", static_cast<cl_int>(sh_out));
+  gaussian_buffers(call, gaussians_).done();
   rt_.launch("free_activate", k, cl::NDRange(std::max<size_t>(n_, 1)), cl::NDRange(64));
 }
 
@@ -368,17 +378,37 @@ void FreeTrainer::activate_backward(const DeviceGaussianGrads& rg) {
   v_sh_dc_.reserve(nb * 3);
   v_sh_rest_.reserve(nb * 3 * kRest);
   cl::Kernel k = rt_.kernel("free_trainer.cl", "free_activate_bwd", {});
-  set_kernel_args(k, static_cast<cl_int>(n_), log_scale_, opacity_logit_, *rg.scales, *rg.opacities, *rg.sh,
-                  static_cast<cl_int>(sh_coeffs_for_degree(rg.sh_degree)), v_log_scale_, v_opacity_logit_, v_sh_dc_,
-                  v_sh_rest_);
+  const int sh_in = sh_coeffs_for_degree(rg.sh_degree);
+  const size_t f4 = sizeof(float);
+  KernelCall(k)
+      .arg("n", static_cast<cl_int>(n_))
+      .buffer("log_scale", log_scale_, n_ * 3 * f4)
+      .buffer("opacity_logit", opacity_logit_, n_ * f4)
+      .buffer("v_scales", *rg.scales, n_ * 3 * f4)
+      .buffer("v_opacities", *rg.opacities, n_ * f4)
+      .buffer("v_sh", *rg.sh, n_ * sh_in * 3 * f4)
+      .arg("sh_in", static_cast<cl_int>(sh_in))
+      .buffer("v_log_scale", v_log_scale_, n_ * 3 * f4)
+      .buffer("v_opacity_logit", v_opacity_logit_, n_ * f4)
+      .buffer("v_sh_dc", v_sh_dc_, n_ * 3 * f4)
+      .buffer("v_sh_rest", v_sh_rest_, n_ * kRest * 3 * f4)
+      .done();
   rt_.launch("free_activate_bwd", k, cl::NDRange(std::max<size_t>(n_, 1)), cl::NDRange(64));
 }
 
 void FreeTrainer::accumulate_densify_stats(const DeviceGaussianGrads& rg, int width, int height) {
   if (n_ == 0) return;
   cl::Kernel k = rt_.kernel("free_trainer.cl", "free_densify_accumulate", {});
-  set_kernel_args(k, static_cast<cl_int>(n_), *rg.means2d, renderer_.device_radii(), 0.5f * width, 0.5f * height,
-                  grad_sum_, count_, max_radius_);
+  KernelCall(k)
+      .arg("n", static_cast<cl_int>(n_))
+      .buffer("v_means2d", *rg.means2d, n_ * 2 * sizeof(float))
+      .buffer("radii", renderer_.device_radii(), n_ * sizeof(int))
+      .arg("scale_x", 0.5f * width)
+      .arg("scale_y", 0.5f * height)
+      .buffer("grad_sum", grad_sum_, n_ * sizeof(float))
+      .buffer("count", count_, n_ * sizeof(int))
+      .buffer("max_radius", max_radius_, n_ * sizeof(int))
+      .done();
   rt_.launch("free_densify_acc", k, cl::NDRange(n_), cl::NDRange(64));
 }
 

@@ -12,6 +12,7 @@
 #include <tuple>
 
 #include "host/core/scalar_math.h"
+#include "host/device/kernel_call.h"
 
 namespace ag2gs {
 
@@ -135,7 +136,17 @@ void AnchorGrowth::accumulate(const DeviceBuffer& v_means2d, const DeviceBuffer&
   const float sx = config_.ndc ? 0.5f * static_cast<float>(width) : 1.f;
   const float sy = config_.ndc ? 0.5f * static_cast<float>(height) : 1.f;
   cl::Kernel k = rt_.kernel("anchor_growth.cl", "growth_accumulate", {});
-  set_kernel_args(k, static_cast<int>(n_), v_means2d, radii, sx, sy, step_, grad_sum_, count_, last_seen_);
+  KernelCall(k)
+      .arg("n", static_cast<int>(n_))
+      .buffer("v_means2d", v_means2d, n_ * 2 * sizeof(float))
+      .buffer("radii", radii, n_ * sizeof(int32_t))
+      .arg("scale_x", sx)
+      .arg("scale_y", sy)
+      .arg("step", step_)
+      .buffer("grad_sum", grad_sum_, n_ * sizeof(float))
+      .buffer("count", count_, n_ * sizeof(int32_t))
+      .buffer("last_seen", last_seen_, n_ * sizeof(int32_t))
+      .done();
   rt_.launch("growth_accumulate", k, cl::NDRange(n_), cl::NDRange(kWorkGroup));
 }
 

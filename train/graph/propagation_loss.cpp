@@ -7,6 +7,8 @@
 #include <stdexcept>
 #include <string>
 
+#include "host/device/kernel_call.h"
+
 namespace ag2gs {
 
 namespace {
@@ -97,14 +99,31 @@ void PropagationLoss::enqueue(const DeviceBuffer& features, DeviceBuffer* featur
   const float inv_two_tau2 = static_cast<float>(1.0 / (2.0 * tau * tau));
   const auto defs = prop_defines(wg_);
   cl::Kernel edges = rt_.kernel("propagation_loss.cl", "prop_edges", defs);
-  set_kernel_args(edges, edge_i_, edge_j_, features, coef_, inv_two_tau2, config_.differentiate_weights ? 1 : 0,
-                  partials_);
+  const size_t padded_edges = static_cast<size_t>(groups_) * wg_;
+  KernelCall(edges)
+      .buffer("edge_i", edge_i_, padded_edges * sizeof(int32_t))
+      .buffer("edge_j", edge_j_, padded_edges * sizeof(int32_t))
+      .buffer("feature", features, bytes)
+      .buffer("coef", coef_, padded_edges * sizeof(float))
+      .arg("inv_two_tau2", inv_two_tau2)
+      .arg("full_gradient", config_.differentiate_weights ? 1 : 0)
+      .buffer("partials", partials_, static_cast<size_t>(groups_) * sizeof(float))
+      .done();
   rt_.launch("prop_edges", edges, cl::NDRange(static_cast<size_t>(groups_) * wg_), cl::NDRange(wg_));
   if (!feature_grads) return;
   const float grad_scale = static_cast<float>(2.0 * weight / static_cast<double>(edges_));
   cl::Kernel grad = rt_.kernel("propagation_loss.cl", "prop_grad", defs);
-  set_kernel_args(grad, static_cast<cl_int>(anchors_), row_offsets_, neighbours_, entry_edge_, features, coef_,
-                  grad_scale, *feature_grads);
+  const size_t entries = 2 * edges_;  // each edge in the rows of both its anchors
+  KernelCall(grad)
+      .arg("n", static_cast<cl_int>(anchors_))
+      .buffer("row_offsets", row_offsets_, (anchors_ + 1) * sizeof(int32_t))
+      .buffer("neighbours", neighbours_, entries * sizeof(int32_t))
+      .buffer("entry_edge", entry_edge_, entries * sizeof(int32_t))
+      .buffer("feature", features, bytes)
+      .buffer("coef", coef_, padded_edges * sizeof(float))
+      .arg("grad_scale", grad_scale)
+      .buffer("grad", *feature_grads, bytes)
+      .done();
   rt_.launch("prop_grad", grad, cl::NDRange(anchors_), cl::NDRange(wg_));
 }
 

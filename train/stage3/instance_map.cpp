@@ -6,6 +6,9 @@
 #include <stdexcept>
 #include <string>
 
+#include "host/device/kernel_call.h"
+#include "kernels/layout.h"
+
 namespace ag2gs {
 
 InstanceMapper::InstanceMapper(Runtime& rt)
@@ -61,8 +64,22 @@ void InstanceMapper::run(const Renderer& renderer, bool with_images) {
                              {"NO_STAGING", renderer.staged() ? "0" : "1"},
                              {"BATCH", std::to_string(std::max(64, wg))}});
   const int ntiles = f.tiles_x * f.tiles_y;
-  set_kernel_args(k, f.width, f.height, f.tiles_x, children_, *f.ranges, *f.isect_vals, *f.isect_gid, *f.records,
-                  anchor_cluster_, ids_, weights_, feat_, alpha_);
+  const size_t M = renderer.stats().n_intersections, f4 = sizeof(float);
+  KernelCall(k)
+      .arg("width", f.width)
+      .arg("height", f.height)
+      .arg("tiles_x", f.tiles_x)
+      .arg("children", children_)
+      .buffer("ranges", *f.ranges, static_cast<size_t>(ntiles) * 8)
+      .buffer("isect_vals", *f.isect_vals, M * 4)
+      .buffer("isect_gid", *f.isect_gid, M * 4)
+      .buffer("records", *f.records, f.n_gaussians * REC_SIZE * f4)
+      .buffer("anchor_cluster", anchor_cluster_, anchors_ * 4)
+      .buffer("out_id", ids_, npix * 4)
+      .buffer("out_weight", weights_, npix * f4)
+      .buffer("out_feat", feat_, with_images ? npix * 3 * f4 : 0)
+      .buffer("out_alpha", alpha_, with_images ? npix * f4 : 0)
+      .done();
   rt_.launch("instance_map", k, cl::NDRange(static_cast<size_t>(ntiles) * wg), cl::NDRange(wg));
 }
 
