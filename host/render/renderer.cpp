@@ -69,6 +69,10 @@ Renderer::Renderer(Runtime& rt)
     b->bind(&rt_);
 }
 
+void Renderer::reserve_each(size_t items, std::initializer_list<SizedBuffer> buffers) {
+  for (const SizedBuffer& b : buffers) b.buffer->reserve(items * b.bytes_per_item);
+}
+
 std::map<std::string, std::string> Renderer::bin_defines() const {
   return {{"SCAN_BLOCK", std::to_string(kScanBlock)}, {"SCAN_WG", std::to_string(kScanWg)}};
 }
@@ -146,17 +150,18 @@ void Renderer::bin(const DeviceGaussians& g, const Camera& cam, const RenderSett
   cam_buf_.upload(pack_camera(cam, settings));
 
   const size_t nn = std::max<size_t>(n, 1);
-  records_.reserve(nn * REC_SIZE * 4);
-  rects_.reserve(nn * 16);
-  tile_counts_.reserve(nn * 4);
-  depth_keys_.reserve(nn * 4);
-  radii_.reserve(nn * 4);
-  order_keys_tmp_.reserve(nn * 4);
-  order_vals_.reserve(nn * 4);
-  order_vals_tmp_.reserve(nn * 4);
-  counts_sorted_.reserve(nn * 4);
-  offsets_.reserve(nn * 4);
-  isect_start_.reserve(nn * 4);
+  // Per Gaussian: bytes each.
+  reserve_each(nn, {{&records_, REC_SIZE * 4},
+                    {&rects_, 16},
+                    {&tile_counts_, 4},
+                    {&depth_keys_, 4},
+                    {&radii_, 4},
+                    {&order_keys_tmp_, 4},
+                    {&order_vals_, 4},
+                    {&order_vals_tmp_, 4},
+                    {&counts_sorted_, 4},
+                    {&offsets_, 4},
+                    {&isect_start_, 4}});
   const int nscan = static_cast<int>(ceil_div(nn, kScanBlock));
   block_sums_.reserve((nscan + 1) * 4);
 
@@ -218,11 +223,8 @@ void Renderer::bin(const DeviceGaussians& g, const Camera& cam, const RenderSett
 
   // Intersection buffers grow with the frame; nothing is dropped.
   const size_t mm = std::max<size_t>(M, 1);
-  tile_keys_.reserve(mm * 4);
-  tile_keys_tmp_.reserve(mm * 4);
-  isect_vals_.reserve(mm * 4);
-  isect_vals_tmp_.reserve(mm * 4);
-  isect_gid_.reserve(mm * 4);
+  reserve_each(mm,
+               {{&tile_keys_, 4}, {&tile_keys_tmp_, 4}, {&isect_vals_, 4}, {&isect_vals_tmp_, 4}, {&isect_gid_, 4}});
   ranges_.fill_zero(static_cast<size_t>(ntiles) * 8);
   sorted_tile_keys_ = &tile_keys_;
   sorted_isect_vals_ = &isect_vals_;
@@ -261,14 +263,15 @@ void Renderer::forward(const DeviceGaussians& g, const Camera& cam, const Render
   bin(g, cam, settings);
   const size_t npix = static_cast<size_t>(cam.width) * cam.height;
   const int ntiles = tiles_x_ * tiles_y_;
-  out_rgb_.reserve(npix * 12);
-  out_feat_.reserve(npix * 12);
-  out_depth_.reserve(npix * 4);
-  out_alpha_.reserve(npix * 4);
-  out_dist_.reserve(npix * 4);
-  out_aux_.reserve(npix * 16);
-  out_last_.reserve(npix * 4);
-  out_count_.reserve(npix * 4);
+  // Per pixel: the planes of kernels/blend_fwd.cl.
+  reserve_each(npix, {{&out_rgb_, 12},
+                      {&out_feat_, 12},
+                      {&out_depth_, 4},
+                      {&out_alpha_, 4},
+                      {&out_dist_, 4},
+                      {&out_aux_, 16},
+                      {&out_last_, 4},
+                      {&out_count_, 4}});
   const int wg = 256 / rt_.vector_width();
   // CPUs: no local-memory staging (records come from cache), see blend_fwd.cl.
   cl::Kernel blend = rt_.kernel("blend_fwd.cl", "blend_fwd",
@@ -460,13 +463,13 @@ void Renderer::project_backward() {
   const DeviceGaussians& g = *gaussians_;
   const size_t n = std::max<size_t>(g.n, 1);
   const int K = sh_coeffs_for_degree(g.sh_degree);
-  v_means_.reserve(n * 12);
-  v_scales_.reserve(n * 12);
-  v_quats_.reserve(n * 16);
-  v_opacities_.reserve(n * 4);
-  v_sh_.reserve(n * K * 12);
-  v_features_.reserve(n * 12);
-  v_means2d_.reserve(n * 8);
+  reserve_each(n, {{&v_means_, 12},
+                   {&v_scales_, 12},
+                   {&v_quats_, 16},
+                   {&v_opacities_, 4},
+                   {&v_sh_, static_cast<size_t>(K) * 12},
+                   {&v_features_, 12},
+                   {&v_means2d_, 8}});
   if (g.n == 0) return;
   std::map<std::string, std::string> pdef{{"SH_K", std::to_string(K)}, {"SH_ACTIVE", std::to_string(sh_active_)}};
   cl::Kernel pb = rt_.kernel("project_bwd.cl", "project_bwd", pdef);

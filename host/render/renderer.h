@@ -3,6 +3,7 @@
 // atomics (docs/rasterizer.md gives the exact function computed).
 #pragma once
 
+#include <initializer_list>
 #include <map>
 #include <string>
 
@@ -176,6 +177,14 @@ class Renderer {
   bool have_frame_ = false;     // device_frame() valid (bin() or forward())
   bool have_images_ = false;    // the images and the backward's inputs (forward())
   bool frame_features_ = true;  // the last forward() blended the feature planes
+
+  // A buffer and its bytes per item (Gaussian, intersection or pixel): the
+  // buffers of one size class are reserved together, as a table.
+  struct SizedBuffer {
+    DeviceBuffer* buffer;
+    size_t bytes_per_item;
+  };
+  static void reserve_each(size_t items, std::initializer_list<SizedBuffer> buffers);
 
   DeviceBuffer cam_buf_, records_, rects_, tile_counts_, depth_keys_, radii_;
   DeviceBuffer order_keys_tmp_, order_vals_, order_vals_tmp_, counts_sorted_, offsets_, block_sums_;
