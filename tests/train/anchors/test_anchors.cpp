@@ -20,6 +20,7 @@
 
 #include "host/io/model_io.h"
 #include "tests/io_test_util.h"
+#include "tests/reference/expander_reference.h"
 #include "tests/reference/reference_renderer.h"
 #include "tests/test_util.h"
 #include "train/anchors/anchor_model.h"
@@ -631,46 +632,13 @@ void fill_random_grads(GaussianGradBuffers& b, size_t n, int sh_degree, uint32_t
   make(b.host.features, b.features, n * 3);
 }
 
-// The analytic backward of the expansion in double (layout of AnchorGrads).
-struct RefAnchorGrads {
-  std::vector<double> feature, offset, scale_logit, quat, opacity_logit, sh;
-};
-
-RefAnchorGrads expand_backward_reference(const AnchorModel& m, const ref::RefGrads& v, int sh_degree) {
-  const size_t K = m.children(), N = m.gaussians();
-  const int S = sh_coeffs_for_degree(sh_degree);
-  RefAnchorGrads r;
-  r.feature.assign(m.size() * 3, 0.0);
-  r.offset.resize(N * 3);
-  r.scale_logit.resize(N * 3);
-  r.quat.resize(N * 4);
-  r.opacity_logit.resize(N);
-  r.sh.assign(N * 48, 0.0);
-  for (size_t g = 0; g < N; ++g) {
-    const size_t a = g / K;
-    const double l = m.voxel()[a], cap = m.config().cap(m.layer()[a]);
-    for (int k = 0; k < 3; ++k) {
-      r.offset[3 * g + k] = v.means[3 * g + k] * l;
-      // s (1 - s) as sigmoid(x) sigmoid(-x): 1 - s cancels catastrophically for large x.
-      const double x = m.scale_logit()[3 * g + k];
-      r.scale_logit[3 * g + k] = v.scales[3 * g + k] * l * cap * sigmoid(x) * sigmoid(-x);
-      r.feature[3 * a + k] += v.features[3 * g + k];
-    }
-    for (int k = 0; k < 4; ++k) r.quat[4 * g + k] = v.quats[4 * g + k];
-    const double x = m.opacity_logit()[g];
-    r.opacity_logit[g] = v.opacities[g] * sigmoid(x) * sigmoid(-x);
-    for (int j = 0; j < S * 3; ++j) r.sh[48 * g + j] = v.sh[S * 3 * g + j];
-  }
-  return r;
-}
-
 // Every (name, device, reference) array pair of anchor gradients.
 struct GradPair {
   const char* name;
   const std::vector<float>* dev;
   const std::vector<double>* ref;
 };
-std::vector<GradPair> pairs(const AnchorGrads& d, const RefAnchorGrads& r) {
+std::vector<GradPair> pairs(const AnchorGrads& d, const ref::RefAnchorGrads& r) {
   return {{"feature", &d.feature, &r.feature},
           {"offset", &d.offset, &r.offset},
           {"scale_logit", &d.scale_logit, &r.scale_logit},
@@ -731,7 +699,7 @@ TEST(Expander, ForwardMatchesReference) {
 // sums 5 floats (measured 3.6e-7 abs on a scale of ~4).
 constexpr double kBackwardRelTol = 2e-6, kBackwardAbsScale = 1e-6;
 
-void check_backward_against(const AnchorGrads& dev, const RefAnchorGrads& ref) {
+void check_backward_against(const AnchorGrads& dev, const ref::RefAnchorGrads& ref) {
   for (const GradPair& p : pairs(dev, ref)) {
     const double scale = max_abs(*p.ref);
     test::expect_close(p.name, test::compare(*p.dev, *p.ref, kBackwardAbsScale * scale + 1e-30, kBackwardRelTol));
@@ -751,7 +719,7 @@ TEST(Expander, BackwardMatchesReferenceAndFiniteDifferences) {
     ex.backward(dev, v.view(), grads);
     ASSERT_EQ(grads.anchors, m.size());
     std::printf(" gradient SH degree %d\n", d);
-    check_backward_against(grads.download(), expand_backward_reference(m, v.host, d));
+    check_backward_against(grads.download(), ref::expand_backward_reference(m, v.host, d));
   }
 
   // The analytic reference against central differences of the linear
@@ -760,7 +728,7 @@ TEST(Expander, BackwardMatchesReferenceAndFiniteDifferences) {
   ASSERT_GE(small.size(), 6u);
   const int d = 2;
   fill_random_grads(v, small.gaussians(), d, 7);
-  const RefAnchorGrads analytic = expand_backward_reference(small, v.host, d);
+  const ref::RefAnchorGrads analytic = ref::expand_backward_reference(small, v.host, d);
   auto F = [&](const AnchorModel& mm) {
     const ExpandedGaussians e = expand_reference_double(mm, d);
     double s = 0;
@@ -833,7 +801,7 @@ TEST(Expander, ScaleCapMatchesReferenceAndFiniteDifferences) {
   GaussianGradBuffers v(rt);
   fill_random_grads(v, m.gaussians(), 1, 17);
   ex.backward(dev, v.view(), grads);
-  const RefAnchorGrads analytic = expand_backward_reference(m, v.host, 1);
+  const ref::RefAnchorGrads analytic = ref::expand_backward_reference(m, v.host, 1);
   check_backward_against(grads.download(), analytic);
   // d<v, scales>/d logit by central differences on a few children.
   for (size_t i = 0; i < 60; i += 7) {
@@ -910,7 +878,7 @@ TEST(Expander, ScaleCapOnTheTopLayerOnly) {
   GaussianGradBuffers v(rt);
   fill_random_grads(v, m.gaussians(), 1, 19);
   ex.backward(dev, v.view(), grads);
-  check_backward_against(grads.download(), expand_backward_reference(m, v.host, 1));
+  check_backward_against(grads.download(), ref::expand_backward_reference(m, v.host, 1));
   // With the finer layers uncapped, a fresh child must start below one voxel edge.
   c.init_scale = 2.f;
   EXPECT_THROW(c.validate(), std::invalid_argument);
@@ -1068,7 +1036,7 @@ TEST(Expander, ChainThroughRendererMatchesFiniteDifferences) {
   // abs, the largest relative error 1.6e-4 on a small quat entry).
   const ref::RefGaussians rg = to_ref(expand_reference_double(m, degree));
   const ref::RefGrads rgrad = ref::render_backward(rg, cam, settings, og);
-  const RefAnchorGrads analytic = expand_backward_reference(m, rgrad, degree);
+  const ref::RefAnchorGrads analytic = ref::expand_backward_reference(m, rgrad, degree);
   for (const GradPair& p : pairs(dev, analytic)) {
     const double scale = max_abs(*p.ref);
     EXPECT_GT(scale, 0) << p.name;
