@@ -5,10 +5,10 @@
 
 #include <algorithm>
 #include <cmath>
-#include <queue>
 #include <random>
 #include <vector>
 
+#include "tests/reference/clustering_reference.h"
 #include "train/stage3/clustering.h"
 
 namespace ag2gs {
@@ -55,46 +55,6 @@ Csr random_graph(int A, int edges, uint32_t seed, bool one_sided = false) {
   return g;
 }
 
-// Reference: BFS over the passing edges (made symmetric), components visited
-// from the smallest unvisited anchor up, numbered in that order, small ones -1.
-std::vector<int32_t> bfs_reference(const Csr& g, const ClusterConfig& cfg) {
-  const int A = static_cast<int>(g.offsets.size()) - 1;
-  std::vector<std::vector<int>> adj(A);
-  for (int a = 0; a < A; ++a)
-    for (int64_t e = g.offsets[a]; e < g.offsets[a + 1]; ++e) {
-      const double v = g.val[e];
-      const bool pass = cfg.edge_value == EdgeValue::feature_distance ? v < cfg.max_distance : v > cfg.min_weight;
-      if (pass) {
-        adj[a].push_back(g.nb[e]);
-        adj[g.nb[e]].push_back(a);
-      }
-    }
-  std::vector<int32_t> comp(A, -2), out(A, -1);
-  int next = 0;
-  for (int s = 0; s < A; ++s) {
-    if (comp[s] != -2) continue;
-    std::vector<int> members{s};
-    comp[s] = s;
-    std::queue<int> q;
-    q.push(s);
-    while (!q.empty()) {
-      int x = q.front();
-      q.pop();
-      for (int y : adj[x])
-        if (comp[y] == -2) {
-          comp[y] = s;
-          members.push_back(y);
-          q.push(y);
-        }
-    }
-    if (static_cast<int>(members.size()) >= cfg.min_cluster_size) {
-      for (int m : members) out[m] = next;
-      ++next;
-    }
-  }
-  return out;
-}
-
 TEST(Clustering, MatchesBfsReferenceOnRandomGraphs) {
   for (uint32_t seed = 1; seed <= 20; ++seed) {
     const int A = 50 + static_cast<int>(seed) * 37;
@@ -102,8 +62,8 @@ TEST(Clustering, MatchesBfsReferenceOnRandomGraphs) {
     ClusterConfig cfg;
     cfg.min_cluster_size = 1 + static_cast<int>(seed % 6);
     const Clustering c = cluster_anchors(g.view(), cfg);
-    const std::vector<int32_t> ref = bfs_reference(g, cfg);
-    ASSERT_EQ(c.anchor_cluster, ref) << "seed " << seed;
+    const std::vector<int32_t> want = ref::clustering_reference(g.view(), cfg);
+    ASSERT_EQ(c.anchor_cluster, want) << "seed " << seed;
     // Sizes agree with the ids, every kept cluster is big enough, ids are
     // numbered by first anchor.
     std::vector<int32_t> count(c.clusters(), 0);
@@ -119,7 +79,7 @@ TEST(Clustering, MatchesBfsReferenceOnRandomGraphs) {
     }
     EXPECT_EQ(count, c.cluster_size);
     for (int32_t s : c.cluster_size) EXPECT_GE(s, cfg.min_cluster_size);
-    size_t skipped = std::count(ref.begin(), ref.end(), -1);
+    size_t skipped = std::count(want.begin(), want.end(), -1);
     EXPECT_EQ(c.skipped_anchors, skipped);
     EXPECT_GE(c.components, static_cast<size_t>(c.clusters()));
   }
@@ -159,7 +119,7 @@ TEST(Clustering, DistanceAndWeightTestsAgree) {
   wc.min_weight = static_cast<float>(wmin);
   // Edge values within float rounding of the threshold could flip; the
   // reference uses the same float values, so compare against it too.
-  EXPECT_EQ(cluster_anchors(w.view(), wc).anchor_cluster, bfs_reference(w, wc));
+  EXPECT_EQ(cluster_anchors(w.view(), wc).anchor_cluster, ref::clustering_reference(w.view(), wc));
   size_t differ = 0;
   const Clustering b = cluster_anchors(w.view(), wc);
   for (size_t i = 0; i < a.anchor_cluster.size(); ++i) differ += a.anchor_cluster[i] != b.anchor_cluster[i];
