@@ -4,61 +4,14 @@
 // plus agreement with the rendered alpha and determinism.
 #include <algorithm>
 #include <cstring>
-#include <map>
 #include <random>
 
-#include "tests/reference/reference_renderer.h"
+#include "tests/reference/instance_map_reference.h"
 #include "tests/test_util.h"
 #include "train/stage3/instance_map.h"
 
 namespace ag2gs {
 namespace {
-
-// Per pixel: the weight of every cluster (double blending, the rules of
-// docs/rasterizer.md), the reference id (> 0.5) and the largest weight.
-struct RefInstance {
-  std::vector<std::map<int, double>> W;  // [H*W] cluster -> weight (cluster >= 0 only)
-  std::vector<int> id;
-  std::vector<double> best;
-};
-
-RefInstance reference_instances(const GaussianSet& set, const Camera& cam, const std::vector<int32_t>& anchor_cluster,
-                                int K, double min_fraction = 0.5) {
-  const std::vector<ref::RefProjected> P = ref::project(set, cam, RenderSettings{});
-  std::vector<int> order;
-  for (size_t i = 0; i < P.size(); ++i)
-    if (P[i].visible) order.push_back(static_cast<int>(i));
-  std::stable_sort(order.begin(), order.end(),
-                   [&](int a, int b) { return P[a].z < P[b].z || (P[a].z == P[b].z && a < b); });
-  const size_t npix = static_cast<size_t>(cam.width) * cam.height;
-  RefInstance r;
-  r.W.resize(npix);
-  r.id.assign(npix, -1);
-  r.best.assign(npix, 0);
-  for (int y = 0; y < cam.height; ++y)
-    for (int x = 0; x < cam.width; ++x) {
-      const size_t p = static_cast<size_t>(y) * cam.width + x;
-      const double px = x + 0.5, py = y + 0.5;
-      double T = 1;
-      for (int id : order) {
-        const ref::RefProjected& g = P[id];
-        const double dx = g.u - px, dy = g.v - py;
-        const double sigma = 0.5 * (g.conic[0] * dx * dx + g.conic[2] * dy * dy) + g.conic[1] * dx * dy;
-        if (sigma < 0) continue;
-        const double alpha = std::min(0.99, g.opacity * std::exp(-sigma));
-        if (alpha < 1.0 / 255.0) continue;
-        if (T * (1 - alpha) < 1e-4) break;
-        const int c = anchor_cluster[id / K];
-        if (c >= 0) r.W[p][c] += alpha * T;
-        T *= 1 - alpha;
-      }
-      for (auto& [c, w] : r.W[p]) {
-        if (w > r.best[p]) r.best[p] = w;
-        if (w > min_fraction) r.id[p] = c;
-      }
-    }
-  return r;
-}
 
 struct Comparison {
   size_t pixels = 0, positive = 0;  // pixels, reference ids >= 0
@@ -68,7 +21,7 @@ struct Comparison {
   size_t weight_outliers = 0;       // of those, errors above 1e-4
 };
 
-Comparison compare(const InstanceMap& m, const RefInstance& r, double band = 1e-4) {
+Comparison compare(const InstanceMap& m, const ref::RefInstance& r, double band = 1e-4) {
   Comparison c;
   c.pixels = m.ids.size();
   for (size_t p = 0; p < m.ids.size(); ++p) {
@@ -136,7 +89,7 @@ TEST(InstanceMap, MatchesDoubleReferenceOnRandomScenes) {
     const Camera cam = test::look_at_origin(70 + 3 * seed, 45 + 2 * seed);  // not multiples of 16
     const InstanceMap m = run_map(g, cam, ac, K);
     ASSERT_EQ(m.width, cam.width);
-    const Comparison c = compare(m, reference_instances(g, cam, ac, K));
+    const Comparison c = compare(m, ref::instance_map_reference(g, cam, ac, K));
     total += c.pixels;
     positive += c.positive;
     near += c.near_half;
@@ -183,7 +136,7 @@ TEST(InstanceMap, DeepStacks) {
   cam.cx = 32.3;
   cam.cy = 19.8;
   const InstanceMap m = run_map(g, cam, ac, 1);
-  const RefInstance r = reference_instances(g, cam, ac, 1);
+  const ref::RefInstance r = ref::instance_map_reference(g, cam, ac, 1);
   const Comparison c = compare(m, r);
   size_t crossing = 0;  // pixels whose best weight is within 0.05 of 0.5
   for (double b : r.best) crossing += std::abs(b - 0.5) < 0.05;
@@ -217,7 +170,7 @@ TEST(InstanceMap, NearHalfTies) {
   cam.fx = cam.fy = 40;
   cam.cx = cam.cy = 24;
   const InstanceMap m = run_map(g, cam, ac, 1);
-  const RefInstance r = reference_instances(g, cam, ac, 1);
+  const ref::RefInstance r = ref::instance_map_reference(g, cam, ac, 1);
   const Comparison c = compare(m, r);
   size_t ones = 0, none = 0, zeros = 0;
   for (int id : m.ids) (id == 1 ? ones : id == 0 ? zeros : none)++;
