@@ -14,6 +14,7 @@
 #include <vector>
 
 #include "host/optim/adam.h"
+#include "tests/reference/growth_stats_reference.h"
 #include "tests/test_util.h"
 #include "train/anchors/anchor_model.h"
 #include "train/anchors/expander.h"
@@ -129,39 +130,29 @@ TEST(GrowthStats, KernelMatchesDoubleReference) {
     c.ndc = ndc;
     AnchorGrowth growth(runtime(), c);
     growth.reset(n);
-    std::vector<double> sum(n, 0);
-    std::vector<int> count(n, 0), last(n, 0);
+    ref::RefGrowthStats want = ref::growth_stats_reference(n);
     DeviceBuffer grads(&runtime());
-    for (size_t s = 0; s < views.size(); ++s) {
-      const View& vw = views[s];
+    for (const View& vw : views) {
       grads.upload(vw.v);
       growth.accumulate(grads, vw.radii, vw.w, vw.h);
-      const double sx = ndc ? 0.5 * vw.w : 1, sy = ndc ? 0.5 * vw.h : 1;
-      for (size_t g = 0; g < n; ++g) {
-        if (vw.radii[g] <= 0) continue;
-        const double gx = double(vw.v[2 * g]) * sx, gy = double(vw.v[2 * g + 1]) * sy;
-        const double norm = std::sqrt(gx * gx + gy * gy);
-        if (std::isfinite(norm) && std::abs(gy) < 1e29) sum[g] += norm;
-        ++count[g];
-        last[g] = static_cast<int>(s) + 1;
-      }
+      ref::accumulate_growth_stats(want, vw.v, vw.radii, vw.w, vw.h, ndc);
     }
     const GrowthStatsHost st = growth.download();
     EXPECT_EQ(st.steps, 5);
     EXPECT_EQ(st.step, 5);
     double worst = 0;
     for (size_t g = 0; g < n; ++g) {
-      ASSERT_EQ(st.count[g], count[g]) << g;
-      ASSERT_EQ(st.last_seen[g], last[g]) << g;
-      const double err = std::abs(st.grad_sum[g] - sum[g]);
-      if (sum[g] > 0) worst = std::max(worst, err / sum[g]);
+      ASSERT_EQ(st.count[g], want.count[g]) << g;
+      ASSERT_EQ(st.last_seen[g], want.last_seen[g]) << g;
+      const double err = std::abs(st.grad_sum[g] - want.grad_sum[g]);
+      if (want.grad_sum[g] > 0) worst = std::max(worst, err / want.grad_sum[g]);
       // Measured: 1.5e-7 relative at worst (float products, a square root
       // and up to 5 sums); the bound leaves a factor of ~7.
-      ASSERT_LE(err, 1e-6 * sum[g]) << g << " device " << st.grad_sum[g] << " reference " << sum[g];
+      ASSERT_LE(err, 1e-6 * want.grad_sum[g]) << g << " device " << st.grad_sum[g] << " reference " << want.grad_sum[g];
     }
     std::printf("  ndc=%d: max rel error %.3g\n", ndc, worst);
-    EXPECT_EQ(st.count[5], count[5]);
-    EXPECT_GE(count[5], 1);
+    EXPECT_EQ(st.count[5], want.count[5]);
+    EXPECT_GE(want.count[5], 1);
     EXPECT_EQ(st.count[995], 0);
     EXPECT_EQ(st.grad_sum[995], 0.f);
   }
