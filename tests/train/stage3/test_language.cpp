@@ -11,67 +11,13 @@
 #include <random>
 #include <tuple>
 
+#include "tests/reference/language_reference.h"
 #include "tests/test_util.h"
 #include "train/stage3/instance_map.h"
 #include "train/stage3/language.h"
 
 namespace ag2gs {
 namespace {
-
-// Reference: for every (cluster, mask) pair, one scan of the image.
-std::vector<MaskMatch> reference_scores(const std::vector<int32_t>& ids, int clusters, const std::vector<float>& feat,
-                                        const std::vector<float>& alpha, const ViewMasks& masks, bool by_alpha) {
-  const size_t npix = ids.size();
-  auto in_mask = [&](size_t p, int m) {
-    for (int l = 0; l < masks.layers; ++l)
-      if (masks.labels[l * npix + p] == m) return true;
-    return false;
-  };
-  auto g_at = [&](size_t p, double g[3]) {
-    for (int k = 0; k < 3; ++k) g[k] = feat[k * npix + p];
-    if (!by_alpha) return true;
-    if (!(alpha[p] >= 0.1f)) return false;
-    for (int k = 0; k < 3; ++k) g[k] = static_cast<float>(static_cast<float>(g[k]) / alpha[p]);
-    return true;
-  };
-  std::vector<MaskMatch> out;
-  for (int c = 0; c < clusters; ++c)
-    for (int m = 0; m < masks.count; ++m) {
-      int64_t inter = 0, uni = 0, nc = 0, nm = 0;
-      double sc[3] = {0, 0, 0}, sm[3] = {0, 0, 0};
-      for (size_t p = 0; p < npix; ++p) {
-        const bool a = ids[p] == c, b = in_mask(p, m);
-        inter += a && b;
-        uni += a || b;
-        double g[3];
-        if (!g_at(p, g)) continue;
-        if (a) {
-          ++nc;
-          for (int k = 0; k < 3; ++k) sc[k] += g[k];
-        }
-        if (b) {
-          ++nm;
-          for (int k = 0; k < 3; ++k) sm[k] += g[k];
-        }
-      }
-      if (inter == 0) continue;
-      MaskMatch mm;
-      mm.cluster = c;
-      mm.mask = m;
-      mm.intersection = inter;
-      mm.iou = double(inter) / double(uni);
-      if (nc > 0 && nm > 0) {
-        double d = 0;
-        for (int k = 0; k < 3; ++k) d += std::abs(sc[k] / nc - sm[k] / nm);
-        mm.feature_l1 = d;
-        mm.score = mm.iou * (1 - d);
-      } else {
-        mm.feature_l1 = NAN;
-      }
-      out.push_back(mm);
-    }
-  return out;
-}
 
 void expect_same_matches(const std::vector<MaskMatch>& got, const std::vector<MaskMatch>& ref) {
   ASSERT_EQ(got.size(), ref.size());
@@ -138,7 +84,7 @@ TEST(Language, ScoreViewMatchesPerPairReference) {
       LanguageConfig cfg;
       cfg.normalise_by_alpha = by_alpha;
       expect_same_matches(score_view(v.ids, 6, v.feat, v.alpha, v.masks, cfg),
-                          reference_scores(v.ids, 6, v.feat, v.alpha, v.masks, by_alpha));
+                          ref::language_scores_reference(v.ids, 6, v.feat, v.alpha, v.masks, by_alpha));
     }
   }
   // A mask whose every pixel is featureless (alpha < 0.1): its pairs score 0.
@@ -147,7 +93,7 @@ TEST(Language, ScoreViewMatchesPerPairReference) {
     if (v.masks.labels[p] == 0) v.alpha[p] = 0.01f;
   LanguageConfig cfg;
   const std::vector<MaskMatch> got = score_view(v.ids, 4, v.feat, v.alpha, v.masks, cfg);
-  expect_same_matches(got, reference_scores(v.ids, 4, v.feat, v.alpha, v.masks, true));
+  expect_same_matches(got, ref::language_scores_reference(v.ids, 4, v.feat, v.alpha, v.masks, true));
   // Size mismatches are refused.
   std::vector<int32_t> short_ids(v.ids.begin(), v.ids.end() - 1);
   EXPECT_THROW(score_view(short_ids, 4, v.feat, v.alpha, v.masks, cfg), std::invalid_argument);
@@ -182,21 +128,8 @@ TEST(Language, AccumulatorIsSoftmaxWeightedMean) {
       continue;
     }
     ++with;
-    double smax = -1e9, z = 0;
-    for (auto& [s, f] : all[c]) smax = std::max(smax, s);
-    std::vector<double> mean(D, 0);
-    for (auto& [s, f] : all[c]) {
-      const double w = std::exp(10 * (s - smax));
-      z += w;
-      for (int k = 0; k < D; ++k) mean[k] += w * f[k];
-    }
-    double n = 0;
-    for (double& x : mean) {
-      x /= z;
-      n += x * x;
-    }
-    n = std::sqrt(n);
-    for (int k = 0; k < D; ++k) EXPECT_NEAR(lf.features[c * D + k], mean[k] / n, 1e-6) << c << "," << k;
+    const std::vector<double> want = ref::language_feature_reference(all[c], D, 10);
+    for (int k = 0; k < D; ++k) EXPECT_NEAR(lf.features[c * D + k], want[k], 1e-6) << c << "," << k;
   }
   EXPECT_EQ(lf.with_language(), with);
   EXPECT_GT(with, 2);
@@ -290,7 +223,7 @@ TEST(Language, SeparatedObjectsGetTheirOwnClipVectors) {
     renderer.device_feature().download(feat, npix * 3);
     renderer.device_alpha().download(alpha, npix);
     const std::vector<MaskMatch> mm = score_view(im.ids, objects, feat, alpha, masks, cfg);
-    expect_same_matches(mm, reference_scores(im.ids, objects, feat, alpha, masks, true));
+    expect_same_matches(mm, ref::language_scores_reference(im.ids, objects, feat, alpha, masks, true));
     acc.add_view(mm, masks);
     for (const MaskMatch& m : mm) {
       if (m.score > cfg.min_score) ref_matches[m.cluster].push_back({m.score, m.mask});
