@@ -20,6 +20,7 @@
 #include "host/scene/scene.h"
 #include "tests/cli_test_util.h"
 #include "tests/io_test_util.h"
+#include "tests/reference/densify_reference.h"
 #include "tests/test_util.h"
 #include "train/baseline/free_trainer.h"
 
@@ -32,65 +33,7 @@ std::string sample_scene() {
   return test::source_path("data_samples/synth_small");
 }
 
-// ------------------------------------------------------------------ reference
-// 3DGS's densify_and_prune in double: clone mask on the original rows,
-// clones appended (gradient 0, radius 0), split mask on the grown set, two
-// samples per split row appended, split rows removed, then the prune mask
-// over what is left. Returns (kind, source, sample) per surviving row.
-using Row = std::tuple<int, int, int>;  // kind (0 kept, 1 clone, 2 split), source, sample
-
-struct RefRow {
-  int kind, source, sample;
-  double grad, max_scale, opacity;
-  int radius;
-};
-
-std::vector<Row> reference_plan(const FreeGaussians& g, const DensifyStats& s, const FreeTrainConfig& c, double extent,
-                                bool prune_big) {
-  std::vector<RefRow> rows;
-  for (size_t i = 0; i < g.size(); ++i) {
-    double ms = -1e300;
-    for (int k = 0; k < 3; ++k) ms = std::max(ms, std::exp(static_cast<double>(g.log_scale[i * 3 + k])));
-    const double grad = s.count[i] == 0 ? 0.0 : static_cast<double>(s.grad_sum[i]) / s.count[i];
-    rows.push_back({0, static_cast<int>(i), 0, grad, ms, 1 / (1 + std::exp(-static_cast<double>(g.opacity_logit[i]))),
-                    s.max_radius[i]});
-  }
-  const size_t n = rows.size();
-  for (size_t i = 0; i < n; ++i)
-    if (rows[i].grad >= c.grad_threshold && rows[i].max_scale <= c.percent_dense * extent) {
-      RefRow r = rows[i];
-      r.kind = 1;
-      r.grad = 0;
-      r.radius = 0;
-      rows.push_back(r);
-    }
-  std::vector<bool> remove(rows.size(), false);
-  const size_t grown = rows.size();
-  for (int sample = 0; sample < 2; ++sample)
-    for (size_t i = 0; i < grown; ++i)
-      if (rows[i].grad >= c.grad_threshold && rows[i].max_scale > c.percent_dense * extent) {
-        RefRow r = rows[i];
-        r.kind = 2;
-        r.sample = sample;
-        r.grad = 0;
-        r.radius = 0;
-        r.max_scale = rows[i].max_scale / 1.6;
-        rows.push_back(r);
-        remove[i] = true;
-      }
-  remove.resize(rows.size(), false);
-  std::vector<Row> out;
-  for (size_t i = 0; i < rows.size(); ++i) {
-    if (remove[i]) continue;
-    bool prune = rows[i].opacity < c.prune_opacity;
-    if (prune_big) {
-      prune = prune || rows[i].radius > c.max_screen_size;
-      prune = prune || rows[i].max_scale > c.max_world_size * extent;
-    }
-    if (!prune) out.emplace_back(rows[i].kind, rows[i].source, rows[i].sample);
-  }
-  return out;
-}
+using Row = ref::DensifyRow;  // kind (0 kept, 1 clone, 2 split), source, sample
 
 // A constructed set around the thresholds: scales on both sides of the
 // clone/split limit and of the world-size limit, opacities on both sides of
@@ -136,7 +79,7 @@ TEST(FreeTrainer, DensificationDecisionsMatchTheReference) {
       DensifyStats s;
       constructed_set(200, seed, &g, &s);
       const DensifyPlan plan = plan_densification(g, s, c, extent, big);
-      std::vector<Row> got = rows_of(plan), want = reference_plan(g, s, c, extent, big);
+      std::vector<Row> got = rows_of(plan), want = ref::densify_reference(g, s, c, extent, big);
       ASSERT_EQ(plan.after, got.size());
       EXPECT_EQ(plan.before, g.size());
       // The documented order: kept rows, clones, split samples, each by source.
