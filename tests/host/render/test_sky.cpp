@@ -21,27 +21,13 @@
 #include "tests/cli_test_util.h"
 #include "tests/io_test_util.h"
 #include "tests/reference/reference_renderer.h"
+#include "tests/reference/sky_reference.h"
 #include "tests/test_util.h"
 
 namespace ag2gs {
 namespace {
 
 using Eigen::Vector3d;
-
-// The world direction of pixel (x, y)'s centre ray, in double.
-Vector3d ray_direction(const Camera& c, int x, int y) {
-  const Vector3d dc((x + 0.5 - c.cx) / c.fx, (y + 0.5 - c.cy) / c.fy, 1.0);
-  return (c.R.transpose() * dc).normalized();
-}
-
-Vector3d sky_ref(int degree, const std::vector<float>& coef, const Vector3d& d) {
-  double b[16];
-  ref::sh_values(degree, d, b);
-  Vector3d s = Vector3d::Zero();
-  for (int k = 0; k < (degree + 1) * (degree + 1); ++k)
-    for (int c = 0; c < 3; ++c) s[c] += b[k] * coef[3 * k + c];
-  return s;
-}
 
 struct Planes {
   std::vector<float> rgb, alpha, grad;  // [3,H,W], [H,W], [3,H,W]
@@ -107,7 +93,7 @@ TEST(Sky, ComposeMatchesTheDoubleReference) {
     for (int y = 0; y < h; ++y)
       for (int x = 0; x < w; ++x) {
         const size_t i = static_cast<size_t>(y) * w + x;
-        const Vector3d s = sky_ref(degree, coef, ray_direction(cam, x, y));
+        const Vector3d s = ref::sky_radiance(degree, coef, ref::pixel_ray(cam, x, y));
         for (int c = 0; c < 3; ++c)
           worst = std::max(worst, std::abs(out[c * n + i] - (p.rgb[c * n + i] + (1.0 - p.alpha[i]) * s[c])));
       }
@@ -115,77 +101,29 @@ TEST(Sky, ComposeMatchesTheDoubleReference) {
   }
 }
 
-// L = sum over pixels and channels of g * out; its gradients in double.
-struct RefGrad {
-  std::vector<double> alpha, coef;
-};
-
-// `weight` [H,W] (empty: 1) scales each pixel's share in the coefficient gradient.
-RefGrad reference_gradient(int degree, const std::vector<float>& coef, const Planes& p, const Camera& cam, bool add,
-                           const std::vector<float>& weight = {}) {
-  const int w = cam.width, h = cam.height;
-  const size_t n = static_cast<size_t>(w) * h;
-  const int K = (degree + 1) * (degree + 1);
-  RefGrad g;
-  g.alpha.assign(n, 0.0);
-  g.coef.assign(3 * K, 0.0);
-  for (int y = 0; y < h; ++y)
-    for (int x = 0; x < w; ++x) {
-      const size_t i = static_cast<size_t>(y) * w + x;
-      const Vector3d d = ray_direction(cam, x, y);
-      double b[16];
-      ref::sh_values(degree, d, b);
-      const Vector3d s = sky_ref(degree, coef, d);
-      double ga = add ? p.alpha[i] * 0.5 : 0.0;  // the base the test puts in grad_alpha
-      const double wp = weight.empty() ? 1.0 : weight[i];
-      for (int c = 0; c < 3; ++c) {
-        ga -= p.grad[c * n + i] * s[c];
-        for (int k = 0; k < K; ++k) g.coef[3 * k + c] += wp * (1.0 - p.alpha[i]) * b[k] * p.grad[c * n + i];
-      }
-      g.alpha[i] = ga;
-    }
-  return g;
-}
-
-double reference_loss(int degree, const std::vector<double>& coef, const std::vector<double>& alpha, const Planes& p,
-                      const Camera& cam) {
-  const size_t n = static_cast<size_t>(cam.width) * cam.height;
-  const std::vector<float> cf(coef.begin(), coef.end());
-  double loss = 0;
-  for (int y = 0; y < cam.height; ++y)
-    for (int x = 0; x < cam.width; ++x) {
-      const size_t i = static_cast<size_t>(y) * cam.width + x;
-      double b[16];
-      ref::sh_values(degree, ray_direction(cam, x, y), b);
-      for (int c = 0; c < 3; ++c) {
-        double s = 0;
-        for (int k = 0; k < (degree + 1) * (degree + 1); ++k) s += b[k] * coef[3 * k + c];
-        loss += p.grad[c * n + i] * (p.rgb[c * n + i] + (1.0 - alpha[i]) * s);
-      }
-    }
-  return loss;
-}
-
 TEST(Sky, ReferenceGradientMatchesCentralDifferences) {
   const int degree = 3, w = 9, h = 7;
   const Camera cam = tilted_camera(w, h);
   const Planes p = random_planes(w, h, 5);
   const std::vector<float> coef = random_coefficients(degree, 6);
-  const RefGrad g = reference_gradient(degree, coef, p, cam, false);
+  const ref::RefSkyGrad g = ref::sky_backward_reference(degree, coef, p.grad, p.alpha, cam);
   std::vector<double> c(coef.begin(), coef.end()), a(p.alpha.begin(), p.alpha.end());
+  auto loss = [&](const std::vector<double>& coef_d, const std::vector<double>& alpha_d) {
+    return ref::sky_loss_reference(degree, coef_d, alpha_d, p.rgb, p.grad, cam);
+  };
   const double e = 1e-6;
   for (size_t j = 0; j < c.size(); ++j) {
     std::vector<double> cp = c, cm = c;
     cp[j] += e;
     cm[j] -= e;
-    const double fd = (reference_loss(degree, cp, a, p, cam) - reference_loss(degree, cm, a, p, cam)) / (2 * e);
+    const double fd = (loss(cp, a) - loss(cm, a)) / (2 * e);
     EXPECT_NEAR(g.coef[j], fd, 1e-6 * (1 + std::abs(fd))) << "coefficient " << j;
   }
   for (size_t i = 0; i < a.size(); i += 5) {
     std::vector<double> ap = a, am = a;
     ap[i] += e;
     am[i] -= e;
-    const double fd = (reference_loss(degree, c, ap, p, cam) - reference_loss(degree, c, am, p, cam)) / (2 * e);
+    const double fd = (loss(c, ap) - loss(c, am)) / (2 * e);
     EXPECT_NEAR(g.alpha[i], fd, 1e-6 * (1 + std::abs(fd))) << "alpha " << i;
   }
 }
@@ -204,15 +142,16 @@ TEST(Sky, BackwardMatchesTheReferenceAndRepeatsBitForBit) {
       std::vector<float> weight;
       if (add)
         for (size_t i = 0; i < p.alpha.size(); ++i) weight.push_back(i % 3 == 0 ? 0.f : 0.25f * (i % 5));
-      const RefGrad ref = reference_gradient(degree, coef, p, cam, add, weight);
+      std::vector<float> base(p.alpha.size());  // the alpha gradient to add to
+      for (size_t i = 0; i < base.size(); ++i) base[i] = p.alpha[i] * 0.5f;
+      const ref::RefSkyGrad want =
+          ref::sky_backward_reference(degree, coef, p.grad, p.alpha, cam, add ? &base : nullptr, weight);
       Sky sky(rt);
       sky.set(degree, coef);
       DeviceBuffer grad(&rt), alpha(&rt), ga(&rt), wbuf(&rt);
       grad.upload(p.grad);
       alpha.upload(p.alpha);
       if (add) wbuf.upload(weight);
-      std::vector<float> base(p.alpha.size());
-      for (size_t i = 0; i < base.size(); ++i) base[i] = p.alpha[i] * 0.5f;
       std::vector<float> got_alpha, got_coef, again;
       for (int run = 0; run < 2; ++run) {
         ga.upload(base);
@@ -222,9 +161,9 @@ TEST(Sky, BackwardMatchesTheReferenceAndRepeatsBitForBit) {
       }
       EXPECT_EQ(0, std::memcmp(got_coef.data(), again.data(), got_coef.size() * sizeof(float)));
       double worst_a = 0, scale = 0, worst_c = 0;
-      for (size_t i = 0; i < got_alpha.size(); ++i) worst_a = std::max(worst_a, std::abs(got_alpha[i] - ref.alpha[i]));
-      for (double v : ref.coef) scale = std::max(scale, std::abs(v));
-      for (size_t j = 0; j < got_coef.size(); ++j) worst_c = std::max(worst_c, std::abs(got_coef[j] - ref.coef[j]));
+      for (size_t i = 0; i < got_alpha.size(); ++i) worst_a = std::max(worst_a, std::abs(got_alpha[i] - want.alpha[i]));
+      for (double v : want.coef) scale = std::max(scale, std::abs(v));
+      for (size_t j = 0; j < got_coef.size(); ++j) worst_c = std::max(worst_c, std::abs(got_coef[j] - want.coef[j]));
       EXPECT_LT(worst_a, 5e-6) << w << "x" << h << " add " << add;
       EXPECT_LT(worst_c, 1e-5 * scale + 1e-6) << w << "x" << h << " add " << add << " (largest " << scale << ")";
     }
@@ -378,7 +317,7 @@ TEST(Sky, FitResidualMatchesThePixelError) {
     for (size_t v = 0; v < cams.size(); ++v)
       for (int y = 0; y < h; ++y)
         for (int x = 0; x < w; ++x) {
-          const Vector3d s = sky_ref(degree, got, ray_direction(cams[v], x, y));
+          const Vector3d s = ref::sky_radiance(degree, got, ref::pixel_ray(cams[v], x, y));
           for (int c = 0; c < 3; ++c) {
             const double e = photos[v][static_cast<size_t>(c) * w * h + y * w + x] - s[c];
             se += e * e;

@@ -13,6 +13,7 @@
 #include "host/render/sky.h"
 #include "host/render/sky_bake.h"
 #include "tests/reference/reference_renderer.h"
+#include "tests/reference/sky_reference.h"
 #include "tests/test_util.h"
 
 namespace ag2gs {
@@ -36,23 +37,13 @@ std::vector<float> random_sky(int degree, uint32_t seed) {
   return c;
 }
 
-Vector3d sky_at(int degree, const std::vector<float>& coef, const Vector3d& d) {
-  double b[16];
-  ref::sh_values(degree, d, b);
-  Vector3d s = Vector3d::Zero();
-  for (int k = 0; k < sh_coeffs_for_degree(degree); ++k)
-    for (int c = 0; c < 3; ++c) s[c] += b[k] * coef[3 * k + c];
-  return s;
-}
-
 // PSNR of an [H, W, 3] image against sky(d) of each pixel's centre ray.
 template <class Image>
 double psnr_against_sky(const Image& rgb, const Camera& cam, int degree, const std::vector<float>& coef) {
   double se = 0;
   for (int y = 0; y < cam.height; ++y)
     for (int x = 0; x < cam.width; ++x) {
-      const Vector3d dc((x + 0.5 - cam.cx) / cam.fx, (y + 0.5 - cam.cy) / cam.fy, 1.0);
-      const Vector3d s = sky_at(degree, coef, (cam.R.transpose() * dc).normalized());
+      const Vector3d s = ref::sky_radiance(degree, coef, ref::pixel_ray(cam, x, y));
       for (int c = 0; c < 3; ++c) {
         const double e = rgb[(static_cast<size_t>(y) * cam.width + x) * 3 + c] - s[c];
         se += e * e;
@@ -181,8 +172,7 @@ TEST(SkyBake, ObjectsInFrontComposeAsTheSkyBehindThem) {
   for (int y = 0; y < cam.height; ++y)
     for (int x = 0; x < cam.width; ++x) {
       const size_t p = static_cast<size_t>(y) * cam.width + x;
-      const Vector3d dc((x + 0.5 - cam.cx) / cam.fx, (y + 0.5 - cam.cy) / cam.fy, 1.0);
-      const Vector3d s = sky_at(3, coef, (cam.R.transpose() * dc).normalized());
+      const Vector3d s = ref::sky_radiance(3, coef, ref::pixel_ray(cam, x, y));
       for (int c = 0; c < 3; ++c) {
         const double composed = alone.rgb[3 * p + c] + (1.0 - alone.alpha[p]) * s[c];
         se += std::pow(with.rgb[3 * p + c] - composed, 2);
