@@ -1,7 +1,8 @@
 // The simulation stage (apps/simulation/simulation.h): interior filling, the ground
 // under an object, the up direction, and the Gaussians that follow their
 // particles (kernels/mpm.cl, mpm_gaussians) against a double-precision
-// reference of F Sigma F^T and of the SH colour at the turned view direction.
+// reference of F Sigma F^T and of the SH colour at the turned view direction
+// (tests/reference/followed_gaussian_reference.h).
 #include <gtest/gtest.h>
 
 #include <Eigen/Dense>
@@ -10,7 +11,7 @@
 #include <vector>
 
 #include "apps/simulation/simulation.h"
-#include "tests/reference/reference_renderer.h"
+#include "tests/reference/followed_gaussian_reference.h"
 #include "tests/test_util.h"
 
 namespace ag2gs {
@@ -122,30 +123,18 @@ TEST(Simulation, GaussiansFollowTheirParticles) {
   const GaussianSet out = sim.gaussians(campos);
   const SimulationFrame& fr = sim.frame();
   for (int g = 0; g < n; ++g) {
-    // Mean: the particle taken back to the world.
     const Vector3d x(p.x[3 * g], p.x[3 * g + 1], p.x[3 * g + 2]);
-    const Vector3d mean = fr.to_world(x);
-    for (int c = 0; c < 3; ++c) EXPECT_NEAR(out.means[3 * g + c], mean(c), 1e-5) << g;
+    const ref::RefFollowedGaussian want = ref::followed_gaussian_reference(set, g, fr, x, Fs[g], campos);
+    // Mean: the particle taken back to the world.
+    for (int c = 0; c < 3; ++c) EXPECT_NEAR(out.means[3 * g + c], want.mean(c), 1e-5) << g;
     // Covariance: Fw R0 S0^2 R0^T Fw^T with Fw = A^T F A.
-    const Matrix3d Fw = fr.A.transpose() * Fs[g] * fr.A;
-    const Eigen::Quaterniond q0(set.quats[4 * g], set.quats[4 * g + 1], set.quats[4 * g + 2], set.quats[4 * g + 3]);
-    const Vector3d s0(set.scales[3 * g], set.scales[3 * g + 1], set.scales[3 * g + 2]);
-    const Matrix3d cov0 = q0.normalized().matrix() * s0.cwiseAbs2().asDiagonal() * q0.normalized().matrix().transpose();
-    const Matrix3d want = Fw * cov0 * Fw.transpose();
     const Eigen::Quaterniond q(out.quats[4 * g], out.quats[4 * g + 1], out.quats[4 * g + 2], out.quats[4 * g + 3]);
     const Vector3d s(out.scales[3 * g], out.scales[3 * g + 1], out.scales[3 * g + 2]);
     const Matrix3d got = q.normalized().matrix() * s.cwiseAbs2().asDiagonal() * q.normalized().matrix().transpose();
-    EXPECT_LT((got - want).norm(), 1e-4 * want.norm()) << g << "\n" << got << "\nwant\n" << want;
+    EXPECT_LT((got - want.cov).norm(), 1e-4 * want.cov.norm()) << g << "\n" << got << "\nwant\n" << want.cov;
     // Colour: the trained SH at the view direction turned back by F's rotation.
-    Eigen::JacobiSVD<Matrix3d> svd(Fw, Eigen::ComputeFullU | Eigen::ComputeFullV);
-    const Matrix3d RF = svd.matrixU() * svd.matrixV().transpose();
-    const Vector3d d = RF.transpose() * (mean - campos).normalized();
-    double b[16];
-    ref::sh_values(3, d, b);
     for (int c = 0; c < 3; ++c) {
-      double want_c = 0;
-      for (int k = 0; k < K; ++k) want_c += b[k] * set.sh[(g * K + k) * 3 + c];
-      EXPECT_NEAR(out.sh[(g * K) * 3 + c] * 0.28209479177387814, want_c, 2e-5) << g << " channel " << c;
+      EXPECT_NEAR(out.sh[(g * K) * 3 + c] * 0.28209479177387814, want.colour(c), 2e-5) << g << " channel " << c;
       for (int k = 1; k < K; ++k) EXPECT_EQ(out.sh[(g * K + k) * 3 + c], 0.f);
     }
   }
