@@ -24,6 +24,8 @@
 #include "queries/query_eval.h"
 #include "tests/cli_test_util.h"
 #include "tests/io_test_util.h"
+#include "tests/reference/mask_boundary_reference.h"
+#include "tests/reference/region_grow_reference.h"
 #include "tests/test_util.h"
 
 namespace fs = std::filesystem;
@@ -253,24 +255,7 @@ TEST(Query, RegionGrowMatchesFixedPointReference) {
   for (float min_weight : {0.5f, 0.9f, 0.97f}) {
     for (int seed : {0, 57, 399}) {
       const std::vector<int32_t> got = region_grow(g, b.model.feature(), {seed, seed}, tau, min_weight);
-      std::vector<uint8_t> in(b.model.size(), 0);
-      in[seed] = 1;
-      for (bool changed = true; changed;) {
-        changed = false;
-        for (size_t i = 0; i < b.model.size(); ++i) {
-          if (!in[i]) continue;
-          for (int e = g.row_offsets()[i]; e < g.row_offsets()[i + 1]; ++e) {
-            const int j = g.neighbours()[e];
-            double d2 = 0;
-            for (int c = 0; c < 3; ++c)
-              d2 += std::pow(double(b.model.feature()[3 * i + c]) - b.model.feature()[3 * j + c], 2);
-            if (!in[j] && std::exp(-d2 / (2.0 * tau * tau)) > min_weight) in[j] = 1, changed = true;
-          }
-        }
-      }
-      std::vector<int32_t> want;
-      for (size_t i = 0; i < in.size(); ++i)
-        if (in[i]) want.push_back(static_cast<int32_t>(i));
+      const std::vector<int32_t> want = ref::region_grow_reference(g, b.model.feature(), seed, tau, min_weight);
       EXPECT_EQ(got, want) << "min_weight " << min_weight << " seed " << seed;
       if (min_weight == 0.9f && seed == 0) {
         EXPECT_GT(got.size(), 1u);  // the case is not trivial
@@ -899,24 +884,6 @@ TEST(QueryCli, Errors) {
 
 // ---------------------------------------------------------------- evaluation
 
-// The boundary region by its definition: a mask pixel with some pixel within
-// Chebyshev distance d that is outside the image or outside the mask.
-std::vector<uint8_t> boundary_reference(const std::vector<uint8_t>& m, int w, int h, int d) {
-  std::vector<uint8_t> out(m.size(), 0);
-  for (int y = 0; y < h; ++y)
-    for (int x = 0; x < w; ++x) {
-      if (!m[static_cast<size_t>(y) * w + x]) continue;
-      bool edge = false;
-      for (int dy = -d; dy <= d && !edge; ++dy)
-        for (int dx = -d; dx <= d && !edge; ++dx) {
-          const int u = x + dx, v = y + dy;
-          edge = u < 0 || v < 0 || u >= w || v >= h || !m[static_cast<size_t>(v) * w + u];
-        }
-      out[static_cast<size_t>(y) * w + x] = edge;
-    }
-  return out;
-}
-
 TEST(QueryEval, IouAndBoundaryIouMatchTheirDefinitions) {
   // Hand-computed: a 4x4 square and the same square shifted by 2 columns in
   // a 10x6 image: intersection 8, union 24.
@@ -949,10 +916,12 @@ TEST(QueryEval, IouAndBoundaryIouMatchTheirDefinitions) {
     for (int k = 0; k < 4; ++k) cv::circle(m, {ux(rng), uy(rng)}, ur(rng), cv::Scalar(1), cv::FILLED);
     const std::vector<uint8_t> mv(m.data, m.data + m.total());
     for (int d = 1; d <= 4; ++d)
-      ASSERT_EQ(mask_boundary(mv, W, H, d), boundary_reference(mv, W, H, d)) << "trial " << trial << " d " << d;
+      ASSERT_EQ(mask_boundary(mv, W, H, d), ref::mask_boundary_reference(mv, W, H, d))
+          << "trial " << trial << " d " << d;
   }
   // Boundary IoU of a and b by the reference.
-  const std::vector<uint8_t> ba = boundary_reference(a, w, h, 1), bb = boundary_reference(b, w, h, 1);
+  const std::vector<uint8_t> ba = ref::mask_boundary_reference(a, w, h, 1),
+                             bb = ref::mask_boundary_reference(b, w, h, 1);
   EXPECT_DOUBLE_EQ(boundary_iou(a, b, w, h), iou(ba, bb));
   EXPECT_THROW(mask_iou(a, std::vector<uint8_t>(3, 0)), std::invalid_argument);
 }
