@@ -10,23 +10,10 @@
 #include <vector>
 
 #include "host/core/nearest.h"
+#include "tests/reference/nearest_reference.h"
 
 namespace ag2gs {
 namespace {
-
-std::vector<double> brute_force(const std::vector<Eigen::Vector3d>& p, int k) {
-  const double inf = std::numeric_limits<double>::infinity();
-  std::vector<double> out(p.size() * k, inf);
-  for (size_t i = 0; i < p.size(); ++i) {
-    if (!p[i].allFinite()) continue;
-    std::vector<double> d;
-    for (size_t j = 0; j < p.size(); ++j)
-      if (j != i && p[j].allFinite()) d.push_back((p[j] - p[i]).squaredNorm());
-    std::sort(d.begin(), d.end());
-    for (int c = 0; c < k && c < static_cast<int>(d.size()); ++c) out[i * k + c] = d[c];
-  }
-  return out;
-}
 
 TEST(Nearest, EqualsBruteForce) {
   std::mt19937 rng(3);
@@ -36,11 +23,12 @@ TEST(Nearest, EqualsBruteForce) {
   for (int i = 0; i < 300; ++i) p.emplace_back(2.0, u(rng), u(rng));  // a plane across x
   p.push_back(p[5]);                                                    // a duplicate: distance 0
   p.emplace_back(NAN, 0, 0);
-  for (int k : {1, 3}) EXPECT_EQ(nearest_squared_distances(p, k), brute_force(p, k)) << "k " << k;
+  for (int k : {1, 3})
+    EXPECT_EQ(nearest_squared_distances(p, k), ref::nearest_squared_distances_reference(p, k)) << "k " << k;
   // Along one axis only (a plane across the other two).
   std::vector<Eigen::Vector3d> line;
   for (int i = 0; i < 200; ++i) line.emplace_back(0, 0, u(rng));
-  EXPECT_EQ(nearest_squared_distances(line, 2), brute_force(line, 2));
+  EXPECT_EQ(nearest_squared_distances(line, 2), ref::nearest_squared_distances_reference(line, 2));
   // Fewer points than k: infinity where there is no k-th neighbour.
   const std::vector<double> two = nearest_squared_distances({Eigen::Vector3d(0, 0, 0), Eigen::Vector3d(0, 3, 4)}, 2);
   EXPECT_EQ(two[0], 25.0);

@@ -20,6 +20,7 @@
 #include "host/io/model_io.h"
 #include "tests/cli_test_util.h"
 #include "tests/io_test_util.h"
+#include "tests/reference/anchor_graph_reference.h"
 #include "tests/reference/propagation_loss_reference.h"
 #include "tests/test_util.h"
 #include "train/anchors/anchor_model.h"
@@ -65,26 +66,6 @@ AnchorModel random_model(size_t n, int layer_ratio, int layers, int span, uint32
   return m;
 }
 
-// O(N^2) construction from the definition, through the voxel centres in
-// double: the neighbourhood cell of an anchor is floor((centre - origin) /
-// (scale * top_voxel)); i ~ j when i != j and the cells differ by <= 1 on
-// every axis. Rows come out ascending.
-std::vector<std::vector<int>> brute_force_rows(const AnchorModel& m, int scale) {
-  const size_t A = m.size();
-  std::vector<Eigen::Vector3i> hood(A);
-  for (size_t i = 0; i < A; ++i) {
-    const Eigen::Vector3i cell(m.cell()[3 * i], m.cell()[3 * i + 1], m.cell()[3 * i + 2]);
-    const Eigen::Vector3d t = (m.grid().centre(m.layer()[i], cell) - m.grid().origin) / (scale * m.grid().top_voxel);
-    hood[i] = Eigen::Vector3i(static_cast<int>(std::floor(t.x())), static_cast<int>(std::floor(t.y())),
-                              static_cast<int>(std::floor(t.z())));
-  }
-  std::vector<std::vector<int>> rows(A);
-  for (size_t i = 0; i < A; ++i)
-    for (size_t j = 0; j < A; ++j)
-      if (i != j && (hood[i] - hood[j]).cwiseAbs().maxCoeff() <= 1) rows[i].push_back(static_cast<int>(j));
-  return rows;
-}
-
 void expect_graph_equals(const AnchorGraph& g, const std::vector<std::vector<int>>& rows) {
   ASSERT_EQ(g.anchors(), rows.size());
   size_t entries = 0;
@@ -121,7 +102,7 @@ TEST(AnchorGraph, MatchesBruteForce) {
     SCOPED_TRACE("ratio " + std::to_string(c.ratio) + " layers " + std::to_string(c.layers) + " scale " +
                  std::to_string(c.scale) + " anchors " + std::to_string(m.size()));
     EXPECT_EQ(g.cell_scale(), c.scale);
-    expect_graph_equals(g, brute_force_rows(m, c.scale));
+    expect_graph_equals(g, ref::anchor_graph_rows_reference(m, c.scale));
     EXPECT_NO_THROW(g.validate());
     EXPECT_GT(g.edges(), m.size());  // dense enough to mean something
     EXPECT_TRUE(g.matches(m));
@@ -184,13 +165,13 @@ TEST(AnchorGraph, DeterministicAndTracksAnchorChanges) {
   EXPECT_FALSE(a.matches(m));
   AnchorGraph grown = AnchorGraph::build(m);
   EXPECT_TRUE(grown.matches(m));
-  expect_graph_equals(grown, brute_force_rows(m, 1));
+  expect_graph_equals(grown, ref::anchor_graph_rows_reference(m, 1));
   // Pruning every third anchor: ids shift, the rebuilt graph follows.
   std::vector<uint8_t> keep(m.size(), 1);
   for (size_t i = 0; i < keep.size(); i += 3) keep[i] = 0;
   m.remove_anchors(keep);
   EXPECT_FALSE(grown.matches(m));
-  expect_graph_equals(AnchorGraph::build(m), brute_force_rows(m, 1));
+  expect_graph_equals(AnchorGraph::build(m), ref::anchor_graph_rows_reference(m, 1));
   EXPECT_THROW(AnchorGraph::build(m, 0), std::invalid_argument);
 }
 
