@@ -14,11 +14,13 @@ PACKAGES=(
 # --test: also what the test suite needs beyond the build: clang with its
 # libFuzzer and sanitizer runtimes (the fuzz smoke test), Oclgrind (the
 # simulated GPU the oclgrind tests run every kernel on), and headless
-# Chromium with its WebDriver and Selenium (the viewer's browser test), and
-# pytest (the Python module's test). The build itself includes the Python
-# module (pybind11, Python's headers, NumPy for its arrays).
+# Chromium with its WebDriver and Selenium (the viewer's browser test),
+# pytest (the Python module's test), and python3-venv (the venv that
+# scripts/install_features.sh makes for the features test; scripts/test.sh
+# runs it). The build itself includes the Python module (pybind11, Python's
+# headers, NumPy for its arrays).
 if [ "${1:-}" = "--test" ]; then
-  PACKAGES+=(clang libclang-rt-14-dev oclgrind chromium chromium-driver python3-selenium python3-pytest)
+  PACKAGES+=(clang libclang-rt-14-dev oclgrind chromium chromium-driver python3-selenium python3-pytest python3-venv)
 fi
 
 missing=()

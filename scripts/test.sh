@@ -7,6 +7,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/install_deps.sh --test
+# ag2gs-features and its PyTorch, for the features test (CTest label python).
+scripts/install_features.sh build/features-venv
 if [ "${1:-}" = "--sanitize" ]; then
   shift
   cmake -S . -B build_sanitize -DCMAKE_BUILD_TYPE=RelWithDebInfo -DAG2GS_BUILD_TESTS=ON -DAG2GS_BUILD_BENCH=ON -DAG2GS_BUILD_PYTHON=OFF \
