@@ -267,6 +267,13 @@ def test_images_of_mixed_sizes_name_two_files_and_sizes(scene_copy):
     assert not (scene_copy / "language_features").exists()
 
 
+def test_two_images_with_one_stem_are_named(scene_copy):
+    (scene_copy / "images" / "sub").mkdir()
+    shutil.copy(scene_copy / "images" / "view_000.png", scene_copy / "images" / "sub" / "view_000.jpg")
+    line = bad(scene_copy, *RANDOM_MODELS)
+    assert "same stem 'view_000'" in line and "sub/view_000.jpg" in line
+
+
 def test_no_images_and_no_scene(tmp_path):
     (tmp_path / "images").mkdir()
     (tmp_path / "images" / "notes.txt").write_text("x")
