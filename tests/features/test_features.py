@@ -148,6 +148,16 @@ def test_crop_is_the_masked_box_padded_to_a_centred_square():
     assert np.all(np.delete(c, 4, axis=1) == 0)
 
 
+def test_masks_of_large_images_are_made_at_most_max_side_long():
+    from ag2gs_features.scene_images import working_size
+
+    assert working_size(64, 48, 1024) == (64, 48)
+    assert working_size(1024, 700, 1024) == (1024, 700)
+    assert working_size(4000, 3000, 1024) == (1024, 768)
+    assert working_size(3000, 4000, 1024) == (768, 1024)
+    assert working_size(5000, 10, 1024) == (1024, 2)
+
+
 def test_levels_paint_smaller_masks_over_larger_and_offset_ids():
     big = np.zeros((4, 4), dtype=bool)
     big[:, :] = True
@@ -242,7 +252,18 @@ def test_a_file_that_is_not_a_checkpoint_is_named(scene_copy):
     line = bad(scene_copy, "--sam-model", "vit_b", "--sam-checkpoint", junk, "--clip-model", CLIP_ARCH,
                "--clip-checkpoint", "laion2b_s34b_b79k", "--device", "cpu")
     assert f"--sam-checkpoint {junk}: not a PyTorch checkpoint" in line
-    assert not (scene_copy / "language_features").exists()
+    import torch
+
+    other = scene_copy / "other.pth"  # a state dict of some other model
+    torch.save({"image_encoder.other": torch.zeros(3)}, other)
+    line = bad(scene_copy, "--sam-model", "vit_b", "--sam-checkpoint", other, "--clip-model", CLIP_ARCH,
+               "--clip-checkpoint", "laion2b_s34b_b79k", "--device", "cpu")
+    assert f"--sam-checkpoint {other} does not fit --sam-model vit_b" in line and "vit_h" in line
+    (scene_copy / "p.txt").write_text("mug\n")
+    line = bad("--vocab", scene_copy / "p.txt", "-o", scene_copy / "v.json", "--clip-model", CLIP_ARCH, "--clip-checkpoint",
+               other, "--device", "cpu")
+    assert f"--clip-checkpoint {other} cannot be loaded as --clip-model {CLIP_ARCH}" in line
+    assert not (scene_copy / "language_features").exists() and not (scene_copy / "v.json").exists()
 
 
 def test_unknown_architectures_list_the_valid_names(scene_copy):

@@ -59,6 +59,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "(default 0.7; 1 = keep all)")
     p.add_argument("--min-mask-area", type=int, default=100, metavar="PIXELS",
                    help="drop masks smaller than this (default 100)")
+    p.add_argument("--max-side", type=int, default=1024, metavar="PIXELS",
+                   help="make masks at the image size, or with the longer side this long for larger images "
+                   "(default 1024, SAM's input; ag2gs rescales masks to its views)")
     p.add_argument("--clip-batch", type=int, default=32, metavar="N", help="crops per CLIP batch (default 32)")
     p.add_argument("--force", action="store_true",
                    help="replace existing <stem>_s.npy/_f.npy pairs in language_features/ and an existing "
@@ -115,7 +118,8 @@ def check_arguments(args: argparse.Namespace) -> dict:
         raise InputError("nothing to do: give SCENE_DIR (masks and features) and/or --vocab PHRASES (text embeddings)")
     for flag, value, low in (("--points-per-side", args.points_per_side, 1),
                              ("--points-per-batch", args.points_per_batch, 1),
-                             ("--clip-batch", args.clip_batch, 1), ("--min-mask-area", args.min_mask_area, 0)):
+                             ("--clip-batch", args.clip_batch, 1), ("--min-mask-area", args.min_mask_area, 0),
+                             ("--max-side", args.max_side, 8)):
         if value < low:
             raise InputError(f"{flag} {value}: must be at least {low}")
     if args.random_weights is not None:
@@ -224,7 +228,7 @@ def run_scene(args, plan, sam, clip) -> None:
 
     from .layout import build_layout, level_order, write_pair
     from .sam_levels import MaskSettings, generate_levels
-    from .scene_images import load_rgb
+    from .scene_images import load_rgb, working_size
 
     settings = MaskSettings(args.points_per_side, args.points_per_batch, args.pred_iou_thresh,
                             args.stability_thresh, 1.0, args.box_nms_thresh, args.min_mask_area)
@@ -234,14 +238,15 @@ def run_scene(args, plan, sam, clip) -> None:
     images = plan["images"]
     out_dir: Path = plan["out_dir"]
     out_dir.mkdir(exist_ok=True)
-    log(f"{len(images)} images of {images[0].width}x{images[0].height} in {args.scene_dir / 'images'} -> {out_dir} "
-        f"(SAM {args.sam_model}, {settings.points_per_side}x{settings.points_per_side} points; CLIP "
-        f"{args.clip_model}, {clip.dim}-d)")
+    size = working_size(images[0].width, images[0].height, args.max_side)
+    log(f"{len(images)} image{'s' if len(images) != 1 else ''} of {images[0].width}x{images[0].height} in {args.scene_dir / 'images'} -> {out_dir}, "
+        f"masks at {size[0]}x{size[1]} (SAM {args.sam_model}, {settings.points_per_side}x{settings.points_per_side} "
+        f"points; CLIP {args.clip_model}, {clip.dim}-d)")
     start = time.monotonic()
     total_masks = 0
     for i, image in enumerate(images):
         t0 = time.monotonic()
-        rgb = load_rgb(image)
+        rgb = load_rgb(image, size)
         levels = [m.numpy() for m in generate_levels(sam, rgb, settings)]
         levels = [m[level_order(m)] for m in levels]
         features, encoded = features_of_levels(clip, rgb, levels, args.clip_batch)
@@ -266,7 +271,7 @@ def run_vocab(plan, clip) -> None:
 
     phrases = plan["phrases"]
     write_vocabulary(plan["vocab_out"], phrases, embed_phrases(clip, phrases))
-    log(f"wrote {plan['vocab_out']}: {len(phrases)} phrases, {clip.dim}-d")
+    log(f"wrote {plan['vocab_out']}: {len(phrases)} phrase{'s' if len(phrases) != 1 else ''}, {clip.dim}-d")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -57,10 +57,12 @@ def load_clip(arch: str, checkpoint: str | None, device: torch.device, seed: int
         logging.getLogger().setLevel(logging.ERROR)
     try:
         model, _, preprocess = open_clip.create_model_and_transforms(arch, pretrained=checkpoint, device=device)
-    except RuntimeError as e:
-        lines = [s.strip() for s in str(e).splitlines() if s.strip()]
-        raise InputError(f"--clip-checkpoint {checkpoint} does not fit --clip-model {arch} "
-                         f"({'; '.join(lines[:2])[:300]}); give the architecture the file was trained as")
+    except Exception as e:  # torch's RuntimeError for other shapes, pickle's and zipfile's for other files
+        if checkpoint is None:
+            raise
+        detail = " ".join(str(e).split())
+        raise InputError(f"--clip-checkpoint {checkpoint} cannot be loaded as --clip-model {arch} ({detail[:160]}...); "
+                         "give the architecture the file was trained as, or download the file again")
     model.eval()
     tokenizer = open_clip.get_tokenizer(arch)
     with torch.inference_mode():

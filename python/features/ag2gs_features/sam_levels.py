@@ -58,10 +58,10 @@ def load_sam(model_name: str, checkpoint: str | None, device: torch.device, seed
         try:
             sam.load_state_dict(state)
         except Exception as e:
+            detail = " ".join(str(e).split())  # torch lists every missing key: keep the start
             raise InputError(f"--sam-checkpoint {checkpoint} does not fit --sam-model {model_name} "
-                             f"({str(e).splitlines()[1].strip() if len(str(e).splitlines()) > 1 else e}); "
-                             "give the architecture the file was trained as (sam_vit_b_* is vit_b, sam_vit_l_* "
-                             "vit_l, sam_vit_h_* vit_h)")
+                             f"({detail[:160]}...); give the architecture the file was trained as "
+                             "(sam_vit_b_* is vit_b, sam_vit_l_* vit_l, sam_vit_h_* vit_h)")
     sam.to(device).eval()
     return SamPredictor(sam)
 

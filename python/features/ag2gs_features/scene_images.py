@@ -74,11 +74,25 @@ def list_scene_images(scene_dir: Path) -> list[SceneImage]:
     return found
 
 
-def load_rgb(image: SceneImage) -> np.ndarray:
-    """[H, W, 3] uint8 RGB, EXIF orientation applied as OpenCV does."""
+def working_size(width: int, height: int, max_side: int) -> tuple[int, int]:
+    """The size masks are made at: the image's, or scaled so its longer side
+    is max_side. SAM's masks come from a 256 x 256 grid over its 1024 x 1024
+    input, so a larger mask image holds no more detail; ag2gs rescales masks
+    to its views (nearest neighbour)."""
+    if max(width, height) <= max_side:
+        return width, height
+    scale = max_side / max(width, height)
+    return max(1, round(width * scale)), max(1, round(height * scale))
+
+
+def load_rgb(image: SceneImage, size: tuple[int, int]) -> np.ndarray:
+    """[H, W, 3] uint8 RGB at size (W, H), EXIF orientation applied as OpenCV
+    does, reduced with an area filter."""
     with Image.open(image.path) as im:
-        rgb = np.asarray(ImageOps.exif_transpose(im).convert("RGB"))
-    if rgb.shape[:2] != (image.height, image.width):
-        raise InputError(f"{image.path}: decoded as {rgb.shape[1]}x{rgb.shape[0]}, its header says "
-                         f"{image.width}x{image.height}; the file is damaged")
-    return rgb
+        im = ImageOps.exif_transpose(im).convert("RGB")
+        if im.size != (image.width, image.height):
+            raise InputError(f"{image.path}: decoded as {im.size[0]}x{im.size[1]}, its header says "
+                             f"{image.width}x{image.height}; the file is damaged")
+        if im.size != size:
+            im = im.resize(size, Image.Resampling.BOX)
+        return np.asarray(im)
