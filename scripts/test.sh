@@ -7,8 +7,11 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/install_deps.sh --test
-# ag2gs-features and its PyTorch, for the features test (CTest label python).
-scripts/install_features.sh build/features-venv
+# ag2gs-features and its PyTorch (about 3 GB from PyPI), for the features
+# test (CTest label python). Should PyPI fail, the rest of the suite still
+# runs and that entry says it was skipped, and why.
+scripts/install_features.sh build/features-venv ||
+  echo "test.sh: WARNING: ag2gs-features could not be installed; the features test will be skipped" >&2
 if [ "${1:-}" = "--sanitize" ]; then
   shift
   cmake -S . -B build_sanitize -DCMAKE_BUILD_TYPE=RelWithDebInfo -DAG2GS_BUILD_TESTS=ON -DAG2GS_BUILD_BENCH=ON -DAG2GS_BUILD_PYTHON=OFF \
