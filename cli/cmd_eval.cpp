@@ -137,6 +137,7 @@ void cmd_eval(const GlobalOptions& global, EvalArgs a) {
                  {"equivalent_feature_distance", a.config.equivalent_distance()},
                  {"graph_cell_scale", a.config.graph_cell_scale},
                  {"text_margin", a.config.text_margin},
+                 {"text_threshold", a.config.text_threshold},
                  {"mask_threshold", a.config.mask_threshold},
                  {"click_candidates", a.config.click_candidates},
                  {"click_dominant", a.config.click_dominant},

@@ -584,7 +584,8 @@ TextResult QueryEngine::text(const std::vector<float>& embedding, const std::vec
     throw std::invalid_argument("no cluster of the model has a language feature (stage 3 found no mask matches)");
   // The clusters the phrase wins against every rival.
   std::vector<uint8_t> wins(r.scores.size(), 0);
-  for (size_t c = 0; c < r.scores.size(); ++c) wins[c] = !std::isnan(r.scores[c]);
+  for (size_t c = 0; c < r.scores.size(); ++c)
+    wins[c] = !std::isnan(r.scores[c]) && r.scores[c] >= config_.text_threshold;
   for (const std::vector<float>& rival : rivals) {
     const std::vector<double> rs = text_scores(language_, rival);
     for (size_t c = 0; c < r.scores.size(); ++c)

@@ -77,6 +77,11 @@ struct QueryConfig {
   float tau = 0.05f;             // bilateral weight scale
   float min_weight = 0.9f;       // grow along edges with w_ij > min_weight, in (0, 1)
   float text_margin = 0.1f;      // text seeds: clusters with score >= best - text_margin
+  // A cluster is a phrase's only if its cosine is at least this; -1 (the
+  // default): no floor, the vocabulary's other phrases decide (measured on
+  // generated scenes, docs/benchmarks.md "Phrases for what is not there").
+  // A floor answers "none" for a phrase alone in its vocabulary.
+  float text_threshold = -1.f;
   float min_click_alpha = 0.5f;  // clicks on pixels with less alpha are background
   float mask_threshold = 0.5f;   // mask(p) = selection weight > mask_threshold
   // Click seed: of the click_candidates anchors nearest the unprojected
@@ -186,8 +191,9 @@ struct TextResult {
   std::vector<double> scores;          // [C] NaN = cluster without language feature
   double best = 0;                     // the best score of a cluster the phrase wins (of any, when none)
   // With rival phrases: a cluster is the phrase's only if no rival scores
-  // higher on it; none = no cluster is (the phrase names nothing here),
-  // and the selection is empty.
+  // higher on it, and its score is at least config.text_threshold; none =
+  // no cluster is (the phrase names nothing here), and the selection is
+  // empty.
   bool none = false;
   size_t won = 0;                      // clusters the phrase wins against the rivals
   std::vector<int32_t> seed_clusters;  // ascending

@@ -19,6 +19,10 @@ std::vector<QuerySetting> build_table() {
   add(field<float>([](C& c) -> float& { return c.text_margin; }), "text_margin", "--text-margin",
       "Text seeds: clusters within this of the best score (0.1)")
       .range(0, 2);
+  add(field<float>([](C& c) -> float& { return c.text_threshold; }), "text_threshold", "--text-threshold",
+      "Text: a cluster is the phrase's only if their cosine is at least this (default -1: no floor; the "
+      "vocabulary's other phrases decide, and a phrase no cluster suits better than they do selects nothing)")
+      .range(-1, 1);
   add(field<int>([](C& c) -> int& { return c.graph_cell_scale; }), "graph_cell_scale", "--graph-scale",
       "Query graph neighbourhood in top voxels (default 2)")
       .range(1, 1024);

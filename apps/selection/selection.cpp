@@ -248,7 +248,12 @@ std::vector<int32_t> run_query(QueryEngine& engine, const Scene& scene, const Qu
     nlohmann::json scores = nlohmann::json::array();
     for (double s : t.scores) scores.push_back(finite_or_null(s));
     j["scores"] = scores;
-    if (t.none)
+    if (t.none && t.best < engine.config().text_threshold)
+      spdlog::warn(
+          "text: \"{}\" names nothing here: its best cosine {:.4f} is below --text-threshold {}; nothing "
+          "is selected",
+          r.text, t.best, engine.config().text_threshold);
+    else if (t.none)
       spdlog::warn(
           "text: \"{}\" names nothing here: each cluster is described better by another of the {} phrases of {} "
           "(the phrase's best cosine {:.4f}); nothing is selected",
@@ -325,6 +330,7 @@ SelectionResult select_object(Runtime& rt, const SelectionRequest& r) {
                      {"equivalent_feature_distance", r.config.equivalent_distance()},
                      {"graph_cell_scale", r.config.graph_cell_scale},
                      {"text_margin", r.config.text_margin},
+                     {"text_threshold", r.config.text_threshold},
                      {"min_click_alpha", r.config.min_click_alpha},
                      {"click_candidates", r.config.click_candidates},
                      {"click_dominant", r.config.click_dominant},

@@ -437,6 +437,27 @@ TEST(Query, TextSelectsTheBestClusterAndItsNearTies) {
   EXPECT_EQ(none.best, best);
   // A rival equal to the phrase does not take its clusters (ties go to the phrase).
   EXPECT_EQ(engine.text(a_phrase, {a_phrase}).seed_clusters, std::vector<int32_t>{0});
+
+  // A floor on the cosine (--text-threshold): the phrase alone in its
+  // vocabulary answers none when no cluster reaches the floor, and a phrase
+  // at its cluster's own feature (cosine 1) passes it.
+  QueryConfig floored_config;
+  floored_config.text_threshold = static_cast<float>(std::min(best + 0.01, 1.0));
+  QueryEngine floored(test::runtime(), w.built.model, floored_config);
+  floored.set_language(cl, lang);
+  const TextResult below = floored.text(absent);
+  EXPECT_TRUE(below.none);
+  EXPECT_TRUE(below.selected.empty());
+  EXPECT_EQ(below.best, best);
+  EXPECT_EQ(floored.text(a_phrase).seed_clusters, std::vector<int32_t>{0});
+  floored_config.text_threshold = static_cast<float>(best - 0.01);
+  QueryEngine under(test::runtime(), w.built.model, floored_config);
+  under.set_language(cl, lang);
+  const TextResult over = under.text(absent);  // the best cluster passes; those under the floor do not
+  EXPECT_FALSE(over.none);
+  EXPECT_EQ(over.best, best);
+  ASSERT_FALSE(over.seed_clusters.empty());
+  for (int32_t c : over.seed_clusters) EXPECT_GE(over.scores[c], floored_config.text_threshold);
 }
 
 TEST(Query, DeterministicAcrossRunsAndEngines) {
