@@ -20,10 +20,10 @@ import torch
 import torch.nn.functional as F
 from torchvision.ops import nms
 
+from .architectures import SAM_MODELS  # noqa: F401 (re-exported)
 from .errors import InputError
 
 LEVEL_NAMES = ("default", "small", "medium", "large")
-from .architectures import SAM_MODELS  # noqa: F401 (re-exported)
 
 
 @dataclass
