@@ -44,7 +44,10 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
 
   Runtime rt(global.device);
   rt.set_profiling(a.profile);
-  Trainer trainer(rt, *scene, a.config);
+  // Stage 3 reads the saved model: the trainer's device buffers (parameters,
+  // optimiser moments, losses, the graph) go before it.
+  auto trainer_owner = std::make_unique<Trainer>(rt, *scene, a.config);
+  Trainer& trainer = *trainer_owner;
   const TrainConfig& c = trainer.config();
   if (a.resume) resume_trainer(trainer, a);
   // The last iteration this run trains to.
@@ -170,6 +173,7 @@ void cmd_train(const GlobalOptions& global, TrainArgs& a) {
   spdlog::info("{}", trainer.last_ply().describe());
   run.metrics()["anchors"] = trainer.anchors();
   run.final_test(it_end, evaluate, counts());
+  trainer_owner.reset();
   run.metrics()["stages"] = final_stages(rt, *scene, a, seconds, stage1_end_s, it_start);
   run.write_metrics();
   end_run(a, view);

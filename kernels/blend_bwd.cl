@@ -396,6 +396,10 @@ void blend_weights(int width, int height, int tiles_x,
     for (int j = 0; j < nb; ++j) {
       __local const float* q = s_rec + j * REC_SIZE;
       const vfloat sigma = blend_sigma(q[REC_CA], q[REC_CB], q[REC_CC], q[REC_U] - pr.px, q[REC_V] - pr.py);
+      if (out_of_reach(sigma, q[REC_THR])) {
+        s_part[j * PSTRIDE + lid] = 0.f;
+        continue;
+      }
       const vfloat alpha = fmin(q[REC_OPACITY] * blend_falloff(sigma), ALPHA_MAX);
       vint ok = NOT(done) & (sigma >= 0.f) & (alpha >= ALPHA_MIN);
       const vfloat Tn = T * (1.f - alpha);

@@ -65,6 +65,9 @@ void blend_fwd(int width, int height, int tiles_x,
       vfloat dx = q[REC_U] - pr.px;
       float dy = q[REC_V] - pr.py;
       vfloat sigma = blend_sigma(q[REC_CA], q[REC_CB], q[REC_CC], dx, dy);
+#if !NO_STAGING
+      if (out_of_reach(sigma, q[REC_THR])) continue;  // (the CPU layout's row test came first)
+#endif
       vfloat alpha = fmin(q[REC_OPACITY] * blend_falloff(sigma), ALPHA_MAX);
       vint ok = NOT(done) & (sigma >= 0.f) & (alpha >= ALPHA_MIN);
       vfloat Tn = T * (1.f - alpha);

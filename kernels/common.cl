@@ -272,6 +272,15 @@ inline vfloat blend_sigma(float cA, float cB, float cC, vfloat dx, float dy) {
 // dearly.
 inline vfloat blend_falloff(vfloat sigma) { return EXPF(-fmin(sigma, 40.f)); }
 
+// Whether the alpha test fails at every lane of sigma (blend_sigma's bits)
+// for a record whose REC_THR is thr: sigma above ln(255 o) by row_culled's
+// margin gives alpha < 1/255 whatever the rounding of the exponential, and
+// a NaN lane fails sigma >= 0. Tested before the exponential, which it
+// spares the pixels of a tile that a Gaussian misses (most of them in the
+// GPU layout, which has no row test); the outcome is the alpha test's, so
+// no bit changes.
+inline int out_of_reach(vfloat sigma, float thr) { return !ANY(sigma <= thr + 0.01f); }
+
 // Tile geometry of one work-item: VW adjacent pixels of a tile row.
 typedef struct {
   int tile, x0, y;   // first pixel's column, the row
@@ -429,12 +438,13 @@ ALWAYS_INLINE RowTotals load_totals(PixelRow pr, int width, size_t npix,
 // A blended Gaussian's record fields, read by the caller from global
 // (CPU layout) or local (GPU layout) memory.
 typedef struct {
-  float u, v, cA, cB, cC, o, cr, cg, cb, c0, c1, c2, z, m;
+  float u, v, cA, cB, cC, o, cr, cg, cb, c0, c1, c2, z, m, thr;
 } BlendRec;
 
 #define BLEND_REC_LOAD(q) \
   {(q)[REC_U], (q)[REC_V], (q)[REC_CA], (q)[REC_CB], (q)[REC_CC], (q)[REC_OPACITY], (q)[REC_RGB], \
-   (q)[REC_RGB + 1], (q)[REC_RGB + 2], (q)[REC_FEAT], (q)[REC_FEAT + 1], (q)[REC_FEAT + 2], (q)[REC_Z], (q)[REC_M]}
+   (q)[REC_RGB + 1], (q)[REC_RGB + 2], (q)[REC_FEAT], (q)[REC_FEAT + 1], (q)[REC_FEAT + 2], (q)[REC_Z], (q)[REC_M], \
+   (q)[REC_THR]}
 
 // A row's running sums, front to back: transmittance, the weighted colour
 // prefix G_P = sum_{k<=j} w_k gc_k, and the distortion prefixes A and Q.
@@ -467,6 +477,9 @@ typedef struct {
 ALWAYS_INLINE int blend_vjp(BlendRec q, vfloat dx, float dy, vint active, float zj, const RowTotals* t, BlendRun* run,
                      BlendVjp* d) {
   const vfloat sigma = blend_sigma(q.cA, q.cB, q.cC, dx, dy);
+#if !NO_STAGING
+  if (out_of_reach(sigma, q.thr)) return 0;  // (the CPU layout's row test came first)
+#endif
   const vfloat G = blend_falloff(sigma);
   const vfloat oG = q.o * G;
   const vfloat alpha = fmin(oG, ALPHA_MAX);

@@ -30,9 +30,13 @@
 
 // One list entry at this work-item's pixels, as blend_fwd blends it: the
 // weight w (0 where the entry does not blend), with T and done advanced.
-inline vfloat instance_weight(PixelRow pr, float u, float v, float cA, float cB, float cC, float o, vfloat* T,
-                              vint* done, vint* okp) {
+inline vfloat instance_weight(PixelRow pr, float u, float v, float cA, float cB, float cC, float o, float thr,
+                              vfloat* T, vint* done, vint* okp) {
   const vfloat sigma = blend_sigma(cA, cB, cC, u - pr.px, v - pr.py);
+  if (out_of_reach(sigma, thr)) {
+    *okp = (vint)0;
+    return 0.f;
+  }
   const vfloat alpha = fmin(o * blend_falloff(sigma), ALPHA_MAX);
   vint ok = NOT(*done) & (sigma >= 0.f) & (alpha >= ALPHA_MIN);
   const vfloat Tn = *T * (1.f - alpha);
@@ -45,7 +49,8 @@ inline vfloat instance_weight(PixelRow pr, float u, float v, float cA, float cB,
   return w;
 }
 #define INSTANCE_WEIGHT(q, T, done, ok) \
-  instance_weight(pr, (q)[REC_U], (q)[REC_V], (q)[REC_CA], (q)[REC_CB], (q)[REC_CC], (q)[REC_OPACITY], &(T), &(done), &(ok))
+  instance_weight(pr, (q)[REC_U], (q)[REC_V], (q)[REC_CA], (q)[REC_CB], (q)[REC_CC], (q)[REC_OPACITY], (q)[REC_THR], \
+                  &(T), &(done), &(ok))
 
 // Walk 1's weighted majority vote. Against a different cluster the heavier
 // side keeps the surplus; a tie leaves surplus 0, and the next vote wins.
@@ -132,10 +137,14 @@ void instance_map(int width, int height, int tiles_x, int children,
         const int k = s_k[jj];
 #endif
         const vfloat w = INSTANCE_WEIGHT(q, T, done, ok);
+        // Where no lane blended, the sums would add zeros and the vote
+        // change nothing.
+        if (ANY(ok)) {
 #if WITH_IMAGES
-        f0 += w * q[REC_FEAT]; f1 += w * q[REC_FEAT + 1]; f2 += w * q[REC_FEAT + 2];
+          f0 += w * q[REC_FEAT]; f1 += w * q[REC_FEAT + 1]; f2 += w * q[REC_FEAT + 2];
 #endif
-        vote(&s, k, w, ok, j);
+          vote(&s, k, w, ok, j);
+        }
         if (!ANY(NOT(done))) break;
       }
     }

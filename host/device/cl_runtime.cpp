@@ -334,8 +334,9 @@ void Runtime::launch(const std::string& label, cl::Kernel& k, const cl::NDRange&
     const auto t0 = std::chrono::steady_clock::now();
     queue_.finish();
     const auto t1 = std::chrono::steady_clock::now();
-    std::fprintf(launch_log_, "%s vw=%d items=%zu label=%s s=%.4f\n", k.getInfo<CL_KERNEL_FUNCTION_NAME>().c_str(),
-                 vector_width_, items, label.c_str(), std::chrono::duration<double>(t1 - t0).count());
+    std::fprintf(launch_log_, "%s vw=%d items=%zu label=%s mem=%llu s=%.4f\n",
+                 k.getInfo<CL_KERNEL_FUNCTION_NAME>().c_str(), vector_width_, items, label.c_str(),
+                 static_cast<unsigned long long>(allocated_), std::chrono::duration<double>(t1 - t0).count());
     std::fflush(launch_log_);
   }
 }

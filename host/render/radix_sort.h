@@ -20,8 +20,10 @@ struct RadixSortPlan {
   Kind kind = Kind::Group;
   int block = 4096;       // Block: keys per work-item
   int digit_bits = 4;     // Group: bits per pass, 1..5
-  int work_group = 0;     // Group: work-items per group, a power of two >= 2^digit_bits; 0 = 256 or the device's most
-  int keys_per_item = 0;  // Group: keys per work-item and tile; 0 = 8, or fewer where local memory is short
+  int work_group = 0;     // Group: work-items per group, a power of two >= 2^digit_bits; 0 = 256 or the device's
+                          // most (32 on a device of one compute unit)
+  int keys_per_item = 0;  // Group: keys per work-item and tile; 0 = 8 (32 on a device of one compute unit), or
+                          // fewer where local memory is short
   int max_groups = 0;     // Group: work-groups per pass at most; 0 = 8 per compute unit
 
   // "block:4096" or "group:4:256:8" (":G" appended when max_groups is set),

@@ -9,6 +9,7 @@
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
+#include <fstream>
 #include <string>
 
 #include "host/io/model_io.h"
@@ -176,10 +177,34 @@ TEST(TrainStages, CliRunsAllStagesAndInfoReportsThem) {
   const std::string args = "train " + sample_scene() +
                            " -r 2 --top-cells 50 --iters 90 --prop-iters 30 --seed 11 --log-every 0 --grow-from 30 "
                            "--grow-every 30 --grow-threshold 1e-3 --mask-from 10 --cluster-distance 0.2 -o ";
+  // The launch log gives the device memory allocated at each launch.
+  const std::string launches = dir.file("launches.txt");
+  setenv("AG2GS_LAUNCH_LOG", launches.c_str(), 1);
   const test::CliResult r1 = test::run_cli(args + dir.file("a"));
+  unsetenv("AG2GS_LAUNCH_LOG");
   ASSERT_EQ(r1.code, 0) << r1.output;
   EXPECT_NE(r1.output.find("stage 2"), std::string::npos) << r1.output;
   EXPECT_NE(r1.output.find("stage times"), std::string::npos) << r1.output;
+  {
+    // Stage 3 reads the saved model: the trainer's buffers (parameters and
+    // optimiser moments among them) are released before it, so its launches
+    // see less memory than any optimiser step did (under Oclgrind's race
+    // detector every launch costs time in proportion to it).
+    std::ifstream log(launches);
+    uint64_t adam_least = UINT64_MAX, instance_most = 0;
+    int n_adam = 0, n_instance = 0;
+    for (std::string line; std::getline(log, line);) {
+      const size_t at = line.find(" mem=");
+      ASSERT_NE(at, std::string::npos) << line;
+      const uint64_t mem = std::stoull(line.substr(at + 5));
+      const std::string kernel = line.substr(0, line.find(' '));
+      if (kernel == "adam_step") adam_least = std::min(adam_least, mem), ++n_adam;
+      if (kernel == "instance_map") instance_most = std::max(instance_most, mem), ++n_instance;
+    }
+    ASSERT_GT(n_adam, 0);
+    ASSERT_GT(n_instance, 0);
+    EXPECT_LT(instance_most, adam_least) << "stage 3 ran beside the trainer's buffers";
+  }
   const test::CliResult r2 = test::run_cli(args + dir.file("b"));
   ASSERT_EQ(r2.code, 0) << r2.output;
   for (const char* f : {"model.ag2gs", "point_cloud.ply", "checkpoint.ag2gs"})
