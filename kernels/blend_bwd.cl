@@ -200,6 +200,7 @@ void blend_bwd(int width, int height, int tiles_x,
                __global float* isect_grads) {        // [M,G2_SIZE] by slot
   __local float s_rec[BATCH * REC_SIZE];
   __local uint s_slot[BATCH];
+  __local uint s_rows[BATCH];  // tile_rows_reached
   __local float s_part[BATCH * G2_SIZE * PSTRIDE];
 #if SEG > 1
   __local float s_seg[BATCH * G2_SIZE * SEG];
@@ -207,6 +208,7 @@ void blend_bwd(int width, int height, int tiles_x,
   __local int s_bound;
   const int lid = get_local_id(0);
   PixelRow pr = pixel_row(tiles_x, width, height);
+  const uint row_bit = 1u << (pr.y % TILE);
   const size_t npix = (size_t)width * height;
 
   // Upstream gradients and forward totals of this row's pixels.
@@ -244,6 +246,7 @@ void blend_bwd(int width, int height, int tiles_x,
       uint gid = isect_gid[slot];
       s_slot[i] = slot;
       for (int c = 0; c < REC_SIZE; ++c) s_rec[i * REC_SIZE + c] = records[(size_t)gid * REC_SIZE + c];
+      s_rows[i] = tile_rows_reached(s_rec + i * REC_SIZE, pr.tile, tiles_x);
     }
     barrier(CLK_LOCAL_MEM_FENCE);
     for (int j = 0; j < nb; ++j) {
@@ -251,7 +254,8 @@ void blend_bwd(int width, int height, int tiles_x,
       __local const float* q = s_rec + j * REC_SIZE;
       const BlendRec rec = BLEND_REC_LOAD(q);
       BlendVjp d;
-      if (!blend_vjp(rec, rec.u - pr.px, rec.v - pr.py, (vint)(b0 + j) < last, dist_depth_vjp(rec.z, dnear, dfar),
+      // (A record that cannot reach this work-item's row adds nothing.)
+      if (!(s_rows[j] & row_bit) || !blend_vjp(rec, rec.u - pr.px, rec.v - pr.py, (vint)(b0 + j) < last, dist_depth_vjp(rec.z, dnear, dfar),
                      &tot, &run, &d)) {
         for (int c = 0; c < G2_SIZE; ++c) part[c * PSTRIDE] = 0.f;
         continue;
@@ -366,6 +370,7 @@ void blend_weights(int width, int height, int tiles_x,
                    __global float* isect_grads) {     // [M,G2_SIZE] by slot
   __local float s_rec[BATCH * REC_SIZE];
   __local uint s_slot[BATCH];
+  __local uint s_rows[BATCH];  // tile_rows_reached
   __local float s_part[BATCH * PSTRIDE];
 #if SEG > 1
   __local float s_seg[BATCH * SEG];
@@ -373,6 +378,7 @@ void blend_weights(int width, int height, int tiles_x,
   __local int s_alive;
   const int lid = get_local_id(0);
   PixelRow pr = pixel_row(tiles_x, width, height);
+  const uint row_bit = 1u << (pr.y % TILE);
   int2 range = ranges[pr.tile];
   const int n = range.y - range.x;
 
@@ -388,6 +394,7 @@ void blend_weights(int width, int height, int tiles_x,
       s_slot[i] = slot;
       uint gid = isect_gid[slot];
       for (int c = 0; c < REC_SIZE; ++c) s_rec[i * REC_SIZE + c] = records[(size_t)gid * REC_SIZE + c];
+      s_rows[i] = tile_rows_reached(s_rec + i * REC_SIZE, pr.tile, tiles_x);
     }
     barrier(CLK_LOCAL_MEM_FENCE);
     if (ANY(NOT(done))) atomic_or(&s_alive, 1);
@@ -395,6 +402,10 @@ void blend_weights(int width, int height, int tiles_x,
     if (!s_alive) break;  // every pixel of the tile stopped: the rest get zeros below
     for (int j = 0; j < nb; ++j) {
       __local const float* q = s_rec + j * REC_SIZE;
+      if (!(s_rows[j] & row_bit)) {  // the record cannot reach this work-item's row
+        s_part[j * PSTRIDE + lid] = 0.f;
+        continue;
+      }
       const vfloat sigma = blend_sigma(q[REC_CA], q[REC_CB], q[REC_CC], q[REC_U] - pr.px, q[REC_V] - pr.py);
       if (out_of_reach(sigma, q[REC_THR])) {
         s_part[j * PSTRIDE + lid] = 0.f;

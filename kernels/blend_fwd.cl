@@ -21,10 +21,14 @@ void blend_fwd(int width, int height, int tiles_x,
                __global int* out_count) {          // [H,W] Gaussians blended
 #if !NO_STAGING
   __local float s_rec[BATCH * REC_SIZE];
+  __local uint s_rows[BATCH];  // tile_rows_reached
   __local int s_alive;
   const int lid = get_local_id(0);
 #endif
   PixelRow pr = pixel_row(tiles_x, width, height);
+#if !NO_STAGING
+  const uint row_bit = 1u << (pr.y % TILE);
+#endif
   const size_t npix = (size_t)width * height;
 
   vfloat T = 1.f, r = 0.f, g = 0.f, b = 0.f, f0 = 0.f, f1 = 0.f, f2 = 0.f, dsum = 0.f;
@@ -53,6 +57,7 @@ void blend_fwd(int width, int height, int tiles_x,
     for (int i = lid; i < nb; i += WG_SIZE) {
       uint gid = isect_gid[isect_vals[range.x + b0 + i]];
       for (int c = 0; c < REC_SIZE; ++c) s_rec[i * REC_SIZE + c] = records[(size_t)gid * REC_SIZE + c];
+      s_rows[i] = tile_rows_reached(s_rec + i * REC_SIZE, pr.tile, tiles_x);
     }
     barrier(CLK_LOCAL_MEM_FENCE);
     if (ANY(NOT(done))) atomic_or(&s_alive, 1);
@@ -60,6 +65,7 @@ void blend_fwd(int width, int height, int tiles_x,
     if (!s_alive) break;
     if (!ANY(NOT(done))) continue;
     for (int j = 0; j < nb; ++j) {
+      if (!(s_rows[j] & row_bit)) continue;  // the record cannot reach this work-item's row
       __local const float* q = s_rec + j * REC_SIZE;
 #endif
       vfloat dx = q[REC_U] - pr.px;

@@ -313,11 +313,30 @@ inline PixelRow pixel_row(int tiles_x, int width, int height) {
 // of sigma over a row at offset dy is 0.5 dy^2 (cC - cB^2/cA). Skipping such a
 // row changes nothing: every lane would have been skipped by the alpha test.
 // dx0, dx1: u minus the first and last pixel centre of the row.
-inline int row_culled(__global const float* q, float dy, float dx0, float dx1) {
+inline int row_beyond(float cA, float cB, float cC, float cm, float thr, float dy, float dx0, float dx1) {
   float dxm = fmax(fabs(dx0), fabs(dx1));
   float dy2 = dy * dy;
-  float terms = 0.5f * (q[REC_CA] * dxm * dxm + q[REC_CC] * dy2) + fabs(q[REC_CB]) * dxm * fabs(dy);
-  return 0.5f * dy2 * q[REC_CM] > q[REC_THR] + 0.01f + 1e-5f * terms;
+  float terms = 0.5f * (cA * dxm * dxm + cC * dy2) + fabs(cB) * dxm * fabs(dy);
+  return 0.5f * dy2 * cm > thr + 0.01f + 1e-5f * terms;
+}
+inline int row_culled(__global const float* q, float dy, float dx0, float dx1) {
+  return row_beyond(q[REC_CA], q[REC_CB], q[REC_CC], q[REC_CM], q[REC_THR], dy, dx0, dx1);
+}
+
+// The GPU layout's row test: bit r set when row r of tile `tile` may blend
+// the record q (row_beyond over the tile's 16 pixel centres of the row).
+// The work-item that stages a record computes its mask once for the tile;
+// then each pixel of a row the record cannot reach skips it with one bit
+// test instead of its exponent, which changes no bit of the result.
+inline uint tile_rows_reached(__local const float* q, int tile, int tiles_x) {
+  const float u = q[REC_U], v = q[REC_V];
+  const int x0 = (tile % tiles_x) * TILE, y0 = (tile / tiles_x) * TILE;
+  const float dx0 = u - ((float)x0 + 0.5f), dx1 = u - ((float)x0 + ((float)TILE - 0.5f));
+  uint mask = 0u;
+  for (int r = 0; r < TILE; ++r)
+    if (!row_beyond(q[REC_CA], q[REC_CB], q[REC_CC], q[REC_CM], q[REC_THR], v - ((float)(y0 + r) + 0.5f), dx0, dx1))
+      mask |= 1u << r;
+  return mask;
 }
 
 // Whether the ellipse q(d) = cA dx^2 + 2 cB dx dy + cC dy^2 <= k around

@@ -89,8 +89,10 @@ void instance_map(int width, int height, int tiles_x, int children,
 #if !NO_STAGING
   __local float s_rec[BATCH * REC_SIZE];
   __local int s_k[BATCH];
+  __local uint s_rows[BATCH];  // tile_rows_reached
   __local int s_alive, s_end;
   const int lid = get_local_id(0);
+  const uint row_bit = 1u << (pr.y % TILE);
   // Stage entries [b0, b0 + nb) of the tile's list; s_alive = 1 when a pixel
   // of the group still blends (alive: this work-item's).
 #define STAGE_BATCH(b0, nb, alive)                                                                          \
@@ -100,6 +102,7 @@ void instance_map(int width, int height, int tiles_x, int children,
     const uint gid = isect_gid[isect_vals[range.x + (b0) + i]];                                            \
     for (int c = 0; c < REC_SIZE; ++c) s_rec[i * REC_SIZE + c] = records[(size_t)gid * REC_SIZE + c];      \
     s_k[i] = anchor_cluster[gid / (uint)children];                                                         \
+    s_rows[i] = tile_rows_reached(s_rec + i * REC_SIZE, pr.tile, tiles_x);                                 \
   }                                                                                                        \
   barrier(CLK_LOCAL_MEM_FENCE);                                                                            \
   if (alive) atomic_or(&s_alive, 1);                                                                       \
@@ -132,6 +135,7 @@ void instance_map(int width, int height, int tiles_x, int children,
       if (!s_alive) break;
       if (!ANY(NOT(done))) continue;
       for (int jj = 0; jj < nb; ++jj) {
+        if (!(s_rows[jj] & row_bit)) continue;  // the record cannot reach this pixel's row
         const int j = b0 + jj;
         __local const float* q = s_rec + jj * REC_SIZE;
         const int k = s_k[jj];
@@ -198,6 +202,7 @@ void instance_map(int width, int height, int tiles_x, int children,
       if (!s_alive) break;
       if (b0 >= end || !ANY(NOT(done))) continue;
       for (int jj = 0; jj < min(nb, end - b0); ++jj) {
+        if (!(s_rows[jj] & row_bit)) continue;
         __local const float* q = s_rec + jj * REC_SIZE;
         const int k = s_k[jj];
 #endif

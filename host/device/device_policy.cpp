@@ -55,7 +55,8 @@ std::string BlendBwdPlan::describe() const {
 
 size_t BlendBwdPlan::local_bytes() const {
   const size_t wg = kTilePixels / vector_width, rows = static_cast<size_t>(batch) * G2_SIZE;
-  return 4 * (static_cast<size_t>(batch) * (REC_SIZE + 1) + rows * (wg + seg) + (seg > 1 ? rows * seg : 0) + 1);
+  // s_rec, s_slot and s_rows per staged record (kernels/blend_bwd.cl).
+  return 4 * (static_cast<size_t>(batch) * (REC_SIZE + 2) + rows * (wg + seg) + (seg > 1 ? rows * seg : 0) + 1);
 }
 
 BlendBwdPlan parse_blend_bwd_plan(const std::string& text) {

@@ -100,7 +100,7 @@ RadixSortPlan plan(const std::string& text) {
 // Every kind of key and count under the plans the renderer picks (CPU, GPU)
 // and a work-group plan whose groups each walk many tiles.
 TEST(RadixSort, MatchesStableSortOnEveryKeyKind) {
-  const std::vector<std::string> plans{"block:4096", "group:4:256:8", "group:4:64:4:3"};
+  const std::vector<std::string> plans{"block:4096", "group:4:256:8", "group:4:64:4:3", "group:4:32:32"};
   const std::vector<size_t> counts{0, 1, 2, 255, 2049, 40001};
   const std::vector<KeyKind> kinds{KeyKind::Duplicates, KeyKind::Uniform, KeyKind::AllEqual, KeyKind::Largest,
                                    KeyKind::Descending};
