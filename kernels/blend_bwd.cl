@@ -90,7 +90,9 @@ void blend_bwd(int width, int height, int tiles_x,
   RowTotals tot[WG_SIZE];
   BlendRun runs[WG_SIZE];
   vfloat pxs[WG_SIZE];
-  float pys[WG_SIZE], dx0s[WG_SIZE], dx1s[WG_SIZE];
+  float pys[WG_SIZE];
+  // The tile's first and last pixel centres across.
+  const float tile_x0 = (float)((tile % tiles_x) * TILE) + 0.5f, tile_x1 = tile_x0 + (float)(TILE - 1);
   int bounds[WG_SIZE];
   int bound = 0;
   for (int row = 0; row < WG_SIZE; ++row) {
@@ -98,8 +100,6 @@ void blend_bwd(int width, int height, int tiles_x,
     bounds[row] = 0;
     pxs[row] = pr.px;
     pys[row] = pr.py;
-    dx0s[row] = -(pr.x0 + 0.5f);
-    dx1s[row] = -(pr.x0 + (VW - 0.5f));
     runs[row].T = 1.f;
     runs[row].G_P = runs[row].A = runs[row].Q = 0.f;
     if (!ANY(pr.inside)) continue;
@@ -129,10 +129,12 @@ void blend_bwd(int width, int height, int tiles_x,
       __global const float* q = records + (size_t)isect_gid[slot] * REC_SIZE;
       const BlendRec rec = BLEND_REC_LOAD(q);
       const float zj = dist_depth_vjp(rec.z, dnear, dfar);
+      const float reach = row_reach(rec.cA, rec.cB, rec.cC, q[REC_CM], q[REC_THR],
+                                    fmax(fabs(rec.u - tile_x0), fabs(rec.u - tile_x1)));
       for (int row = 0; row < WG_SIZE; ++row) {
         if (j >= bounds[row]) continue;
         const float dy = rec.v - pys[row];
-        if (row_culled(q, dy, rec.u + dx0s[row], rec.u + dx1s[row])) continue;
+        if (!(fabs(dy) <= reach)) continue;  // no pixel of the row can blend it
         BlendVjp d;
         if (!blend_vjp(rec, rec.u - pxs[row], dy, (vint)j < tot[row].last, zj, &tot[row], &runs[row], &d)) continue;
         touched = 1;
@@ -319,14 +321,13 @@ void blend_weights(int width, int height, int tiles_x,
 
   vfloat Ts[WG_SIZE], pxs[WG_SIZE];
   vint dones[WG_SIZE];
-  float pys[WG_SIZE], dx0s[WG_SIZE], dx1s[WG_SIZE];
+  float pys[WG_SIZE];
+  const float tile_x0 = (float)((tile % tiles_x) * TILE) + 0.5f, tile_x1 = tile_x0 + (float)(TILE - 1);
   int live = 0;  // rows with a pixel still blending
   for (int row = 0; row < WG_SIZE; ++row) {
     PixelRow pr = pixel_row_of(tile, row, tiles_x, width, height);
     pxs[row] = pr.px;
     pys[row] = pr.py;
-    dx0s[row] = -(pr.x0 + 0.5f);
-    dx1s[row] = -(pr.x0 + (VW - 0.5f));
     Ts[row] = 1.f;
     dones[row] = NOT(pr.inside);
     if (ANY(NOT(dones[row]))) ++live;
@@ -338,10 +339,12 @@ void blend_weights(int width, int height, int tiles_x,
     if (live > 0) {
       __global const float* q = records + (size_t)isect_gid[vals[j]] * REC_SIZE;
       const float u = q[REC_U], v = q[REC_V];
+      const float reach = row_reach(q[REC_CA], q[REC_CB], q[REC_CC], q[REC_CM], q[REC_THR],
+                                    fmax(fabs(u - tile_x0), fabs(u - tile_x1)));
       for (int row = 0; row < WG_SIZE; ++row) {
         if (!ANY(NOT(dones[row]))) continue;
         const float dy = v - pys[row];
-        if (row_culled(q, dy, u + dx0s[row], u + dx1s[row])) continue;
+        if (!(fabs(dy) <= reach)) continue;  // no pixel of the row can blend it
         const vfloat sigma = blend_sigma(q[REC_CA], q[REC_CB], q[REC_CC], u - pxs[row], dy);
         const vfloat alpha = fmin(q[REC_OPACITY] * blend_falloff(sigma), ALPHA_MAX);
         vint ok = NOT(dones[row]) & (sigma >= 0.f) & (alpha >= ALPHA_MIN);

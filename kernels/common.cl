@@ -323,6 +323,24 @@ inline int row_culled(__global const float* q, float dy, float dx0, float dx1) {
   return row_beyond(q[REC_CA], q[REC_CB], q[REC_CC], q[REC_CM], q[REC_THR], dy, dx0, dx1);
 }
 
+// A bound on |dy| past which row_beyond holds for every row of pixel
+// centres whose offsets from u are at most dxm: row_beyond's test with its
+// terms written out, 0.5 cm dy^2 - 1e-5 (0.5 (cA dxm^2 + cC dy^2) + |cB| dxm
+// |dy|) > thr + 0.01, is a quadratic in |dy| that holds beyond its larger
+// root; the root is widened by 1e-4 relative and 1e-3 absolute against its
+// own rounding. INFINITY where the quadratic does not grow (a conic so
+// elongated that cm is within 1e-5 of cC's scale). The CPU layout's
+// backward walks compute it once per Gaussian and tile and skip the rows
+// past it with one compare instead of a row test each.
+inline float row_reach(float cA, float cB, float cC, float cm, float thr, float dxm) {
+  const float a = 0.5f * (cm - 1e-5f * cC);
+  if (!(a > 0.f)) return INFINITY;
+  const float b = 1e-5f * fabs(cB) * dxm;
+  const float c = fmax(thr + 0.01f + 0.5e-5f * cA * dxm * dxm, 0.f);
+  const float root = (b + sqrt(b * b + 4.f * a * c)) / (2.f * a);
+  return isfinite(root) ? root * 1.0001f + 1e-3f : INFINITY;
+}
+
 // The GPU layout's row test: bit r set when row r of tile `tile` may blend
 // the record q (row_beyond over the tile's 16 pixel centres of the row).
 // The work-item that stages a record computes its mask once for the tile;
