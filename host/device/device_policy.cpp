@@ -49,6 +49,10 @@ bool group_sort_for(const DeviceInfo& device) {
   return device.is_gpu;
 }
 
+bool simulated_device(const DeviceInfo& device) {
+  return device.platform.find("Oclgrind") != std::string::npos || device.name.find("Oclgrind") != std::string::npos;
+}
+
 std::string BlendBwdPlan::describe() const {
   return std::to_string(vector_width) + ":" + std::to_string(batch) + ":" + std::to_string(seg);
 }

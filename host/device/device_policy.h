@@ -35,6 +35,12 @@ bool blend_staging_for(const DeviceInfo& device);
 bool group_sort_for(const DeviceInfo& device);
 inline constexpr int kCpuSortBlockKeys = 4096;
 
+// Oclgrind, the simulated GPU the tests prove the GPU layout on. It
+// interprets each work-item's instructions one by one and runs the groups
+// one after another, so plans whose fixed work per work-item repeats over
+// many work-items cost it what parallel hardware would hide.
+bool simulated_device(const DeviceInfo& device);
+
 // How the GPU layout of the blend backward (kernels/blend_bwd.cl) sums each
 // intersection's per-pixel partials: pixels per work-item (its own vector
 // width), Gaussians staged per batch, and work-items per summed value (SEG).

@@ -21,8 +21,8 @@ size_t ceil_div(size_t a, size_t b) {
   return (a + b - 1) / b;
 }
 
-// The automatic plan on a device of one compute unit (fit_to).
-constexpr int kOneUnitSortGroup = 32, kOneUnitSortKeys = 32;
+// The automatic plan on a simulator (fit_to).
+constexpr int kSimulatorSortGroup = 32, kSimulatorSortKeys = 32;
 
 bool is_pow2(int v) {
   return v > 0 && (v & (v - 1)) == 0;
@@ -117,16 +117,15 @@ RadixSortPlan RadixSortPlan::fit_to(const DeviceInfo& device) const {
   check_plan(p, "sort plan " + describe());
   if (p.kind == Kind::Block) return p;
   const size_t device_wg = device.max_work_group > 0 ? device.max_work_group : 1024;
-  // A device of one compute unit (Oclgrind reports one) runs the groups one
-  // after another, and each tile costs every work-item the same fixed work
-  // whatever its keys: clearing and summing its 2^BITS counters, the rank
-  // scan's barriers. Few work-items with many keys each pay it least there
-  // (3,088 keys under Oclgrind: 1.07 s with 256 x 4, 0.39 s with 32 x 32);
-  // wide groups pay for themselves where many run at once.
-  const bool one_unit = device.compute_units == 1;
+  // Each tile costs every work-item the same fixed work whatever its keys:
+  // clearing and summing its 2^BITS counters, the rank scan's barriers.
+  // Parallel hardware hides it; a simulator pays it work-item by work-item,
+  // so few work-items with many keys each suit it (3,088 keys under
+  // Oclgrind: 1.07 s with 256 x 4, 0.39 s with 32 x 32).
+  const bool simulated = simulated_device(device);
   if (p.work_group == 0) {
     p.work_group = 1 << p.digit_bits;
-    const size_t widest = one_unit ? kOneUnitSortGroup : 256;
+    const size_t widest = simulated ? kSimulatorSortGroup : 256;
     while (static_cast<size_t>(p.work_group) * 2 <= std::min<size_t>(device_wg, widest)) p.work_group *= 2;
   }
   if (static_cast<size_t>(p.work_group) > device_wg || p.work_group < (1 << p.digit_bits))
@@ -135,7 +134,7 @@ RadixSortPlan RadixSortPlan::fit_to(const DeviceInfo& device) const {
                                 " work-items); choose a smaller one in AG2GS_SORT");
   const uint64_t local = device.local_mem > 0 ? device.local_mem : 32768;
   if (p.keys_per_item == 0) {
-    p.keys_per_item = one_unit ? kOneUnitSortKeys : 8;
+    p.keys_per_item = simulated ? kSimulatorSortKeys : 8;
     while (p.keys_per_item > 1 && group_local_bytes(p) > local) p.keys_per_item /= 2;
   }
   if (group_local_bytes(p) > local)

@@ -21,8 +21,8 @@ struct RadixSortPlan {
   int block = 4096;       // Block: keys per work-item
   int digit_bits = 4;     // Group: bits per pass, 1..5
   int work_group = 0;     // Group: work-items per group, a power of two >= 2^digit_bits; 0 = 256 or the device's
-                          // most (32 on a device of one compute unit)
-  int keys_per_item = 0;  // Group: keys per work-item and tile; 0 = 8 (32 on a device of one compute unit), or
+                          // most (32 under Oclgrind)
+  int keys_per_item = 0;  // Group: keys per work-item and tile; 0 = 8 (32 under Oclgrind), or
                           // fewer where local memory is short
   int max_groups = 0;     // Group: work-groups per pass at most; 0 = 8 per compute unit
 
