@@ -257,8 +257,8 @@ void blend_bwd(int width, int height, int tiles_x,
       const BlendRec rec = BLEND_REC_LOAD(q);
       BlendVjp d;
       // (A record that cannot reach this work-item's row adds nothing.)
-      if (!(s_rows[j] & row_bit) || !blend_vjp(rec, rec.u - pr.px, rec.v - pr.py, (vint)(b0 + j) < last, dist_depth_vjp(rec.z, dnear, dfar),
-                     &tot, &run, &d)) {
+      if (!(s_rows[j] & row_bit) || !blend_vjp(rec, rec.u - pr.px, rec.v - pr.py, (vint)(b0 + j) < last,
+                                               dist_depth_vjp(rec.z, dnear, dfar), &tot, &run, &d)) {
         for (int c = 0; c < G2_SIZE; ++c) part[c * PSTRIDE] = 0.f;
         continue;
       }
