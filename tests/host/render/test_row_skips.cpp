@@ -17,6 +17,7 @@
 #include <string>
 #include <vector>
 
+#include "kernels/layout.h"
 #include "tests/io_test_util.h"
 #include "tests/test_util.h"
 
@@ -83,7 +84,7 @@ __kernel void tile_rows_check(int n, __global const float* records, __global uin
 )CL";
 
 struct Rec {
-  float f[16];
+  float f[REC_SIZE];
 };
 
 // A record as project_fwd writes it (kernels/project.cl): conic from a 2D
@@ -98,15 +99,15 @@ Rec make_record(std::mt19937& rng) {
   const float b = c * s * (s1 * s1 - s2 * s2);
   const float det = a * cc - b * b;
   Rec r{};
-  r.f[0] = -24.f + 64.f * unit(rng);  // u: inside the tile and well outside it
-  r.f[1] = -24.f + 64.f * unit(rng);  // v
-  r.f[2] = cc / det;
-  r.f[3] = -b / det;
-  r.f[4] = a / det;
+  r.f[REC_U] = -24.f + 64.f * unit(rng);  // u: inside the tile and well outside it
+  r.f[REC_V] = -24.f + 64.f * unit(rng);  // v
+  r.f[REC_CA] = cc / det;
+  r.f[REC_CB] = -b / det;
+  r.f[REC_CC] = a / det;
   const float o = unit(rng) < 0.1f ? 1.f / 255.f + 1e-6f : std::pow(255.f, -unit(rng));
-  r.f[5] = o;
-  r.f[14] = std::log(255.f * o);
-  r.f[15] = r.f[4] - r.f[3] * r.f[3] / r.f[2];
+  r.f[REC_OPACITY] = o;
+  r.f[REC_THR] = std::log(255.f * o);
+  r.f[REC_CM] = r.f[REC_CC] - r.f[REC_CB] * r.f[REC_CB] / r.f[REC_CA];
   return r;
 }
 
@@ -123,10 +124,10 @@ TEST(RowSkips, NoSkipCoversAPixelThatBlends) {
   Runtime& rt = test::runtime();
   std::mt19937 rng(7);
   const int n = 20000;
-  std::vector<float> recs(static_cast<size_t>(n) * 16);
+  std::vector<float> recs(static_cast<size_t>(n) * REC_SIZE);
   for (int i = 0; i < n; ++i) {
     const Rec r = make_record(rng);
-    std::copy(r.f, r.f + 16, recs.begin() + static_cast<size_t>(i) * 16);
+    std::copy(r.f, r.f + REC_SIZE, recs.begin() + static_cast<size_t>(i) * REC_SIZE);
   }
   DeviceBuffer in(&rt), bad(&rt), masks(&rt);
   in.upload(recs);
@@ -138,7 +139,7 @@ TEST(RowSkips, NoSkipCoversAPixelThatBlends) {
   rt.launch("test", check, cl::NDRange(n));
   cl::Kernel rows = rt.kernel("row_skip_check.cl", "tile_rows_check", defs);
   set_kernel_args(rows, n, in, masks);
-  rt.launch("test", rows, cl::NDRange(static_cast<size_t>(n) * 16), cl::NDRange(16));
+  rt.launch("test", rows, cl::NDRange(static_cast<size_t>(n) * 16), cl::NDRange(16));  // one group per record
   unsetenv("AG2GS_KERNEL_DIR");
 
   std::vector<int> b;
@@ -147,25 +148,26 @@ TEST(RowSkips, NoSkipCoversAPixelThatBlends) {
   masks.download(m, n);
   int skipped_rows = 0;
   for (int i = 0; i < n; ++i) {
-    const float* q = recs.data() + static_cast<size_t>(i) * 16;
-    EXPECT_EQ(b[i], 0) << "record " << i << " (conic " << q[2] << " " << q[3] << " " << q[4] << ", opacity " << q[5]
-                       << "): " << ((b[i] & 1) ? "out_of_reach " : "") << ((b[i] & 2) ? "row_culled " : "")
-                       << ((b[i] & 4) ? "row_reach " : "") << "skipped a pixel that blends";
+    const float* q = recs.data() + static_cast<size_t>(i) * REC_SIZE;
+    EXPECT_EQ(b[i], 0) << "record " << i << " (conic " << q[REC_CA] << " " << q[REC_CB] << " " << q[REC_CC]
+                       << ", opacity " << q[REC_OPACITY] << "): " << ((b[i] & 1) ? "out_of_reach " : "")
+                       << ((b[i] & 2) ? "row_culled " : "") << ((b[i] & 4) ? "row_reach " : "")
+                       << "skipped a pixel that blends";
     // The mask: a row without its bit has no pixel that blends (the pixel
     // test in double, with a margin float rounding cannot cross).
-    for (int y = 0; y < 16; ++y) {
+    for (int y = 0; y < TILE; ++y) {
       const bool bit = (m[i] >> y) & 1u;
       if (!bit) ++skipped_rows;
-      for (int x = 0; x < 16 && !bit; ++x) {
-        const double dx = q[0] - (x + 0.5), dy = q[1] - (y + 0.5);
-        const double sigma = 0.5 * (q[2] * dx * dx + q[4] * dy * dy) + q[3] * dx * dy;
-        EXPECT_FALSE(sigma < std::log(255.0 * q[5]) - 1e-3)
+      for (int x = 0; x < TILE && !bit; ++x) {
+        const double dx = q[REC_U] - (x + 0.5), dy = q[REC_V] - (y + 0.5);
+        const double sigma = 0.5 * (q[REC_CA] * dx * dx + q[REC_CC] * dy * dy) + q[REC_CB] * dx * dy;
+        EXPECT_FALSE(sigma < std::log(255.0 * q[REC_OPACITY]) - 1e-3)
             << "record " << i << ": row " << y << " has no bit, yet pixel " << x << " blends";
       }
     }
   }
   // The skips do skip: most rows of most records are out of reach.
-  EXPECT_GT(skipped_rows, n * 16 / 2);
+  EXPECT_GT(skipped_rows, n * TILE / 2);
 }
 
 }  // namespace
