@@ -78,6 +78,7 @@ std::vector<DeviceInfo> list_devices() {
       i.max_work_group = d.getInfo<CL_DEVICE_MAX_WORK_GROUP_SIZE>();
       i.fp64 = d.getInfo<CL_DEVICE_DOUBLE_FP_CONFIG>() != 0;
       i.correct_div = (d.getInfo<CL_DEVICE_SINGLE_FP_CONFIG>() & CL_FP_CORRECTLY_ROUNDED_DIVIDE_SQRT) != 0;
+      i.native_float_width = d.getInfo<CL_DEVICE_NATIVE_VECTOR_WIDTH_FLOAT>();
       i.device = d;
       out.push_back(std::move(i));
     }

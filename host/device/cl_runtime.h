@@ -51,6 +51,7 @@ struct DeviceInfo {
   size_t max_work_group = 0;
   bool fp64 = false;
   bool correct_div = false;  // CL_FP_CORRECTLY_ROUNDED_DIVIDE_SQRT: kernels build with it (same bits in every kernel)
+  unsigned native_float_width = 0;  // CL_DEVICE_NATIVE_VECTOR_WIDTH_FLOAT (PoCL: 8 with AVX2, 16 with AVX-512)
   cl::Device device;
 };
 

@@ -26,14 +26,27 @@ int default_device_index(const std::vector<DeviceInfo>& devices) {
   return 0;
 }
 
+namespace {
+int vector_width_from_env(const char* name) {
+  const char* env = std::getenv(name);
+  if (!env || !*env) return 0;
+  const int v = std::atoi(env);
+  if (v != 1 && v != 2 && v != 4 && v != 8 && v != 16)
+    throw std::runtime_error(std::string(name) + "='" + env + "' must be 1, 2, 4, 8 or 16");
+  return v;
+}
+}  // namespace
+
 int vector_width_for(const DeviceInfo& device) {
-  if (const char* env = std::getenv("AG2GS_VECTOR_WIDTH"); env && *env) {
-    const int v = std::atoi(env);
-    if (v != 1 && v != 2 && v != 4 && v != 8 && v != 16)
-      throw std::runtime_error(std::string("AG2GS_VECTOR_WIDTH='") + env + "' must be 1, 2, 4, 8 or 16");
-    return v;
-  }
+  if (const int v = vector_width_from_env("AG2GS_VECTOR_WIDTH")) return v;
   return device.is_gpu ? 1 : 16;
+}
+
+int cpu_blend_bwd_vector_width(const DeviceInfo& device) {
+  if (const int v = vector_width_from_env("AG2GS_VECTOR_WIDTH")) return v;
+  if (const int v = vector_width_from_env("AG2GS_BWD_VECTOR_WIDTH")) return v;
+  const unsigned n = device.native_float_width;
+  return n >= 16 ? 16 : n >= 8 ? 8 : n >= 4 ? 4 : 16;
 }
 
 bool blend_staging_for(const DeviceInfo& device) {

@@ -58,7 +58,8 @@ Renderer::Renderer(Runtime& rt)
     : rt_(rt),
       sort_(rt),
       staged_(blend_staging_for(rt.info())),
-      bwd_plan_(staged_ ? blend_bwd_plan_for(rt.info()) : BlendBwdPlan{}) {
+      bwd_plan_(staged_ ? blend_bwd_plan_for(rt.info()) : BlendBwdPlan{}),
+      cpu_bwd_vector_width_(staged_ ? 0 : cpu_blend_bwd_vector_width(rt.info())) {
   for (DeviceBuffer* b :
        {&cam_buf_,    &records_,        &rects_,         &tile_counts_, &depth_keys_,  &radii_,      &order_keys_tmp_,
         &order_vals_, &order_vals_tmp_, &counts_sorted_, &offsets_,     &block_sums_,  &tile_keys_,  &tile_keys_tmp_,
@@ -452,7 +453,10 @@ void Renderer::blend_weights() {
 cl::NDRange Renderer::blend_bwd_layout(std::map<std::string, std::string>& defs) {
   isect_grads_.reserve(std::max<size_t>(stats_.n_intersections, 1) * G2_SIZE * 4);
   defs["NO_STAGING"] = staged_ ? "0" : "1";
-  if (!staged_) return cl::NDRange(1);
+  if (!staged_) {
+    defs["VW"] = std::to_string(cpu_bwd_vector_width_);
+    return cl::NDRange(1);
+  }
   defs["VW"] = std::to_string(bwd_plan_.vector_width);
   defs["BATCH"] = std::to_string(bwd_plan_.batch);
   defs["SEG"] = std::to_string(bwd_plan_.seg);

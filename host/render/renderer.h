@@ -167,6 +167,7 @@ class Renderer {
   RadixSort sort_;  // depth order and tile order (the device's plan)
   bool staged_;     // blending stages through local memory (device_policy.h), read once
   BlendBwdPlan bwd_plan_;
+  int cpu_bwd_vector_width_;                // the CPU layout's (cpu_blend_bwd_vector_width)
   std::unique_ptr<DeviceGaussians> owned_;  // for render()
   const DeviceGaussians* gaussians_ = nullptr;
   Camera cam_;

@@ -178,6 +178,48 @@ TEST(RenderBackward, EveryBlendBwdPlanMatchesTheReference) {
     unsetenv("AG2GS_BLEND_STAGING");
 }
 
+// The CPU layout's backward at each pixel width it may take (the device's
+// native float width: 4, 8 or 16) against the reference, twice bit for bit,
+// beside a forward at the runtime's own width; and the rule that picks it.
+TEST(RenderBackward, EveryCpuBackwardWidthMatchesTheReference) {
+  const std::string saved_vw = std::getenv("AG2GS_VECTOR_WIDTH") ? std::getenv("AG2GS_VECTOR_WIDTH") : "";
+  unsetenv("AG2GS_VECTOR_WIDTH");
+  DeviceInfo d = test::runtime().info();
+  for (auto [native, expected] : {std::pair{0u, 16}, {4u, 4}, {8u, 8}, {16u, 16}, {32u, 16}}) {
+    d.native_float_width = native;
+    EXPECT_EQ(cpu_blend_bwd_vector_width(d), expected) << native;
+  }
+  setenv("AG2GS_BWD_VECTOR_WIDTH", "3", 1);
+  try {
+    (void)cpu_blend_bwd_vector_width(d);
+    ADD_FAILURE() << "accepted";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("AG2GS_BWD_VECTOR_WIDTH"), std::string::npos) << e.what();
+  }
+  if (!blend_staging_for(test::runtime().info())) {
+    const GaussianSet crowded = test::random_scene(crowded_spec(0.05, 0.6), 23);
+    Camera cam = test::look_at_origin(37, 23);
+    cam.cx = 24.0;
+    cam.cy = 8.0;
+    const OutputGrads og = random_output_grads(37, 23, 11);
+    for (const char* width : {"4", "8", "16"}) {
+      SCOPED_TRACE(width);
+      setenv("AG2GS_BWD_VECTOR_WIDTH", width, 1);
+      std::printf("CPU backward width %s: ", width);
+      check_backward_on(crowded, cam, og);
+      Renderer a(test::runtime()), b(test::runtime());
+      a.render(crowded, cam);
+      b.render(crowded, cam);
+      const GaussianGrads ga = a.render_backward(og), gb = b.render_backward(og);
+      EXPECT_EQ(ga.means, gb.means);
+      EXPECT_EQ(ga.opacities, gb.opacities);
+      EXPECT_EQ(ga.sh, gb.sh);
+    }
+  }
+  unsetenv("AG2GS_BWD_VECTOR_WIDTH");
+  if (!saved_vw.empty()) setenv("AG2GS_VECTOR_WIDTH", saved_vw.c_str(), 1);
+}
+
 // A plan the kernel cannot run is refused naming the variable.
 TEST(RenderBackward, BadBlendBwdPlanIsRefused) {
   for (const char* bad : {"", "1:2", "3:2:1", "1:0:1", "1:2:3", "1:2:512", "32:2:1", "a:b:c", "1:2:1:4", "1:200:1"}) {
