@@ -298,7 +298,9 @@ void Renderer::forward(const DeviceGaussians& g, const Camera& cam, const Render
       .buffer("out_last", out_last_, npix * 4)
       .buffer("out_count", out_count_, npix * 4)
       .done();
-  rt_.launch("blend_fwd", blend, cl::NDRange(static_cast<size_t>(ntiles) * wg), cl::NDRange(wg));
+  // CPU layout: one work-item per tile (blend_fwd.cl).
+  const size_t items = staged_ ? wg : 1;
+  rt_.launch("blend_fwd", blend, cl::NDRange(static_cast<size_t>(ntiles) * items), cl::NDRange(items));
   have_images_ = true;
   frame_features_ = settings.features;
 }
