@@ -273,7 +273,7 @@ inline vfloat blend_sigma(float cA, float cB, float cC, vfloat dx, float dy) {
 inline vfloat blend_falloff(vfloat sigma) { return EXPF(-fmin(sigma, 40.f)); }
 
 // Whether the alpha test fails at every lane of sigma (blend_sigma's bits)
-// for a record whose REC_THR is thr: sigma above ln(255 o) by row_culled's
+// for a record whose REC_THR is thr: sigma above ln(255 o) by row_beyond's
 // margin gives alpha < 1/255 whatever the rounding of the exponential, and
 // a NaN lane fails sigma >= 0. Tested before the exponential, which it
 // spares the pixels of a tile that a Gaussian misses (most of them in the
@@ -319,9 +319,6 @@ inline int row_beyond(float cA, float cB, float cC, float cm, float thr, float d
   float terms = 0.5f * (cA * dxm * dxm + cC * dy2) + fabs(cB) * dxm * fabs(dy);
   return 0.5f * dy2 * cm > thr + 0.01f + 1e-5f * terms;
 }
-inline int row_culled(__global const float* q, float dy, float dx0, float dx1) {
-  return row_beyond(q[REC_CA], q[REC_CB], q[REC_CC], q[REC_CM], q[REC_THR], dy, dx0, dx1);
-}
 
 // A bound on |dy| past which row_beyond holds for every row of pixel
 // centres whose offsets from u are at most dxm: row_beyond's test with its
@@ -364,7 +361,7 @@ inline uint tile_rows_reached(__local const float* q, int tile, int tiles_x) {
 // minimum clamped to the edge. Blending skips a Gaussian at every pixel
 // with q > k (alpha < 1/255, k = 2 ln(255 o)), so binning leaves out the
 // tiles of its bounding box that this test rejects and every picture and
-// gradient keeps its bits; the margin (as row_culled's) covers rounding in
+// gradient keeps its bits; the margin (as row_beyond's) covers rounding in
 // blending's evaluation. project_fwd counts with it and emit_isects emits
 // with it, from the same floats (records) and with FP_CONTRACT OFF, so the
 // two agree exactly.

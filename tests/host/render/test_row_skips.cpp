@@ -1,5 +1,5 @@
 // The blend walks skip a Gaussian at pixels where it cannot blend before
-// computing its exponential (kernels/common.cl): row_culled and
+// computing its exponential (kernels/common.cl): row_beyond and
 // tile_rows_reached for a tile row, row_reach for every row past a bound on
 // |dy|, out_of_reach for one pixel's sigma. A skip changes no bit only if
 // the alpha test (sigma >= 0 and min(0.99, o exp(-sigma)) >= 1/255, as the
@@ -49,7 +49,8 @@ __kernel void row_skip_check(int n, __global const float* records, __global int*
       if (!blends(q, u - px, v - py)) continue;
       const float sigma = blend_sigma(q[REC_CA], q[REC_CB], q[REC_CC], u - px, v - py);
       if (out_of_reach(sigma, q[REC_THR])) b |= 1;
-      if (row_culled(q, v - py, u - 0.5f, u - ((float)TILE - 0.5f))) b |= 2;
+      if (row_beyond(q[REC_CA], q[REC_CB], q[REC_CC], q[REC_CM], q[REC_THR], v - py, u - 0.5f, u - ((float)TILE - 0.5f)))
+        b |= 2;
     }
   }
   // Rows past row_reach, for pixel centres up to dxm across: at the bound
@@ -151,7 +152,7 @@ TEST(RowSkips, NoSkipCoversAPixelThatBlends) {
     const float* q = recs.data() + static_cast<size_t>(i) * REC_SIZE;
     EXPECT_EQ(b[i], 0) << "record " << i << " (conic " << q[REC_CA] << " " << q[REC_CB] << " " << q[REC_CC]
                        << ", opacity " << q[REC_OPACITY] << "): " << ((b[i] & 1) ? "out_of_reach " : "")
-                       << ((b[i] & 2) ? "row_culled " : "") << ((b[i] & 4) ? "row_reach " : "")
+                       << ((b[i] & 2) ? "row_beyond " : "") << ((b[i] & 4) ? "row_reach " : "")
                        << "skipped a pixel that blends";
     // The mask: a row without its bit has no pixel that blends (the pixel
     // test in double, with a margin float rounding cannot cross).
