@@ -250,6 +250,11 @@ cl::Program Runtime::program(const std::string& file, const std::map<std::string
   // gradient kernel than in its mean). Correct rounding, where the device
   // offers it, gives every kernel and every such device the same quotient.
   if (info_.correct_div) options += " -cl-fp32-correctly-rounded-divide-sqrt";
+  // PoCL on a CPU without AVX-512 warns that every 16-wide vector argument
+  // "changes the ABI" and prints "N warnings generated." into the user's
+  // log, once per program: nothing a user can act on. AG2GS_KERNEL_WARNINGS=1
+  // keeps the compiler's warnings (in the build log, `ag2gs -v`).
+  if (const char* w = std::getenv("AG2GS_KERNEL_WARNINGS"); !w || std::string(w) != "1") options += " -w";
   if (const char* env = std::getenv("AG2GS_CL_OPTIONS"); env) options += std::string(" ") + env;
 
   std::string key = file + "\n" + options + "\n" + info_.platform + "\n" + info_.name + "\n" + info_.driver + "\n" +

@@ -89,6 +89,33 @@ TEST(Runtime, DiskCacheIsWrittenReusedAndCorruptEntriesRebuilt) {
   fs::remove_all(dir);
 }
 
+// Kernels build with -w (PoCL's ABI warnings on CPUs without AVX-512 would
+// print "N warnings generated." into every log); AG2GS_KERNEL_WARNINGS=1
+// keeps the compiler's warnings in the build log.
+TEST(Runtime, KernelWarningsOnlyWhenAskedFor) {
+  fs::path dir = fresh_dir("kernels_warn");
+  std::ofstream(dir / "layout.h") << kernel_source("layout.h");
+  std::ofstream(dir / "common.cl") << kernel_source("common.cl");
+  std::ofstream(dir / "warns.cl")
+      << "#warning ag2gs_test_marker\n__kernel void warns(__global float* x) { x[0] = 1.f; }\n";
+  setenv("AG2GS_KERNEL_DIR", dir.c_str(), 1);
+  setenv("AG2GS_NO_KERNEL_CACHE", "1", 1);
+  for (const char* asked : {"", "1"}) {
+    SCOPED_TRACE(asked);
+    if (*asked)
+      setenv("AG2GS_KERNEL_WARNINGS", asked, 1);
+    else
+      unsetenv("AG2GS_KERNEL_WARNINGS");
+    Runtime rt;
+    cl::Program p = rt.program("warns.cl", {});
+    const std::string log = p.getBuildInfo<CL_PROGRAM_BUILD_LOG>(rt.info().device);
+    EXPECT_EQ(log.find("ag2gs_test_marker") != std::string::npos, *asked != 0) << log;
+  }
+  unsetenv("AG2GS_KERNEL_WARNINGS");
+  unsetenv("AG2GS_KERNEL_DIR");
+  unsetenv("AG2GS_NO_KERNEL_CACHE");
+}
+
 TEST(Runtime, BuildFailureCarriesNameOptionsAndLog) {
   fs::path dir = fresh_dir("kernels");
   std::ofstream(dir / "layout.h") << kernel_source("layout.h");
