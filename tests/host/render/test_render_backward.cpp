@@ -133,6 +133,19 @@ TEST(RenderBackward, ThousandGaussians) {
   check_backward(160, 120, 1000, 1, 17, random_output_grads(160, 120, 7));
 }
 
+// The backward of the renderer as the environment configures it: against the
+// reference, and twice bit for bit.
+void check_reference_and_repeat(const GaussianSet& g, const Camera& cam, const OutputGrads& og) {
+  check_backward_on(g, cam, og);
+  Renderer a(test::runtime()), b(test::runtime());
+  a.render(g, cam);
+  b.render(g, cam);
+  const GaussianGrads ga = a.render_backward(og), gb = b.render_backward(og);
+  EXPECT_EQ(ga.means, gb.means);
+  EXPECT_EQ(ga.opacities, gb.opacities);
+  EXPECT_EQ(ga.sh, gb.sh);
+}
+
 // Every blend backward plan of the GPU layout (kernels/blend_bwd.cl: pixels
 // per work-item, Gaussians per staging batch, work-items per summed value)
 // against the reference, on a crowded tile that needs many batches and an odd
@@ -161,15 +174,8 @@ TEST(RenderBackward, EveryBlendBwdPlanMatchesTheReference) {
       continue;
     }
     std::printf("plan %s: ", plan);
-    check_backward_on(crowded, cam, og);
-    Renderer a(test::runtime()), b(test::runtime());
-    EXPECT_EQ(a.blend_bwd_plan(), plan);
-    a.render(crowded, cam);
-    b.render(crowded, cam);
-    const GaussianGrads ga = a.render_backward(og), gb = b.render_backward(og);
-    EXPECT_EQ(ga.means, gb.means);
-    EXPECT_EQ(ga.opacities, gb.opacities);
-    EXPECT_EQ(ga.sh, gb.sh);
+    check_reference_and_repeat(crowded, cam, og);
+    EXPECT_EQ(Renderer(test::runtime()).blend_bwd_plan(), plan);
   }
   unsetenv("AG2GS_BLEND_BWD");
   if (old)
@@ -206,14 +212,7 @@ TEST(RenderBackward, EveryCpuBackwardWidthMatchesTheReference) {
       SCOPED_TRACE(width);
       setenv("AG2GS_BWD_VECTOR_WIDTH", width, 1);
       std::printf("CPU backward width %s: ", width);
-      check_backward_on(crowded, cam, og);
-      Renderer a(test::runtime()), b(test::runtime());
-      a.render(crowded, cam);
-      b.render(crowded, cam);
-      const GaussianGrads ga = a.render_backward(og), gb = b.render_backward(og);
-      EXPECT_EQ(ga.means, gb.means);
-      EXPECT_EQ(ga.opacities, gb.opacities);
-      EXPECT_EQ(ga.sh, gb.sh);
+      check_reference_and_repeat(crowded, cam, og);
     }
   }
   unsetenv("AG2GS_BWD_VECTOR_WIDTH");
