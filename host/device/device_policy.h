@@ -23,14 +23,14 @@ int vector_width_for(const DeviceInfo& device);
 // Pixels per work-item of the CPU layout's blend backward (blend_bwd and
 // blend_weights without staging): the device's native float width, 4 to 16.
 // Its 13 per-intersection sums then stay in SIMD registers (AVX2 has 16 of
-// 8 floats; at 16 pixels they spill), where the forward keeps 16 (one tile
-// row per work-item). AG2GS_VECTOR_WIDTH sets both; AG2GS_BWD_VECTOR_WIDTH
-// this one alone.
+// 8 floats; at 16 pixels they spill), where the forward keeps 16 (a tile
+// row per vector; at 8 it was slower). AG2GS_VECTOR_WIDTH sets both;
+// AG2GS_BWD_VECTOR_WIDTH this one alone.
 int cpu_blend_bwd_vector_width(const DeviceInfo& device);
 
 // Whether blending stages Gaussians through local memory in work-groups of a
 // tile's pixels (GPUs) or walks the lists without barriers, one work-item
-// per tile row (CPUs: PoCL keeps values that live across a barrier in
+// per tile (CPUs: PoCL keeps values that live across a barrier in
 // memory). AG2GS_BLEND_STAGING=1 or 0 overrides (the tests run the GPU
 // layout on the CPU with it).
 bool blend_staging_for(const DeviceInfo& device);
