@@ -91,8 +91,8 @@ void blend_bwd(int width, int height, int tiles_x,
   BlendRun runs[WG_SIZE];
   vfloat pxs[WG_SIZE];
   float pys[WG_SIZE];
-  // The tile's first and last pixel centres across.
-  const float tile_x0 = (float)((tile % tiles_x) * TILE) + 0.5f, tile_x1 = tile_x0 + (float)(TILE - 1);
+  // The tile's first pixel centre across.
+  const float tile_x0 = tile_first_centre(tile, tiles_x);
   int bounds[WG_SIZE];
   int bound = 0;
   for (int row = 0; row < WG_SIZE; ++row) {
@@ -129,8 +129,7 @@ void blend_bwd(int width, int height, int tiles_x,
       __global const float* q = records + (size_t)isect_gid[slot] * REC_SIZE;
       const BlendRec rec = BLEND_REC_LOAD(q);
       const float zj = dist_depth_vjp(rec.z, dnear, dfar);
-      const float reach = row_reach(rec.cA, rec.cB, rec.cC, q[REC_CM], q[REC_THR],
-                                    fmax(fabs(rec.u - tile_x0), fabs(rec.u - tile_x1)));
+      const float reach = tile_row_reach(q, tile_x0);
       for (int row = 0; row < WG_SIZE; ++row) {
         if (j >= bounds[row]) continue;
         const float dy = rec.v - pys[row];
@@ -322,7 +321,7 @@ void blend_weights(int width, int height, int tiles_x,
   vfloat Ts[WG_SIZE], pxs[WG_SIZE];
   vint dones[WG_SIZE];
   float pys[WG_SIZE];
-  const float tile_x0 = (float)((tile % tiles_x) * TILE) + 0.5f, tile_x1 = tile_x0 + (float)(TILE - 1);
+  const float tile_x0 = tile_first_centre(tile, tiles_x);
   int live = 0;  // rows with a pixel still blending
   for (int row = 0; row < WG_SIZE; ++row) {
     PixelRow pr = pixel_row_of(tile, row, tiles_x, width, height);
@@ -339,8 +338,7 @@ void blend_weights(int width, int height, int tiles_x,
     if (live > 0) {
       __global const float* q = records + (size_t)isect_gid[vals[j]] * REC_SIZE;
       const float u = q[REC_U], v = q[REC_V];
-      const float reach = row_reach(q[REC_CA], q[REC_CB], q[REC_CC], q[REC_CM], q[REC_THR],
-                                    fmax(fabs(u - tile_x0), fabs(u - tile_x1)));
+      const float reach = tile_row_reach(q, tile_x0);
       for (int row = 0; row < WG_SIZE; ++row) {
         if (!ANY(NOT(dones[row]))) continue;
         const float dy = v - pys[row];

@@ -113,12 +113,12 @@ void blend_fwd(int width, int height, int tiles_x,
     blend_state_init(&st[row], rows[row].inside);
     open += ANY(NOT(st[row].done)) ? 1 : 0;
   }
-  // The tile's first and last pixel centres across.
-  const float tile_x0 = (float)((tile % tiles_x) * TILE) + 0.5f, tile_x1 = tile_x0 + (float)(TILE - 1);
+  // The tile's first pixel centre across.
+  const float tile_x0 = tile_first_centre(tile, tiles_x);
   for (int j = 0; j < n && open > 0; ++j) {
     __global const float* q = records + (size_t)isect_gid[isect_vals[range.x + j]] * REC_SIZE;
     const float u = q[REC_U], v = q[REC_V], cA = q[REC_CA], cB = q[REC_CB], cC = q[REC_CC];
-    const float reach = row_reach(cA, cB, cC, q[REC_CM], q[REC_THR], fmax(fabs(u - tile_x0), fabs(u - tile_x1)));
+    const float reach = tile_row_reach(q, tile_x0);
     const float3 c = vload3(0, q + REC_RGB), f = vload3(0, q + REC_FEAT);
     for (int row = 0; row < WG_SIZE; ++row) {
       const float dy = v - rows[row].py;

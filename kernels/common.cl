@@ -338,6 +338,16 @@ inline float row_reach(float cA, float cB, float cC, float cm, float thr, float 
   return isfinite(root) ? root * 1.0001f + 1e-3f : INFINITY;
 }
 
+// row_reach of record q for the rows of a tile whose first pixel centre
+// across is x0 (its last x0 + TILE - 1): the CPU layouts' walks, once per
+// record and tile.
+inline float tile_first_centre(int tile, int tiles_x) { return (float)((tile % tiles_x) * TILE) + 0.5f; }
+inline float tile_row_reach(__global const float* q, float x0) {
+  const float u = q[REC_U];
+  return row_reach(q[REC_CA], q[REC_CB], q[REC_CC], q[REC_CM], q[REC_THR],
+                   fmax(fabs(u - x0), fabs(u - (x0 + (float)(TILE - 1)))));
+}
+
 // The GPU layout's row test: bit r set when row r of tile `tile` may blend
 // the record q (row_beyond over the tile's 16 pixel centres of the row).
 // The work-item that stages a record computes its mask once for the tile;
