@@ -27,30 +27,51 @@
 
 #if !NO_STAGING
 // The GPU layout's fixed-order sum of each of `rows` values over the
-// work-items' partials (row r of s_part, PSTRIDE apart), shared by blend_bwd
-// and blend_weights. SEG 1: one work-item per value sums the WG_SIZE
-// partials in index order. SEG > 1: segment_sums (every work-item calls it)
-// first has segment g of each row sum work-items g, g + SEG, ... into s_seg;
-// then one work-item sums the SEG segment sums in order. PSTRIDE = WG_SIZE +
-// SEG puts a warp's 32 / SEG rows x SEG segments in distinct banks.
-inline void segment_sums(__local const float* s_part, __local float* s_seg, int rows, int lid) {
-  for (int k = lid; k < rows * SEG; k += WG_SIZE) {
-    __local const float* p = s_part + (k / SEG) * PSTRIDE + k % SEG;
-    float s = 0.f;
-    for (int l = 0; l < WG_SIZE / SEG; ++l) s += p[l * SEG];
-    s_seg[k] = s;
+// work-items' partials (row r of s_part, PSTRIDE apart; `per` rows per
+// record, whose tile_reached mask is s_reach[r / per]), shared by blend_bwd
+// and blend_weights. Only the work-items whose pixels the record may reach
+// (reach_lists put it in both their lists) have a partial; every other
+// work-item's would be +0, which leaves a sum unchanged (a sum that starts
+// at +0 is never -0), so they are left out and the sums keep their bits.
+// SEG 1: one work-item per value sums the partials in work-item order.
+// SEG > 1: segment_sums (every work-item calls it) first has segment g of
+// each row sum work-items g, g + SEG, ... into s_seg; then one work-item sums
+// the SEG segment sums in order. PSTRIDE = WG_SIZE + SEG puts a warp's
+// 32 / SEG rows x SEG segments in distinct banks.
+//
+// reached_sum: p[L] summed over the reached work-items L = g (mod step), in
+// increasing L (work-item L has row L / (TILE / VW), column group
+// L % (TILE / VW)).
+inline float reached_sum(__local const float* p, uint reach, int g, int step) {
+  uint groups = 0u;
+  for (int c = 0; c < TILE / VW; ++c)
+    groups |= (((reach >> (TILE + c * VW)) & ((1u << VW) - 1u)) != 0u ? 1u : 0u) << c;
+  float s = 0.f;
+  for (uint rows = reach & ((1u << TILE) - 1u); rows != 0u;) {
+    const int base = pop_record(&rows) * (TILE / VW);
+    for (uint m = groups; m != 0u;) {
+      const int L = base + pop_record(&m);
+      if (L % step == g) s += p[L];
+    }
   }
+  return s;
+}
+inline void segment_sums(__local const float* s_part, __local float* s_seg, __local const uint* s_reach, int per,
+                         int rows, int lid) {
+  for (int k = lid; k < rows * SEG; k += WG_SIZE)
+    s_seg[k] = reached_sum(s_part + (k / SEG) * PSTRIDE, s_reach[k / SEG / per], k % SEG, SEG);
   barrier(CLK_LOCAL_MEM_FENCE);
 }
 // Row r's total (after segment_sums when SEG > 1; s_seg unread when SEG is 1).
-inline float row_total(__local const float* s_part, __local const float* s_seg, int r) {
-  float s = 0.f;
+inline float row_total(__local const float* s_part, __local const float* s_seg, __local const uint* s_reach, int per,
+                       int r) {
 #if SEG == 1
-  for (int l = 0; l < WG_SIZE; ++l) s += s_part[r * PSTRIDE + l];
+  return reached_sum(s_part + r * PSTRIDE, s_reach[r / per], 0, 1);
 #else
+  float s = 0.f;
   for (int g = 0; g < SEG; ++g) s += s_seg[r * SEG + g];
-#endif
   return s;
+#endif
 }
 #endif
 
@@ -201,7 +222,8 @@ void blend_bwd(int width, int height, int tiles_x,
                __global float* isect_grads) {        // [M,G2_SIZE] by slot
   __local float s_rec[BATCH * REC_SIZE];
   __local uint s_slot[BATCH];
-  __local uint s_rows[BATCH];  // tile_rows_reached
+  __local uint s_reach[BATCH];                     // tile_reached
+  __local uint s_list[REACH_LISTS * LIST_WORDS];  // reach_lists
   __local float s_part[BATCH * G2_SIZE * PSTRIDE];
 #if SEG > 1
   __local float s_seg[BATCH * G2_SIZE * SEG];
@@ -209,7 +231,7 @@ void blend_bwd(int width, int height, int tiles_x,
   __local int s_bound;
   const int lid = get_local_id(0);
   PixelRow pr = pixel_row(tiles_x, width, height);
-  const uint row_bit = 1u << (pr.y % TILE);
+  __local const uint *rows = ROW_LIST(pr), *cols = COL_LIST(pr);
   const size_t npix = (size_t)width * height;
 
   // Upstream gradients and forward totals of this row's pixels.
@@ -221,6 +243,7 @@ void blend_bwd(int width, int height, int tiles_x,
   int2 range = ranges[pr.tile];
   int n = range.y - range.x;
   if (lid == 0) s_bound = 0;
+  reach_lists_clear(s_list, lid);
   barrier(CLK_LOCAL_MEM_FENCE);
   {
     int mx = 0;
@@ -247,43 +270,48 @@ void blend_bwd(int width, int height, int tiles_x,
       uint gid = isect_gid[slot];
       s_slot[i] = slot;
       for (int c = 0; c < REC_SIZE; ++c) s_rec[i * REC_SIZE + c] = records[(size_t)gid * REC_SIZE + c];
-      s_rows[i] = tile_rows_reached(s_rec + i * REC_SIZE, pr.tile, tiles_x);
+      s_reach[i] = tile_reached(s_rec + i * REC_SIZE, pr.tile, tiles_x);
+      reach_lists_add(s_list, i, s_reach[i]);
     }
     barrier(CLK_LOCAL_MEM_FENCE);
-    for (int j = 0; j < nb; ++j) {
-      __local float* part = s_part + j * G2_SIZE * PSTRIDE + lid;
-      __local const float* q = s_rec + j * REC_SIZE;
-      const BlendRec rec = BLEND_REC_LOAD(q);
-      BlendVjp d;
-      // (A record that cannot reach this work-item's row adds nothing.)
-      if (!(s_rows[j] & row_bit) || !blend_vjp(rec, rec.u - pr.px, rec.v - pr.py, (vint)(b0 + j) < last,
-                                               dist_depth_vjp(rec.z, dnear, dfar), &tot, &run, &d)) {
-        for (int c = 0; c < G2_SIZE; ++c) part[c * PSTRIDE] = 0.f;
-        continue;
+    // The records that may reach this work-item's pixels, in list order;
+    // each gets its partials here, the sums below read no other.
+    for (int w = 0; w < LIST_WORDS; ++w)
+      for (uint m = rows[w] & cols[w]; m != 0u;) {
+        const int j = w * 32 + pop_record(&m);
+        __local float* part = s_part + j * G2_SIZE * PSTRIDE + lid;
+        __local const float* q = s_rec + j * REC_SIZE;
+        const BlendRec rec = BLEND_REC_LOAD(q);
+        BlendVjp d;
+        if (!blend_vjp(rec, rec.u - pr.px, rec.v - pr.py, (vint)(b0 + j) < last, dist_depth_vjp(rec.z, dnear, dfar),
+                       &tot, &run, &d)) {
+          for (int c = 0; c < G2_SIZE; ++c) part[c * PSTRIDE] = 0.f;
+          continue;
+        }
+        part[G2_U * PSTRIDE] = HSUM(d.u);
+        part[G2_V * PSTRIDE] = HSUM(d.v);
+        part[G2_CA * PSTRIDE] = HSUM(d.ca);
+        part[G2_CB * PSTRIDE] = HSUM(d.cb);
+        part[G2_CC * PSTRIDE] = HSUM(d.cc);
+        part[G2_OPACITY * PSTRIDE] = HSUM(d.op);
+        part[G2_RGB * PSTRIDE] = HSUM(d.r);
+        part[(G2_RGB + 1) * PSTRIDE] = HSUM(d.g);
+        part[(G2_RGB + 2) * PSTRIDE] = HSUM(d.b);
+        part[G2_FEAT * PSTRIDE] = HSUM(d.f0);
+        part[(G2_FEAT + 1) * PSTRIDE] = HSUM(d.f1);
+        part[(G2_FEAT + 2) * PSTRIDE] = HSUM(d.f2);
+        part[G2_Z * PSTRIDE] = HSUM(d.z_depth + d.z_dist);
       }
-      part[G2_U * PSTRIDE] = HSUM(d.u);
-      part[G2_V * PSTRIDE] = HSUM(d.v);
-      part[G2_CA * PSTRIDE] = HSUM(d.ca);
-      part[G2_CB * PSTRIDE] = HSUM(d.cb);
-      part[G2_CC * PSTRIDE] = HSUM(d.cc);
-      part[G2_OPACITY * PSTRIDE] = HSUM(d.op);
-      part[G2_RGB * PSTRIDE] = HSUM(d.r);
-      part[(G2_RGB + 1) * PSTRIDE] = HSUM(d.g);
-      part[(G2_RGB + 2) * PSTRIDE] = HSUM(d.b);
-      part[G2_FEAT * PSTRIDE] = HSUM(d.f0);
-      part[(G2_FEAT + 1) * PSTRIDE] = HSUM(d.f1);
-      part[(G2_FEAT + 2) * PSTRIDE] = HSUM(d.f2);
-      part[G2_Z * PSTRIDE] = HSUM(d.z_depth + d.z_dist);
-    }
     barrier(CLK_LOCAL_MEM_FENCE);
     // Sum the work-items' partials of each value (row r = j * G2_SIZE + c of
     // s_part) into the intersection's slot, in a fixed order.
-    const int rows = nb * G2_SIZE;
+    reach_lists_clear(s_list, lid);  // (the walk is done with them)
+    const int values = nb * G2_SIZE;
 #if SEG > 1
-    segment_sums(s_part, s_seg, rows, lid);
+    segment_sums(s_part, s_seg, s_reach, G2_SIZE, values, lid);
 #endif
-    for (int r = lid; r < rows; r += WG_SIZE)
-      isect_grads[(size_t)s_slot[r / G2_SIZE] * G2_SIZE + r % G2_SIZE] = row_total(s_part, S_SEG, r);
+    for (int r = lid; r < values; r += WG_SIZE)
+      isect_grads[(size_t)s_slot[r / G2_SIZE] * G2_SIZE + r % G2_SIZE] = row_total(s_part, S_SEG, s_reach, G2_SIZE, r);
   }
   // Intersections behind every pixel's last blended Gaussian get zeros.
   for (int k = bound + lid; k < n; k += WG_SIZE) {
@@ -371,7 +399,8 @@ void blend_weights(int width, int height, int tiles_x,
                    __global float* isect_grads) {     // [M,G2_SIZE] by slot
   __local float s_rec[BATCH * REC_SIZE];
   __local uint s_slot[BATCH];
-  __local uint s_rows[BATCH];  // tile_rows_reached
+  __local uint s_reach[BATCH];                     // tile_reached
+  __local uint s_list[REACH_LISTS * LIST_WORDS];  // reach_lists
   __local float s_part[BATCH * PSTRIDE];
 #if SEG > 1
   __local float s_seg[BATCH * SEG];
@@ -379,7 +408,7 @@ void blend_weights(int width, int height, int tiles_x,
   __local int s_alive;
   const int lid = get_local_id(0);
   PixelRow pr = pixel_row(tiles_x, width, height);
-  const uint row_bit = 1u << (pr.y % TILE);
+  __local const uint *rows = ROW_LIST(pr), *cols = COL_LIST(pr);
   int2 range = ranges[pr.tile];
   const int n = range.y - range.x;
 
@@ -395,39 +424,39 @@ void blend_weights(int width, int height, int tiles_x,
       s_slot[i] = slot;
       uint gid = isect_gid[slot];
       for (int c = 0; c < REC_SIZE; ++c) s_rec[i * REC_SIZE + c] = records[(size_t)gid * REC_SIZE + c];
-      s_rows[i] = tile_rows_reached(s_rec + i * REC_SIZE, pr.tile, tiles_x);
+      s_reach[i] = tile_reached(s_rec + i * REC_SIZE, pr.tile, tiles_x);
     }
     barrier(CLK_LOCAL_MEM_FENCE);
+    reach_lists(s_reach, nb, s_list, lid);
     if (ANY(NOT(done))) atomic_or(&s_alive, 1);
     barrier(CLK_LOCAL_MEM_FENCE);
     if (!s_alive) break;  // every pixel of the tile stopped: the rest get zeros below
-    for (int j = 0; j < nb; ++j) {
-      __local const float* q = s_rec + j * REC_SIZE;
-      if (!(s_rows[j] & row_bit)) {  // the record cannot reach this work-item's row
-        s_part[j * PSTRIDE + lid] = 0.f;
-        continue;
+    // Zeros for the records that blend at none of this work-item's pixels
+    // (not in its lists, or after its pixels stopped); the walk of the
+    // lists writes the others.
+    for (int j = 0; j < nb; ++j) s_part[j * PSTRIDE + lid] = 0.f;
+    for (int w = 0; w < LIST_WORDS && ANY(NOT(done)); ++w)
+      for (uint m = rows[w] & cols[w]; m != 0u;) {
+        const int j = w * 32 + pop_record(&m);
+        __local const float* q = s_rec + j * REC_SIZE;
+        const vfloat sigma = blend_sigma(q[REC_CA], q[REC_CB], q[REC_CC], q[REC_U] - pr.px, q[REC_V] - pr.py);
+        if (out_of_reach(sigma, q[REC_THR])) continue;
+        const vfloat alpha = fmin(q[REC_OPACITY] * blend_falloff(sigma), ALPHA_MAX);
+        vint ok = NOT(done) & (sigma >= 0.f) & (alpha >= ALPHA_MIN);
+        const vfloat Tn = T * (1.f - alpha);
+        const vint stop = ok & (Tn < T_MIN);
+        done = done | stop;
+        ok = ok & NOT(stop);
+        s_part[j * PSTRIDE + lid] = HSUM(select((vfloat)0.f, alpha * T, ok));
+        T = select(T, Tn, ok);
       }
-      const vfloat sigma = blend_sigma(q[REC_CA], q[REC_CB], q[REC_CC], q[REC_U] - pr.px, q[REC_V] - pr.py);
-      if (out_of_reach(sigma, q[REC_THR])) {
-        s_part[j * PSTRIDE + lid] = 0.f;
-        continue;
-      }
-      const vfloat alpha = fmin(q[REC_OPACITY] * blend_falloff(sigma), ALPHA_MAX);
-      vint ok = NOT(done) & (sigma >= 0.f) & (alpha >= ALPHA_MIN);
-      const vfloat Tn = T * (1.f - alpha);
-      const vint stop = ok & (Tn < T_MIN);
-      done = done | stop;
-      ok = ok & NOT(stop);
-      s_part[j * PSTRIDE + lid] = HSUM(select((vfloat)0.f, alpha * T, ok));
-      T = select(T, Tn, ok);
-    }
     barrier(CLK_LOCAL_MEM_FENCE);
     // One value per Gaussian, summed over the work-items as blend_bwd sums.
 #if SEG > 1
-    segment_sums(s_part, s_seg, nb, lid);
+    segment_sums(s_part, s_seg, s_reach, 1, nb, lid);
 #endif
     for (int r = lid; r < nb; r += WG_SIZE) {
-      const float total = row_total(s_part, S_SEG, r);
+      const float total = row_total(s_part, S_SEG, s_reach, 1, r);
       __global float* o2 = isect_grads + (size_t)s_slot[r] * G2_SIZE;
       for (int c = 0; c < G2_SIZE; ++c) o2[c] = 0.f;
       o2[G2_FEAT] = total;

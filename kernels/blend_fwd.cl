@@ -133,11 +133,12 @@ void blend_fwd(int width, int height, int tiles_x,
                 out_last, out_count);
 #else
   __local float s_rec[BATCH * REC_SIZE];
-  __local uint s_rows[BATCH];  // tile_rows_reached
+  __local uint s_reach[BATCH];                     // tile_reached
+  __local uint s_list[REACH_LISTS * LIST_WORDS];  // reach_lists
   __local int s_alive;
   const int lid = get_local_id(0);
   PixelRow pr = pixel_row(tiles_x, width, height);
-  const uint row_bit = 1u << (pr.y % TILE);
+  __local const uint *rows = ROW_LIST(pr), *cols = COL_LIST(pr);
   BlendState s;
   blend_state_init(&s, pr.inside);
   const int2 range = ranges[pr.tile];
@@ -149,21 +150,24 @@ void blend_fwd(int width, int height, int tiles_x,
     for (int i = lid; i < nb; i += WG_SIZE) {
       uint gid = isect_gid[isect_vals[range.x + b0 + i]];
       for (int c = 0; c < REC_SIZE; ++c) s_rec[i * REC_SIZE + c] = records[(size_t)gid * REC_SIZE + c];
-      s_rows[i] = tile_rows_reached(s_rec + i * REC_SIZE, pr.tile, tiles_x);
+      s_reach[i] = tile_reached(s_rec + i * REC_SIZE, pr.tile, tiles_x);
     }
     barrier(CLK_LOCAL_MEM_FENCE);
+    reach_lists(s_reach, nb, s_list, lid);
     if (ANY(NOT(s.done))) atomic_or(&s_alive, 1);
     barrier(CLK_LOCAL_MEM_FENCE);
     if (!s_alive) break;
-    if (!ANY(NOT(s.done))) continue;
-    for (int j = 0; j < nb; ++j) {
-      if (!(s_rows[j] & row_bit)) continue;  // the record cannot reach this work-item's row
-      __local const float* q = s_rec + j * REC_SIZE;
-      vfloat sigma = blend_sigma(q[REC_CA], q[REC_CB], q[REC_CC], q[REC_U] - pr.px, q[REC_V] - pr.py);
-      if (out_of_reach(sigma, q[REC_THR])) continue;
-      blend_step(&s, sigma, q[REC_OPACITY], vload3(0, q + REC_RGB), vload3(0, q + REC_FEAT), q[REC_Z], q[REC_M],
-                 b0 + j);
-      if (!ANY(NOT(s.done))) break;
+    // The records that may reach this work-item's pixels, in list order.
+    for (int w = 0; w < LIST_WORDS && ANY(NOT(s.done)); ++w) {
+      for (uint m = rows[w] & cols[w]; m != 0u;) {
+        const int j = w * 32 + pop_record(&m);
+        __local const float* q = s_rec + j * REC_SIZE;
+        vfloat sigma = blend_sigma(q[REC_CA], q[REC_CB], q[REC_CC], q[REC_U] - pr.px, q[REC_V] - pr.py);
+        if (out_of_reach(sigma, q[REC_THR])) continue;
+        blend_step(&s, sigma, q[REC_OPACITY], vload3(0, q + REC_RGB), vload3(0, q + REC_FEAT), q[REC_Z], q[REC_M],
+                   b0 + j);
+        if (!ANY(NOT(s.done))) break;
+      }
     }
   }
   store_state(&s, pr, width, npix, cam, out_rgb, out_feat, out_depth, out_alpha, out_dist, out_aux, out_last,

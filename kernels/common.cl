@@ -364,6 +364,78 @@ inline uint tile_rows_reached(__local const float* q, int tile, int tiles_x) {
   return mask;
 }
 
+// The column counterpart of tile_rows_reached: bit c set when column c of
+// tile `tile` may blend the record q. It is row_beyond with x and y swapped:
+// over a column at offset dx the least sigma is 0.5 dx^2 (cA - cB^2 / cC).
+inline uint tile_cols_reached(__local const float* q, int tile, int tiles_x) {
+  const float u = q[REC_U], v = q[REC_V];
+  const int x0 = (tile % tiles_x) * TILE, y0 = (tile / tiles_x) * TILE;
+  const float dy0 = v - ((float)y0 + 0.5f), dy1 = v - ((float)y0 + ((float)TILE - 0.5f));
+  const float cm = q[REC_CA] - q[REC_CB] * q[REC_CB] / q[REC_CC];
+  uint mask = 0u;
+  for (int c = 0; c < TILE; ++c)
+    if (!row_beyond(q[REC_CC], q[REC_CB], q[REC_CA], cm, q[REC_THR], u - ((float)(x0 + c) + 0.5f), dy0, dy1))
+      mask |= 1u << c;
+  return mask;
+}
+// Both: the rows in the low TILE bits, the columns in the next TILE.
+inline uint tile_reached(__local const float* q, int tile, int tiles_x) {
+  return tile_rows_reached(q, tile, tiles_x) | (tile_cols_reached(q, tile, tiles_x) << TILE);
+}
+
+// The GPU layout's walk of a staged batch by rows and columns: the batch's
+// tile_reached masks become one list per tile row and one per work-item
+// column (its VW columns), LIST_WORDS words of bits each (bit b of word w:
+// record 32 w + b), and a work-item visits the records in both its row's
+// and its columns' lists, in order (pop_record of the two words anded),
+// instead of testing every record: it skips only records that cannot blend
+// at any of its pixels, so no bit of a result changes. (TILE <= 16: both
+// masks fit a uint.)
+#ifdef BATCH
+#define LIST_WORDS ((BATCH + 31) / 32)
+#define REACH_LISTS (TILE + TILE / VW)
+// This work-item's two lists: its row's and its columns'.
+#define ROW_LIST(pr) (s_list + ((pr).y % TILE) * LIST_WORDS)
+#define COL_LIST(pr) (s_list + (TILE + ((pr).x0 % TILE) / VW) * LIST_WORDS)
+// The lowest set bit of *m, taken out of it.
+inline int pop_record(uint* m) {
+  const uint low = *m & (0u - *m);
+  *m ^= low;
+  return 31 - (int)clz(low);
+}
+// The lists from the batch's masks s_reach[0, nb): every work-item calls
+// reach_lists after the barrier that follows the staging; the lists are
+// read after the next barrier.
+inline void reach_lists(__local const uint* s_reach, int nb, __local uint* s_list, int lid) {
+  for (int k = lid; k < REACH_LISTS * LIST_WORDS; k += WG_SIZE) {
+    const int list = k / LIST_WORDS, j0 = (k % LIST_WORDS) * 32;
+    // Row `list`, or the column group list - TILE (VW columns).
+    const int shift = list < TILE ? list : TILE + (list - TILE) * VW;
+    const uint bits = list < TILE ? 1u : (1u << VW) - 1u;
+    uint m = 0u;
+    for (int b = 0; b < 32 && j0 + b < nb; ++b) m |= (((s_reach[j0 + b] >> shift) & bits) != 0u ? 1u : 0u) << b;
+    s_list[k] = m;
+  }
+}
+// The same lists built while staging, for a kernel with no barrier to spare
+// between the staging and the walk (blend_bwd: with reach_lists between two
+// barriers of its own, PoCL 3 read the lists back wrong where Oclgrind ran
+// it clean and bit-exact): reach_lists_clear empties
+// them (every work-item, between barriers, after the last walk of them), and
+// the work-item that stages record i adds it to its lists with atomic_or on
+// local memory (the same bits in any order).
+inline void reach_lists_clear(__local uint* s_list, int lid) {
+  for (int k = lid; k < REACH_LISTS * LIST_WORDS; k += WG_SIZE) s_list[k] = 0u;
+}
+inline void reach_lists_add(__local uint* s_list, int i, uint reach) {
+  const uint bit = 1u << (i % 32);
+  const int w = i / 32;
+  for (uint r = reach & ((1u << TILE) - 1u); r != 0u;) atomic_or(&s_list[pop_record(&r) * LIST_WORDS + w], bit);
+  for (int c = 0; c < TILE / VW; ++c)
+    if (((reach >> (TILE + c * VW)) & ((1u << VW) - 1u)) != 0u) atomic_or(&s_list[(TILE + c) * LIST_WORDS + w], bit);
+}
+#endif
+
 // Whether the ellipse q(d) = cA dx^2 + 2 cB dx dy + cC dy^2 <= k around
 // (u, v) reaches a pixel centre of tile (tx, ty). q is convex, so its
 // minimum over the rectangle of the tile's pixel centres is 0 when (u, v)

@@ -89,10 +89,11 @@ void instance_map(int width, int height, int tiles_x, int children,
 #if !NO_STAGING
   __local float s_rec[BATCH * REC_SIZE];
   __local int s_k[BATCH];
-  __local uint s_rows[BATCH];  // tile_rows_reached
+  __local uint s_reach[BATCH];                     // tile_reached
+  __local uint s_list[REACH_LISTS * LIST_WORDS];  // reach_lists
   __local int s_alive, s_end;
   const int lid = get_local_id(0);
-  const uint row_bit = 1u << (pr.y % TILE);
+  __local const uint *rows = ROW_LIST(pr), *cols = COL_LIST(pr);
   // Stage entries [b0, b0 + nb) of the tile's list; s_alive = 1 when a pixel
   // of the group still blends (alive: this work-item's).
 #define STAGE_BATCH(b0, nb, alive)                                                                          \
@@ -102,9 +103,10 @@ void instance_map(int width, int height, int tiles_x, int children,
     const uint gid = isect_gid[isect_vals[range.x + (b0) + i]];                                            \
     for (int c = 0; c < REC_SIZE; ++c) s_rec[i * REC_SIZE + c] = records[(size_t)gid * REC_SIZE + c];      \
     s_k[i] = anchor_cluster[gid / (uint)children];                                                         \
-    s_rows[i] = tile_rows_reached(s_rec + i * REC_SIZE, pr.tile, tiles_x);                                 \
+    s_reach[i] = tile_reached(s_rec + i * REC_SIZE, pr.tile, tiles_x);                                     \
   }                                                                                                        \
   barrier(CLK_LOCAL_MEM_FENCE);                                                                            \
+  reach_lists(s_reach, nb, s_list, lid);                                                                   \
   if (alive) atomic_or(&s_alive, 1);                                                                       \
   barrier(CLK_LOCAL_MEM_FENCE);
 #endif
@@ -133,9 +135,10 @@ void instance_map(int width, int height, int tiles_x, int children,
       const int nb = min(BATCH, n - b0);
       STAGE_BATCH(b0, nb, ANY(NOT(done)))
       if (!s_alive) break;
-      if (!ANY(NOT(done))) continue;
-      for (int jj = 0; jj < nb; ++jj) {
-        if (!(s_rows[jj] & row_bit)) continue;  // the record cannot reach this pixel's row
+      // The records that may reach this work-item's pixels, in list order.
+      for (int wd = 0, jj; wd < LIST_WORDS && ANY(NOT(done)); ++wd)
+      for (uint m = rows[wd] & cols[wd]; m != 0u;) {
+        jj = wd * 32 + pop_record(&m);
         const int j = b0 + jj;
         __local const float* q = s_rec + jj * REC_SIZE;
         const int k = s_k[jj];
@@ -200,9 +203,13 @@ void instance_map(int width, int height, int tiles_x, int children,
       const int nb = min(BATCH, group_end - b0);
       STAGE_BATCH(b0, nb, b0 < end && ANY(NOT(done)))
       if (!s_alive) break;
-      if (b0 >= end || !ANY(NOT(done))) continue;
-      for (int jj = 0; jj < min(nb, end - b0); ++jj) {
-        if (!(s_rows[jj] & row_bit)) continue;
+      if (b0 >= end) continue;
+      // The same records before end.
+      const int stop = min(nb, end - b0);
+      for (int wd = 0, jj = 0; wd < LIST_WORDS && jj < stop && ANY(NOT(done)); ++wd)
+      for (uint m = rows[wd] & cols[wd]; m != 0u;) {
+        jj = wd * 32 + pop_record(&m);
+        if (jj >= stop) break;
         __local const float* q = s_rec + jj * REC_SIZE;
         const int k = s_k[jj];
 #endif

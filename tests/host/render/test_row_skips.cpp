@@ -1,6 +1,7 @@
 // The blend walks skip a Gaussian at pixels where it cannot blend before
 // computing its exponential (kernels/common.cl): row_beyond and
-// tile_rows_reached for a tile row, row_reach for every row past a bound on
+// tile_rows_reached for a tile row, tile_cols_reached for a tile column
+// (the GPU layout's lists, tile_reached), row_reach for every row past a bound on
 // |dy|, out_of_reach for one pixel's sigma. A skip changes no bit only if
 // the alpha test (sigma >= 0 and min(0.99, o exp(-sigma)) >= 1/255, as the
 // kernels compute it) fails wherever a skip is taken. This test runs the
@@ -72,7 +73,8 @@ __kernel void row_skip_check(int n, __global const float* records, __global int*
   bad[i] = b;
 }
 
-// The GPU layout's mask, read from local memory as the walks read it.
+// The GPU layout's masks (tile_reached: rows, then columns), read from local
+// memory as the walks read them.
 __kernel void tile_rows_check(int n, __global const float* records, __global uint* masks) {
   __local float rec[REC_SIZE];
   const int i = get_group_id(0);
@@ -80,7 +82,7 @@ __kernel void tile_rows_check(int n, __global const float* records, __global uin
     for (int c = 0; c < REC_SIZE; ++c) rec[c] = records[(size_t)i * REC_SIZE + c];
   }
   barrier(CLK_LOCAL_MEM_FENCE);
-  if (get_local_id(0) == 0 && i < n) masks[i] = tile_rows_reached(rec, 0, 1);
+  if (get_local_id(0) == 0 && i < n) masks[i] = tile_reached(rec, 0, 1);
 }
 )CL";
 
@@ -147,28 +149,32 @@ TEST(RowSkips, NoSkipCoversAPixelThatBlends) {
   bad.download(b, n);
   std::vector<uint32_t> m;
   masks.download(m, n);
-  int skipped_rows = 0;
+  int skipped_rows = 0, skipped_cols = 0;
   for (int i = 0; i < n; ++i) {
     const float* q = recs.data() + static_cast<size_t>(i) * REC_SIZE;
     EXPECT_EQ(b[i], 0) << "record " << i << " (conic " << q[REC_CA] << " " << q[REC_CB] << " " << q[REC_CC]
                        << ", opacity " << q[REC_OPACITY] << "): " << ((b[i] & 1) ? "out_of_reach " : "")
                        << ((b[i] & 2) ? "row_beyond " : "") << ((b[i] & 4) ? "row_reach " : "")
                        << "skipped a pixel that blends";
-    // The mask: a row without its bit has no pixel that blends (the pixel
-    // test in double, with a margin float rounding cannot cross).
+    // The masks: a row or a column without its bit has no pixel that blends
+    // (the pixel test in double, with a margin float rounding cannot cross).
     for (int y = 0; y < TILE; ++y) {
-      const bool bit = (m[i] >> y) & 1u;
-      if (!bit) ++skipped_rows;
-      for (int x = 0; x < TILE && !bit; ++x) {
+      for (int x = 0; x < TILE; ++x) {
+        const bool row_bit = (m[i] >> y) & 1u, col_bit = (m[i] >> (TILE + x)) & 1u;
+        if (x == 0 && !row_bit) ++skipped_rows;
+        if (y == 0 && !col_bit) ++skipped_cols;
+        if (row_bit && col_bit) continue;
         const double dx = q[REC_U] - (x + 0.5), dy = q[REC_V] - (y + 0.5);
         const double sigma = 0.5 * (q[REC_CA] * dx * dx + q[REC_CC] * dy * dy) + q[REC_CB] * dx * dy;
         EXPECT_FALSE(sigma < std::log(255.0 * q[REC_OPACITY]) - 1e-3)
-            << "record " << i << ": row " << y << " has no bit, yet pixel " << x << " blends";
+            << "record " << i << ": " << (row_bit ? "column " : "row ") << (row_bit ? x : y)
+            << " has no bit, yet pixel (" << x << ", " << y << ") blends";
       }
     }
   }
-  // The skips do skip: most rows of most records are out of reach.
+  // The skips do skip: most rows and columns of most records are out of reach.
   EXPECT_GT(skipped_rows, n * TILE / 2);
+  EXPECT_GT(skipped_cols, n * TILE / 2);
 }
 
 }  // namespace
