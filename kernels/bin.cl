@@ -1,16 +1,40 @@
 // Binning: Gaussians -> (tile, depth)-ordered intersection lists.
-//   1. sort Gaussians by depth (stable radix sort of float bits, ties by index)
+//   0. the Gaussians on screen (a tile or more), in index order: a scan of
+//      visible_flags, then compact_visible
+//   1. sort them by depth (stable radix sort of float bits, ties by index)
 //   2. exclusive scan of tiles-per-Gaussian in that order -> offsets
 //   3. emit one intersection per (Gaussian, tile), Gaussians in depth order
 //   4. stable radix sort of the intersections by tile id -> per tile, depth order
 //   5. per-tile [start, end) ranges
-// The sorts (1 and 4) are radix_sort.cl's. All integer work: the result is
-// the same whatever the thread count.
+// The sorts (1 and 4) are radix_sort.cl's. Step 0 changes no order: a
+// culled Gaussian emits nothing, and the stable sort keeps the others in the
+// order it gave them among all. All integer work: the result is the same
+// whatever the thread count.
 // Defines: SCAN_BLOCK, SCAN_WG (the GPU scan's work-group, SCAN_BLOCK / SCAN_WG whole).
 
+// 0, 1, ..., n - 1 (the runtime's tests launch it).
 __kernel void iota(int n, __global uint* out) {  // [n]
   int i = get_global_id(0);
   if (i < n) out[i] = (uint)i;
+}
+
+__kernel void visible_flags(int n, __global const uint* tile_counts,  // [N]
+                            __global uint* flags) {                   // [N] 1: on screen
+  int g = get_global_id(0);
+  if (g < n) flags[g] = tile_counts[g] > 0u ? 1u : 0u;
+}
+
+// The on-screen Gaussians' depth keys and ids, packed in index order.
+__kernel void compact_visible(int n, __global const uint* tile_counts,  // [N]
+                              __global const uint* depth_keys,          // [N]
+                              __global const uint* slots,               // [N] exclusive scan of the flags
+                              __global uint* keys,                      // [V]
+                              __global uint* ids) {                     // [V]
+  int g = get_global_id(0);
+  if (g >= n || tile_counts[g] == 0u) return;
+  const uint s = slots[g];
+  keys[s] = depth_keys[g];
+  ids[s] = (uint)g;
 }
 
 __kernel void gather_counts(int n,

@@ -332,7 +332,19 @@ void blend_bwd(int width, int height, int tiles_x,
 // blend_fwd's, and they are summed in blend_bwd's order (CPU layout: rows in
 // order per lane, then lanes; GPU layout: the plan's VW, work-items and SEG),
 // which makes the sums equal blend_bwd's bit for bit. For the importance
-// prune (host/render/importance.h), which needs nothing else.
+// prune (host/render/importance.h), which needs nothing else. With UPSTREAM
+// 1 each pixel's weight is multiplied by its factor in `upstream` as
+// blend_bwd multiplies it by the feature's upstream gradient (the removal's
+// view checks, apps/removal/fill.cpp, count only some pixels); with
+// UPSTREAM 0 `upstream` is not read.
+#ifndef UPSTREAM
+#define UPSTREAM 0
+#endif
+#if UPSTREAM
+#define UPSTREAM_TIMES(up, w) ((up) * (w))
+#else
+#define UPSTREAM_TIMES(up, w) (w)
+#endif
 #if NO_STAGING
 __kernel __attribute__((reqd_work_group_size(1, 1, 1)))
 void blend_weights(int width, int height, int tiles_x,
@@ -340,6 +352,7 @@ void blend_weights(int width, int height, int tiles_x,
                    __global const uint* isect_vals,   // [M] sorted: intersection slot
                    __global const uint* isect_gid,    // [M] by slot: Gaussian id
                    __global const float* records,     // [N,REC_SIZE]
+                   __global const float* upstream,    // [H,W] with UPSTREAM: each pixel's factor
                    __global float* isect_grads) {     // [M,G2_SIZE] by slot
   const int tile = get_group_id(0);
   int2 range = ranges[tile];
@@ -347,12 +360,18 @@ void blend_weights(int width, int height, int tiles_x,
   __global const uint* vals = isect_vals + range.x;
 
   vfloat Ts[WG_SIZE], pxs[WG_SIZE];
+#if UPSTREAM
+  vfloat ups[WG_SIZE];
+#endif
   vint dones[WG_SIZE];
   float pys[WG_SIZE];
   const float tile_x0 = tile_first_centre(tile, tiles_x);
   int live = 0;  // rows with a pixel still blending
   for (int row = 0; row < WG_SIZE; ++row) {
     PixelRow pr = pixel_row_of(tile, row, tiles_x, width, height);
+#if UPSTREAM
+    ups[row] = load_row(upstream, pr, width);
+#endif
     pxs[row] = pr.px;
     pys[row] = pr.py;
     Ts[row] = 1.f;
@@ -380,7 +399,7 @@ void blend_weights(int width, int height, int tiles_x,
         const vint stop = ok & (Tn < T_MIN);
         dones[row] = dones[row] | stop;
         ok = ok & NOT(stop);
-        s_w += select((vfloat)0.f, alpha * T, ok);
+        s_w += UPSTREAM_TIMES(ups[row], select((vfloat)0.f, alpha * T, ok));
         Ts[row] = select(T, Tn, ok);
         if (!ANY(NOT(dones[row]))) --live;
       }
@@ -396,6 +415,7 @@ void blend_weights(int width, int height, int tiles_x,
                    __global const uint* isect_vals,   // [M] sorted: intersection slot
                    __global const uint* isect_gid,    // [M] by slot: Gaussian id
                    __global const float* records,     // [N,REC_SIZE]
+                   __global const float* upstream,    // [H,W] with UPSTREAM: each pixel's factor
                    __global float* isect_grads) {     // [M,G2_SIZE] by slot
   __local float s_rec[BATCH * REC_SIZE];
   __local uint s_slot[BATCH];
@@ -414,6 +434,9 @@ void blend_weights(int width, int height, int tiles_x,
 
   vfloat T = 1.f;
   vint done = NOT(pr.inside);
+#if UPSTREAM
+  const vfloat up = load_row(upstream, pr, width);
+#endif
   int b0 = 0;
   for (; b0 < n; b0 += BATCH) {
     const int nb = min(BATCH, n - b0);
@@ -447,7 +470,7 @@ void blend_weights(int width, int height, int tiles_x,
         const vint stop = ok & (Tn < T_MIN);
         done = done | stop;
         ok = ok & NOT(stop);
-        s_part[j * PSTRIDE + lid] = HSUM(select((vfloat)0.f, alpha * T, ok));
+        s_part[j * PSTRIDE + lid] = HSUM(UPSTREAM_TIMES(up, select((vfloat)0.f, alpha * T, ok)));
         T = select(T, Tn, ok);
       }
     barrier(CLK_LOCAL_MEM_FENCE);

@@ -316,13 +316,16 @@ std::vector<double> seen_weight(Renderer& renderer, const GaussianSet& set, cons
   GaussianSet flagged = set;
   for (size_t i = 0; i < set.size(); ++i)
     for (int k = 0; k < 3; ++k) flagged.features[3 * i + k] = k == 0 && object && (*object)[i] ? 1.f : 0.f;
+  std::vector<float> sums;
   for (const Camera& cam : cameras) {
     const RenderOutput out = renderer.render(flagged, cam, rs);
-    OutputGrads up;
-    up.feature.assign(out.feature.size(), 0.f);
-    for (size_t p = 0; p < up.feature.size(); p += 3) up.feature[p] = object && out.feature[p] > 0.5f ? 0.f : 1.f;
-    const GaussianGrads g = renderer.render_backward(up);
-    for (size_t i = 0; i < seen.size(); ++i) seen[i] += g.features[3 * i];
+    // The weights of the pixels the object does not own: the feature
+    // channel's gradient for this upstream plane, without a backward pass.
+    std::vector<float> up(out.feature.size() / 3);
+    for (size_t p = 0; p < up.size(); ++p) up[p] = object && out.feature[3 * p] > 0.5f ? 0.f : 1.f;
+    renderer.blend_weights(up);
+    renderer.device_weight_sums().download(sums, set.size());
+    for (size_t i = 0; i < seen.size(); ++i) seen[i] += sums[i];
   }
   return seen;
 }

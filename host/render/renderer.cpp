@@ -61,12 +61,13 @@ Renderer::Renderer(Runtime& rt)
       bwd_plan_(staged_ ? blend_bwd_plan_for(rt.info()) : BlendBwdPlan{}),
       cpu_bwd_vector_width_(staged_ ? 0 : cpu_blend_bwd_vector_width(rt.info())) {
   for (DeviceBuffer* b :
-       {&cam_buf_,    &records_,        &rects_,         &tile_counts_, &depth_keys_,  &radii_,      &order_keys_tmp_,
-        &order_vals_, &order_vals_tmp_, &counts_sorted_, &offsets_,     &block_sums_,  &tile_keys_,  &tile_keys_tmp_,
-        &isect_vals_, &isect_vals_tmp_, &isect_gid_,     &isect_start_, &ranges_,      &out_rgb_,    &out_feat_,
-        &out_depth_,  &out_alpha_,      &out_dist_,      &out_aux_,     &out_last_,    &out_count_,  &g_rgb_,
-        &g_feat_,     &g_depth_,        &g_alpha_,       &g_dist_,      &isect_grads_, &v_means_,    &v_scales_,
-        &v_quats_,    &v_opacities_,    &v_sh_,          &v_features_,  &v_means2d_,   &weight_sums_})
+       {&cam_buf_,        &records_,     &rects_,         &tile_counts_,    &depth_keys_,     &radii_,
+        &order_keys_tmp_, &order_keys_,  &order_vals_,    &order_vals_tmp_, &counts_sorted_,  &offsets_,
+        &block_sums_,     &tile_keys_,   &tile_keys_tmp_, &isect_vals_,     &isect_vals_tmp_, &isect_gid_,
+        &isect_start_,    &ranges_,      &out_rgb_,       &out_feat_,       &out_depth_,      &out_alpha_,
+        &out_dist_,       &out_aux_,     &out_last_,      &out_count_,      &g_rgb_,          &g_feat_,
+        &g_depth_,        &g_alpha_,     &g_dist_,        &isect_grads_,    &v_means_,        &v_scales_,
+        &v_quats_,        &v_opacities_, &v_sh_,          &v_features_,     &v_means2d_,      &weight_sums_})
     b->bind(&rt_);
 }
 
@@ -147,6 +148,7 @@ void Renderer::bin(const DeviceGaussians& g, const Camera& cam, const RenderSett
   const int ni = static_cast<int>(n);
   const int ntiles = tiles_x_ * tiles_y_;
   stats_ = FrameStats{n, 0, cam.width, cam.height};
+  visible_ = 0;
 
   cam_buf_.upload(pack_camera(cam, settings));
 
@@ -157,6 +159,7 @@ void Renderer::bin(const DeviceGaussians& g, const Camera& cam, const RenderSett
                     {&tile_counts_, 4},
                     {&depth_keys_, 4},
                     {&radii_, 4},
+                    {&order_keys_, 4},
                     {&order_keys_tmp_, 4},
                     {&order_vals_, 4},
                     {&order_vals_tmp_, 4},
@@ -183,38 +186,29 @@ void Renderer::bin(const DeviceGaussians& g, const Camera& cam, const RenderSett
         .done();
     rt_.launch("project", project, cl::NDRange(n), cl::NDRange(64));
 
-    // Depth order of the Gaussians (stable: ties keep index order).
-    cl::Kernel iota = rt_.kernel("bin.cl", "iota", bin_defines());
-    set_kernel_args(iota, ni, order_vals_);
-    rt_.launch("sort", iota, cl::NDRange(n), cl::NDRange(64));
-    DeviceBuffer *keys = &depth_keys_, *vals = &order_vals_, *ktmp = &order_keys_tmp_, *vtmp = &order_vals_tmp_;
-    sort_.sort(keys, vals, ktmp, vtmp, n, 32);
-    sorted_order_ = vals;
+    // Only the Gaussians on screen are sorted (in index order first, so the
+    // stable sort orders them as it would among all; a culled one emits
+    // nothing): a view that sees half of them sorts half.
+    cl::Kernel flags = rt_.kernel("bin.cl", "visible_flags", bin_defines());
+    set_kernel_args(flags, ni, tile_counts_, counts_sorted_);
+    rt_.launch("bin", flags, cl::NDRange(n), cl::NDRange(64));
+    const size_t visible = exclusive_scan(counts_sorted_, offsets_, n);
+    visible_ = visible;
+    if (visible > 0) {
+      const int nv = static_cast<int>(visible);
+      cl::Kernel compact = rt_.kernel("bin.cl", "compact_visible", bin_defines());
+      set_kernel_args(compact, ni, tile_counts_, depth_keys_, offsets_, order_keys_, order_vals_);
+      rt_.launch("bin", compact, cl::NDRange(n), cl::NDRange(64));
+      // Depth order (stable: ties keep index order).
+      DeviceBuffer *keys = &order_keys_, *vals = &order_vals_, *ktmp = &order_keys_tmp_, *vtmp = &order_vals_tmp_;
+      sort_.sort(keys, vals, ktmp, vtmp, visible, 32);
+      sorted_order_ = vals;
 
-    cl::Kernel gather = rt_.kernel("bin.cl", "gather_counts", bin_defines());
-    set_kernel_args(gather, ni, *sorted_order_, tile_counts_, counts_sorted_);
-    rt_.launch("bin", gather, cl::NDRange(n), cl::NDRange(64));
-    // GPUs scan with work-groups (the work-group sort's devices), CPUs with
-    // one work-item per block: the same integer sums.
-    const bool wg_scan = sort_.plan().kind == RadixSortPlan::Kind::Group;
-    cl::Kernel sb = rt_.kernel("bin.cl", wg_scan ? "scan_blocks_wg" : "scan_blocks", bin_defines());
-    set_kernel_args(sb, ni, counts_sorted_, offsets_, block_sums_);
-    if (wg_scan)
-      rt_.launch("bin", sb, cl::NDRange(static_cast<size_t>(nscan) * kScanWg), cl::NDRange(kScanWg));
-    else
-      rt_.launch("bin", sb, cl::NDRange(nscan));
-    cl::Kernel ss = rt_.kernel("bin.cl", wg_scan ? "scan_block_sums_wg" : "scan_block_sums", bin_defines());
-    set_kernel_args(ss, nscan, block_sums_);
-    if (wg_scan)
-      rt_.launch("bin", ss, cl::NDRange(kScanWg), cl::NDRange(kScanWg));
-    else
-      rt_.launch("bin", ss, cl::NDRange(1), cl::NDRange(1));
-    cl::Kernel sa = rt_.kernel("bin.cl", "scan_add", bin_defines());
-    set_kernel_args(sa, ni, offsets_, block_sums_);
-    rt_.launch("bin", sa, cl::NDRange(n), cl::NDRange(64));
-    cl_uint total = 0;
-    AG2GS_CL_CHECK(rt_.queue().enqueueReadBuffer(block_sums_.get(), CL_TRUE, nscan * 4, 4, &total));
-    M = total;
+      cl::Kernel gather = rt_.kernel("bin.cl", "gather_counts", bin_defines());
+      set_kernel_args(gather, nv, *sorted_order_, tile_counts_, counts_sorted_);
+      rt_.launch("bin", gather, cl::NDRange(visible), cl::NDRange(64));
+      M = exclusive_scan(counts_sorted_, offsets_, visible);
+    }
   }
   stats_.n_intersections = M;
   if (M > 0xF0000000ull)
@@ -233,19 +227,19 @@ void Renderer::bin(const DeviceGaussians& g, const Camera& cam, const RenderSett
     cl::Kernel emit = rt_.kernel("bin.cl", "emit_isects", bin_defines());
     const size_t f4 = sizeof(float);
     KernelCall(emit)
-        .arg("n", ni)
-        .buffer("order", *sorted_order_, n * 4)
+        .arg("n", static_cast<int>(visible_))
+        .buffer("order", *sorted_order_, visible_ * 4)
         .buffer("rects", rects_, n * 4 * f4)
         .buffer("records", records_, n * REC_SIZE * f4)
-        .buffer("offsets", offsets_, n * 4)
-        .buffer("counts_sorted", counts_sorted_, n * 4)
+        .buffer("offsets", offsets_, visible_ * 4)
+        .buffer("counts_sorted", counts_sorted_, visible_ * 4)
         .arg("tiles_x", tiles_x_)
         .buffer("tile_keys", tile_keys_, M * 4)
         .buffer("isect_vals", isect_vals_, M * 4)
         .buffer("isect_gid", isect_gid_, M * 4)
         .buffer("isect_start", isect_start_, n * 4)
         .done();
-    rt_.launch("bin", emit, cl::NDRange(n), cl::NDRange(64));
+    rt_.launch("bin", emit, cl::NDRange(visible_), cl::NDRange(64));
     int bits = 1;
     while ((1 << bits) < ntiles) ++bits;
     DeviceBuffer *keys = &tile_keys_, *vals = &isect_vals_, *ktmp = &tile_keys_tmp_, *vtmp = &isect_vals_tmp_;
@@ -258,6 +252,32 @@ void Renderer::bin(const DeviceGaussians& g, const Camera& cam, const RenderSett
   }
   have_frame_ = true;
   have_images_ = false;
+}
+
+size_t Renderer::exclusive_scan(DeviceBuffer& in, DeviceBuffer& out, size_t n) {
+  // GPUs scan with work-groups (the work-group sort's devices), CPUs with
+  // one work-item per block: the same integer sums.
+  const int ni = static_cast<int>(n);
+  const int nscan = static_cast<int>(ceil_div(n, kScanBlock));
+  const bool wg_scan = sort_.plan().kind == RadixSortPlan::Kind::Group;
+  cl::Kernel sb = rt_.kernel("bin.cl", wg_scan ? "scan_blocks_wg" : "scan_blocks", bin_defines());
+  set_kernel_args(sb, ni, in, out, block_sums_);
+  if (wg_scan)
+    rt_.launch("bin", sb, cl::NDRange(static_cast<size_t>(nscan) * kScanWg), cl::NDRange(kScanWg));
+  else
+    rt_.launch("bin", sb, cl::NDRange(nscan));
+  cl::Kernel ss = rt_.kernel("bin.cl", wg_scan ? "scan_block_sums_wg" : "scan_block_sums", bin_defines());
+  set_kernel_args(ss, nscan, block_sums_);
+  if (wg_scan)
+    rt_.launch("bin", ss, cl::NDRange(kScanWg), cl::NDRange(kScanWg));
+  else
+    rt_.launch("bin", ss, cl::NDRange(1), cl::NDRange(1));
+  cl::Kernel sa = rt_.kernel("bin.cl", "scan_add", bin_defines());
+  set_kernel_args(sa, ni, out, block_sums_);
+  rt_.launch("bin", sa, cl::NDRange(n), cl::NDRange(64));
+  cl_uint total = 0;
+  AG2GS_CL_CHECK(rt_.queue().enqueueReadBuffer(block_sums_.get(), CL_TRUE, nscan * 4, 4, &total));
+  return total;
 }
 
 void Renderer::forward(const DeviceGaussians& g, const Camera& cam, const RenderSettings& settings) {
@@ -417,10 +437,19 @@ void Renderer::backward_from(const DeviceBuffer& g_rgb, const DeviceBuffer& g_fe
   project_backward();
 }
 
-void Renderer::blend_weights() {
+void Renderer::blend_weights(const std::vector<float>& upstream) {
   if (!have_frame_) throw std::logic_error("blend_weights() before bin() or forward()");
+  const size_t npix = static_cast<size_t>(cam_.width) * cam_.height;
+  if (!upstream.empty() && upstream.size() != npix)
+    throw std::invalid_argument("blend_weights: " + std::to_string(upstream.size()) + " upstream factors for " +
+                                std::to_string(npix) + " pixels");
   std::map<std::string, std::string> defs;
   const cl::NDRange local = blend_bwd_layout(defs);
+  defs["UPSTREAM"] = upstream.empty() ? "0" : "1";
+  if (!upstream.empty())
+    g_feat_.upload(upstream);
+  else
+    g_feat_.reserve(4);  // not read
   cl::Kernel weights = rt_.kernel("blend_bwd.cl", "blend_weights", defs);
   const size_t M = stats_.n_intersections, f4 = sizeof(float);
   KernelCall(weights)
@@ -431,6 +460,7 @@ void Renderer::blend_weights() {
       .buffer("isect_vals", *sorted_isect_vals_, M * 4)
       .buffer("isect_gid", isect_gid_, M * 4)
       .buffer("records", records_, gaussians_->n * REC_SIZE * f4)
+      .buffer("upstream", g_feat_, upstream.empty() ? 4 : npix * f4)
       .buffer("isect_grads", isect_grads_, M * G2_SIZE * f4)
       .done();
   rt_.launch("blend_weights", weights, cl::NDRange(static_cast<size_t>(tiles_x_) * tiles_y_ * local[0]), local);

@@ -101,7 +101,10 @@ class Renderer {
   // forward() and backward() with an upstream gradient of 1 on feature
   // channel 0 and none other, at the cost of one walk (kernels/blend_bwd.cl,
   // blend_weights) and a sum per Gaussian (no gradients are computed).
-  void blend_weights();
+  // `upstream` ([H,W], or empty for 1 everywhere) multiplies each pixel's
+  // weights: the sums are then that channel's gradient for this upstream
+  // plane, bit for bit.
+  void blend_weights(const std::vector<float>& upstream = {});
   const DeviceBuffer& device_weight_sums() const { return weight_sums_; }
 
   // The blending inputs of the last forward(), read-only, for kernels that
@@ -148,6 +151,8 @@ class Renderer {
  private:
   // SCAN_BLOCK for kernels/bin.cl.
   std::map<std::string, std::string> bin_defines() const;
+  // Exclusive scan of n uints of `in` into `out` (bin.cl); returns the total.
+  size_t exclusive_scan(DeviceBuffer& in, DeviceBuffer& out, size_t n);
   void upload_plane(DeviceBuffer& buf, const std::vector<float>& host_hwc, int channels, const char* what);
   // Which upstream gradients were given (the others are zero buffers): the
   // CPU blend kernel leaves the terms of absent ones out.
@@ -188,13 +193,14 @@ class Renderer {
   static void reserve_each(size_t items, std::initializer_list<SizedBuffer> buffers);
 
   DeviceBuffer cam_buf_, records_, rects_, tile_counts_, depth_keys_, radii_;
-  DeviceBuffer order_keys_tmp_, order_vals_, order_vals_tmp_, counts_sorted_, offsets_, block_sums_;
+  DeviceBuffer order_keys_, order_keys_tmp_, order_vals_, order_vals_tmp_, counts_sorted_, offsets_, block_sums_;
   DeviceBuffer tile_keys_, tile_keys_tmp_, isect_vals_, isect_vals_tmp_, isect_gid_, isect_start_, ranges_;
   DeviceBuffer out_rgb_, out_feat_, out_depth_, out_alpha_, out_dist_, out_aux_, out_last_, out_count_;
   DeviceBuffer g_rgb_, g_feat_, g_depth_, g_alpha_, g_dist_, isect_grads_;
   DeviceBuffer v_means_, v_scales_, v_quats_, v_opacities_, v_sh_, v_features_, v_means2d_;
   DeviceBuffer weight_sums_;              // blend_weights(): [N]
-  DeviceBuffer* sorted_order_ = nullptr;  // Gaussian ids in depth order
+  DeviceBuffer* sorted_order_ = nullptr;  // the on-screen Gaussians' ids in depth order
+  size_t visible_ = 0;                    // how many (sorted_order_'s length)
   DeviceBuffer* sorted_tile_keys_ = nullptr;
   DeviceBuffer* sorted_isect_vals_ = nullptr;
 };

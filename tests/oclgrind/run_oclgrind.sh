@@ -4,7 +4,7 @@
 # accesses, data races between work-items (--data-races), API misuse
 # (--check-api) and barriers reached by only part of a work-group.
 #
-#   tests/oclgrind/run_oclgrind.sh gpu|cpu|selfcheck BUILD_DIR
+#   tests/oclgrind/run_oclgrind.sh gpu|cpu|selfcheck|pipeline BUILD_DIR
 #
 # gpu: the GPU layout (one pixel per work-item, 256-wide work-groups,
 #      records staged through local memory, the work-group radix sort), as
@@ -12,6 +12,11 @@
 # cpu: the CPU layout (16-pixel vectors, one work-item per tile, no staging).
 # selfcheck: plants an out-of-bounds access and a local-memory race in copies
 #      of our kernels and passes only if both are reported: the check can fail.
+# pipeline: the whole program in the GPU layout on a small generated scene
+#      with an open sky: `ag2gs train` (stage 1 with growth, the importance
+#      prune and the sky, stage 2, stage 3's instance maps), then `remove` and
+#      `simulate` for a frame on its model; as a user runs them, as one
+#      process each, so races between kernels of different stages show too.
 #
 # Each step runs a program under Oclgrind with its messages sent to a log; a
 # step fails when the program fails or the log has anything in it. At the
@@ -20,8 +25,8 @@
 # oclgrind is not installed.
 set -uo pipefail
 
-layout=${1:?usage: run_oclgrind.sh gpu|cpu|selfcheck BUILD_DIR}
-build=$(cd "${2:?usage: run_oclgrind.sh gpu|cpu|selfcheck BUILD_DIR}" && pwd)
+layout=${1:?usage: run_oclgrind.sh gpu|cpu|selfcheck|pipeline BUILD_DIR}
+build=$(cd "${2:?usage: run_oclgrind.sh gpu|cpu|selfcheck|pipeline BUILD_DIR}" && pwd)
 here=$(cd "$(dirname "$0")" && pwd)
 src=$(cd "$here/../.." && pwd)
 
@@ -88,6 +93,39 @@ invalid accesses, $(grep -ci "data race" "$work/blend_bwd_without_barrier.log") 
   exit 0
 fi
 
+if [ "$layout" = pipeline ]; then
+  # 6 views of 160x120 trained at 40x30 (-r 4), the schedule squeezed into 4
+  # iterations: growth at 2, the importance prune at 3, stage 2's propagation
+  # loss once, stage 3 over the 5 training views.
+  export AG2GS_VECTOR_WIDTH=1 AG2GS_BLEND_STAGING=1 AG2GS_DEVICE=0 AG2GS_FILL_SENTINEL=1
+  echo "Oclgrind, the whole pipeline in the GPU layout, in $work"
+  scene="$work/scene"
+  if ! "$build/ag2gs" synth "$scene" --views 6 --width 160 --height 120 --objects 2 --points 1500 --feature-dim 84 \
+    --samples 1 --no-backdrop >"$work/synth.out" 2>&1; then
+    echo "FAIL  ag2gs synth:"
+    tail -n 20 "$work/synth.out" | sed 's/^/      /'
+    exit 1
+  fi
+  step train "$build/ag2gs" train "$scene" -o "$work/model" -r 4 --iters 4 --grow-from 2 --grow-every 2 --top-cells 8 \
+    --prop-iters 1 --seed 1
+  for want in "stage 3:" "removed the" "sky: SH degree"; do
+    grep -q "$want" "$work/train.out" ||
+      { echo "FAIL  the training log has no '$want': that path did not run"; failures=$((failures + 1)); }
+  done
+  # Remove a quarter of the anchors; simulate four for one frame of 1/250 s.
+  python3 -c 'import json, sys; n = json.load(open(sys.argv[1]))["anchors"]
+json.dump({"anchors": list(range(max(1, n // 4)))}, open(sys.argv[2], "w"))
+json.dump({"anchors": list(range(min(4, n)))}, open(sys.argv[3], "w"))' \
+    "$work/model/metrics.json" "$work/remove.json" "$work/simulate.json" ||
+    { echo "FAIL  no selection from $work/model/metrics.json"; exit 1; }
+  step remove "$build/ag2gs" remove "$work/model" --scene "$scene" -o "$work/removed" --selection "$work/remove.json"
+  step simulate "$build/ag2gs" simulate "$work/model" --scene "$scene" -o "$work/simulated" \
+    --selection "$work/simulate.json" --frames 1 --fps 250 --grid 16
+  echo "pipeline: $(($(date +%s) - t_start)) s"
+  [ $failures -eq 0 ] || { echo "$failures failure(s)"; exit 1; }
+  exit 0
+fi
+
 case "$layout" in
   gpu) export AG2GS_VECTOR_WIDTH=1 AG2GS_BLEND_STAGING=1 AG2GS_SORT=group ;;
   cpu) export AG2GS_VECTOR_WIDTH=16 AG2GS_BLEND_STAGING=0 AG2GS_SORT=block ;;
@@ -124,6 +162,8 @@ else
 fi
 AG2GS_SORT=$other_sort step render_${other_sort}_sort "$build/test_render_forward" \
   --gtest_filter='RenderForward.OnePixel:RenderForward.OddSize17x9:RenderForward.Background'
+# The runtime's own checks of a launch (bin.cl's iota, which only they use).
+step runtime "$build/test_runtime" --gtest_filter='Runtime.KernelCallChecksNamesAndBufferSizes'
 # Culling, clamps, NaN and infinite parameters, empty scenes, bad input.
 step hard_cases "$build/test_render_hard_cases" --gtest_filter='-HardCases.DeepStackSaturatesTransmittance'
 # Losses, optimiser and the graph-stage kernels, each against its reference.

@@ -394,6 +394,22 @@ TEST(RenderBackward, BlendWeightsEqualTheFeatureBackwardBitForBit) {
           drawn += via_walk[i] > 0.5f;
         }
         EXPECT_GT(drawn, g->size() / 10) << "the scene should draw for the test to mean anything";
+        // With an upstream plane (pixels at 0, 1 and 0.37, as the removal's
+        // view checks count some pixels only), the sums are that plane's
+        // feature gradient.
+        std::vector<float> plane(npix);
+        for (size_t p = 0; p < npix; ++p) plane[p] = p % 3 == 0 ? 0.f : p % 3 == 1 ? 1.f : 0.37f;
+        std::copy(plane.begin(), plane.end(), up.begin());
+        upstream.upload(up);
+        r.forward(dg, c, settings);
+        r.backward(og);
+        r.device_grads().features->download(via_backward, 3 * g->size());
+        r.bin(dg, c, settings);
+        r.blend_weights(plane);
+        r.device_weight_sums().download(via_walk, g->size());
+        for (size_t i = 0; i < g->size(); ++i)
+          ASSERT_EQ(0, std::memcmp(&via_walk[i], &via_backward[3 * i], 4))
+              << "Gaussian " << i << " with the upstream plane: " << via_walk[i] << " vs " << via_backward[3 * i];
         // Pixels nearly opaque (T < 1e-3, ten times T_MIN): where the stop rule acts.
         const RenderOutput out = r.render(*g, c, settings);
         opaque +=
