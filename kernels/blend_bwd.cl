@@ -30,7 +30,7 @@
 // work-items' partials (row r of s_part, PSTRIDE apart; `per` rows per
 // record, whose tile_reached mask is s_reach[r / per]), shared by blend_bwd
 // and blend_weights. Only the work-items whose pixels the record may reach
-// (reach_lists put it in both their lists) have a partial; every other
+// (the record is in both their lists) have a partial; every other
 // work-item's would be +0, which leaves a sum unchanged (a sum that starts
 // at +0 is never -0), so they are left out and the sums keep their bits.
 // SEG 1: one work-item per value sums the partials in work-item order.

@@ -419,11 +419,11 @@ inline void reach_lists(__local const uint* s_reach, int nb, __local uint* s_lis
 }
 // The same lists built while staging, for a kernel with no barrier to spare
 // between the staging and the walk (blend_bwd: with reach_lists between two
-// barriers of its own, PoCL 3 read the lists back wrong where Oclgrind ran
-// it clean and bit-exact): reach_lists_clear empties
-// them (every work-item, between barriers, after the last walk of them), and
-// the work-item that stages record i adds it to its lists with atomic_or on
-// local memory (the same bits in any order).
+// barriers of its own, PoCL read the lists back wrong where Oclgrind ran it
+// clean and bit-exact): reach_lists_clear empties them (every work-item,
+// between barriers, after the last walk of them), and the work-item that
+// stages record i adds it to its lists with atomic_or on local memory (the
+// same bits in any order).
 inline void reach_lists_clear(__local uint* s_list, int lid) {
   for (int k = lid; k < REACH_LISTS * LIST_WORDS; k += WG_SIZE) s_list[k] = 0u;
 }
