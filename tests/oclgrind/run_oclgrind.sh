@@ -62,6 +62,28 @@ step() {
   fi
 }
 
+# remove_and_simulate MODEL SCENE: the applications on a trained model, for
+# selections of its first anchors (a few iterations train no features or
+# geometry that a click could rely on): remove a quarter of them (holes,
+# inpainted targets, the fill), and simulate four for one frame of 1/250 s
+# (particles, 14 MPM substeps, the Gaussians following them, the frame's
+# render; a 1/25 s frame of a quarter of the anchors took 3 minutes under
+# the simulator).
+remove_and_simulate() {
+  local model=$1 scene=$2
+  if python3 -c 'import json, sys; n = json.load(open(sys.argv[1]))["anchors"]
+json.dump({"anchors": list(range(max(1, n // 4)))}, open(sys.argv[2], "w"))
+json.dump({"anchors": list(range(min(4, n)))}, open(sys.argv[3], "w"))' \
+    "$model/metrics.json" "$work/remove.json" "$work/simulate.json" 2>"$work/selection.out"; then
+    step remove "$build/ag2gs" remove "$model" --scene "$scene" -o "$work/removed" --selection "$work/remove.json"
+    step simulate "$build/ag2gs" simulate "$model" --scene "$scene" -o "$work/simulated" \
+      --selection "$work/simulate.json" --frames 1 --fps 250 --grid 16
+  else
+    echo "FAIL  no selection from $model/metrics.json: $(cat "$work/selection.out")"
+    failures=$((failures + 1))
+  fi
+}
+
 if [ "$layout" = selfcheck ]; then
   # Our own kernels with two bugs put in: adam_step without its bounds check
   # (the padding work-items of the last group read and write past the
@@ -112,15 +134,7 @@ if [ "$layout" = pipeline ]; then
     grep -q "$want" "$work/train.out" ||
       { echo "FAIL  the training log has no '$want': that path did not run"; failures=$((failures + 1)); }
   done
-  # Remove a quarter of the anchors; simulate four for one frame of 1/250 s.
-  python3 -c 'import json, sys; n = json.load(open(sys.argv[1]))["anchors"]
-json.dump({"anchors": list(range(max(1, n // 4)))}, open(sys.argv[2], "w"))
-json.dump({"anchors": list(range(min(4, n)))}, open(sys.argv[3], "w"))' \
-    "$work/model/metrics.json" "$work/remove.json" "$work/simulate.json" ||
-    { echo "FAIL  no selection from $work/model/metrics.json"; exit 1; }
-  step remove "$build/ag2gs" remove "$work/model" --scene "$scene" -o "$work/removed" --selection "$work/remove.json"
-  step simulate "$build/ag2gs" simulate "$work/model" --scene "$scene" -o "$work/simulated" \
-    --selection "$work/simulate.json" --frames 1 --fps 250 --grid 16
+  remove_and_simulate "$work/model" "$scene"
   echo "pipeline: $(($(date +%s) - t_start)) s"
   [ $failures -eq 0 ] || { echo "$failures failure(s)"; exit 1; }
   exit 0
@@ -193,23 +207,7 @@ if "$build/ag2gs" synth "$scene" --width 32 --height 32 --views 4 --objects 2 --
   step train "$build/ag2gs" train "$scene" -o "$work/model" --iters 2 --grow-from 1 --grow-every 1 --mask-from 1 \
     --prop-iters 1
   step baseline "$build/ag2gs" baseline "$scene" -o "$work/baseline" --iters 2 --densify-from 1 --densify-every 1
-  # The applications on the trained model, for selections of its first
-  # anchors (two iterations train no features or geometry that a click could
-  # rely on): remove a quarter of them (holes, inpainted targets, the fill),
-  # and simulate four for one frame of 1/250 s (particles, 14 MPM substeps,
-  # the Gaussians following them, the frame's render; a 1/25 s frame of a
-  # quarter of the anchors took 3 minutes under the simulator).
-  if python3 -c 'import json, sys; n = json.load(open(sys.argv[1]))["anchors"]
-json.dump({"anchors": list(range(max(1, n // 4)))}, open(sys.argv[2], "w"))
-json.dump({"anchors": list(range(min(4, n)))}, open(sys.argv[3], "w"))' \
-    "$work/model/metrics.json" "$work/remove.json" "$work/simulate.json" 2>"$work/selection.out"; then
-    step remove "$build/ag2gs" remove "$work/model" --scene "$scene" -o "$work/removed" --selection "$work/remove.json"
-    step simulate "$build/ag2gs" simulate "$work/model" --scene "$scene" -o "$work/simulated" \
-      --selection "$work/simulate.json" --frames 1 --fps 250 --grid 16
-  else
-    echo "FAIL  no selection from $work/model/metrics.json: $(cat "$work/selection.out")"
-    failures=$((failures + 1))
-  fi
+  remove_and_simulate "$work/model" "$scene"
 else
   echo "FAIL  ag2gs synth:"
   tail -n 20 "$work/synth.out" | sed 's/^/      /'
