@@ -459,11 +459,11 @@ void blend_weights(int width, int height, int tiles_x,
     // lists writes the others.
     for (int j = 0; j < nb; ++j) s_part[j * PSTRIDE + lid] = 0.f;
     for (int w = 0; w < LIST_WORDS && ANY(NOT(done)); ++w)
-      for (uint m = rows[w] & cols[w]; m != 0u;) {
-        const int j = w * 32 + pop_record(&m);
+      for (uint m = rows[w] & cols[w];;) {
+        vfloat sigma;
+        const int j = next_in_reach(&m, w, s_rec, pr, &sigma);
+        if (j < 0) break;
         __local const float* q = s_rec + j * REC_SIZE;
-        const vfloat sigma = blend_sigma(q[REC_CA], q[REC_CB], q[REC_CC], q[REC_U] - pr.px, q[REC_V] - pr.py);
-        if (out_of_reach(sigma, q[REC_THR])) continue;
         const vfloat alpha = fmin(q[REC_OPACITY] * blend_falloff(sigma), ALPHA_MAX);
         vint ok = NOT(done) & (sigma >= 0.f) & (alpha >= ALPHA_MIN);
         const vfloat Tn = T * (1.f - alpha);

@@ -159,11 +159,11 @@ void blend_fwd(int width, int height, int tiles_x,
     if (!s_alive) break;
     // The records that may reach this work-item's pixels, in list order.
     for (int w = 0; w < LIST_WORDS && ANY(NOT(s.done)); ++w) {
-      for (uint m = rows[w] & cols[w]; m != 0u;) {
-        const int j = w * 32 + pop_record(&m);
+      for (uint m = rows[w] & cols[w];;) {
+        vfloat sigma;
+        const int j = next_in_reach(&m, w, s_rec, pr, &sigma);
+        if (j < 0) break;
         __local const float* q = s_rec + j * REC_SIZE;
-        vfloat sigma = blend_sigma(q[REC_CA], q[REC_CB], q[REC_CC], q[REC_U] - pr.px, q[REC_V] - pr.py);
-        if (out_of_reach(sigma, q[REC_THR])) continue;
         blend_step(&s, sigma, q[REC_OPACITY], vload3(0, q + REC_RGB), vload3(0, q + REC_FEAT), q[REC_Z], q[REC_M],
                    b0 + j);
         if (!ANY(NOT(s.done))) break;

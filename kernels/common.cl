@@ -99,17 +99,24 @@ ALWAYS_INLINE void store_quat_opacity_sh(int g, __global const float* quat, __gl
 // --------------------------------------------------------------- 3x3 matrices
 typedef struct { float m[9]; } mat3;  // row-major
 
+// The 3x3 helpers are written out entry by entry: a compiler that does not
+// unroll loops (Oclgrind builds at -Oz) would otherwise index the private
+// arrays element by element.
 inline mat3 mat3_mul(mat3 a, mat3 b) {
   mat3 r;
-  for (int i = 0; i < 3; ++i)
-    for (int j = 0; j < 3; ++j)
-      r.m[3 * i + j] = a.m[3 * i] * b.m[j] + a.m[3 * i + 1] * b.m[3 + j] + a.m[3 * i + 2] * b.m[6 + j];
+#define MAT3_MUL_ENTRY(i, j) \
+  r.m[3 * (i) + (j)] = a.m[3 * (i)] * b.m[j] + a.m[3 * (i) + 1] * b.m[3 + (j)] + a.m[3 * (i) + 2] * b.m[6 + (j)];
+  MAT3_MUL_ENTRY(0, 0) MAT3_MUL_ENTRY(0, 1) MAT3_MUL_ENTRY(0, 2)
+  MAT3_MUL_ENTRY(1, 0) MAT3_MUL_ENTRY(1, 1) MAT3_MUL_ENTRY(1, 2)
+  MAT3_MUL_ENTRY(2, 0) MAT3_MUL_ENTRY(2, 1) MAT3_MUL_ENTRY(2, 2)
+#undef MAT3_MUL_ENTRY
   return r;
 }
 inline mat3 mat3_transpose(mat3 a) {
   mat3 r;
-  for (int i = 0; i < 3; ++i)
-    for (int j = 0; j < 3; ++j) r.m[3 * i + j] = a.m[3 * j + i];
+  r.m[0] = a.m[0]; r.m[1] = a.m[3]; r.m[2] = a.m[6];
+  r.m[3] = a.m[1]; r.m[4] = a.m[4]; r.m[5] = a.m[7];
+  r.m[6] = a.m[2]; r.m[7] = a.m[5]; r.m[8] = a.m[8];
   return r;
 }
 inline float3 mat3_vec(mat3 a, float3 v) {
@@ -118,7 +125,9 @@ inline float3 mat3_vec(mat3 a, float3 v) {
 }
 inline mat3 mat3_load(__constant const float* p) {
   mat3 r;
-  for (int i = 0; i < 9; ++i) r.m[i] = p[i];
+  r.m[0] = p[0]; r.m[1] = p[1]; r.m[2] = p[2];
+  r.m[3] = p[3]; r.m[4] = p[4]; r.m[5] = p[5];
+  r.m[6] = p[6]; r.m[7] = p[7]; r.m[8] = p[8];
   return r;
 }
 
@@ -151,7 +160,9 @@ inline float4 normalize_vjp(float4 q_unit, float inv_norm, float4 v_q) {
 #define SH_C0 0.28209479177387814f
 #define SH_C1 0.4886025119029199f
 // Basis function k (3DGS order) at unit direction d, and its gradient in d.
-inline float sh_basis(int k, float3 d, float3* grad) {
+// Always inlined: with a constant k the switch and the unused gradient fold
+// away.
+ALWAYS_INLINE float sh_basis(int k, float3 d, float3* grad) {
   float x = d.x, y = d.y, z = d.z;
   float xx = x * x, yy = y * y, zz = z * z;
   switch (k) {
@@ -184,6 +195,18 @@ inline float sh_basis(int k, float3 d, float3* grad) {
                *grad = (float3)(c * (3.f * xx - 3.f * yy), -6.f * c * x * y, 0.f); return c * x * (xx - 3.f * yy); }
   }
 }
+
+// F(k) for k = 0, 1, ... below n (1, 4, 9 or 16, a compile-time constant),
+// written out: a loop over sh_basis unrolls into straight-line code where
+// the compiler does not unroll loops on its own (Oclgrind builds at -Oz and
+// would interpret a call, a switch and a counter per coefficient).
+#define SH_EACH(n, F)                                              \
+  {                                                                \
+    F(0)                                                           \
+    if ((n) > 1) { F(1) F(2) F(3) }                                \
+    if ((n) > 4) { F(4) F(5) F(6) F(7) F(8) }                      \
+    if ((n) > 9) { F(9) F(10) F(11) F(12) F(13) F(14) F(15) }      \
+  }
 
 // Unit view direction from the camera centre to a mean; zero when they meet.
 inline float3 view_dir(float3 mean, float3 campos, float* inv_norm) {
@@ -226,7 +249,9 @@ inline int ewa_project(__constant const float* cam, float3 mean, float3 scale, f
   o->Rq = quat_to_rotmat(o->q);
   // Sigma = M M^T with M = Rq diag(scale); Sigma_c = R Sigma R^T = (R M)(R M)^T.
   mat3 M = o->Rq;
-  for (int i = 0; i < 3; ++i) { M.m[3 * i] *= scale.x; M.m[3 * i + 1] *= scale.y; M.m[3 * i + 2] *= scale.z; }
+  M.m[0] *= scale.x; M.m[1] *= scale.y; M.m[2] *= scale.z;
+  M.m[3] *= scale.x; M.m[4] *= scale.y; M.m[5] *= scale.z;
+  M.m[6] *= scale.x; M.m[7] *= scale.y; M.m[8] *= scale.z;
   mat3 RM = mat3_mul(R, M);
   o->Sigma_c = mat3_mul(RM, mat3_transpose(RM));
 
@@ -249,10 +274,11 @@ inline int ewa_project(__constant const float* cam, float3 mean, float3 scale, f
   // cov2d = J Sigma_c J^T + 0.3 I (low-pass: every splat covers ~1 pixel).
   const float* S = o->Sigma_c.m;
   float JS0[3], JS1[3];
-  for (int k = 0; k < 3; ++k) {
-    JS0[k] = o->J[0] * S[k] + o->J[1] * S[3 + k] + o->J[2] * S[6 + k];
-    JS1[k] = o->J[3] * S[k] + o->J[4] * S[3 + k] + o->J[5] * S[6 + k];
-  }
+#define JS_ENTRY(k)                                                        \
+  JS0[k] = o->J[0] * S[k] + o->J[1] * S[3 + (k)] + o->J[2] * S[6 + (k)]; \
+  JS1[k] = o->J[3] * S[k] + o->J[4] * S[3 + (k)] + o->J[5] * S[6 + (k)];
+  JS_ENTRY(0) JS_ENTRY(1) JS_ENTRY(2)
+#undef JS_ENTRY
   o->a = JS0[0] * o->J[0] + JS0[1] * o->J[1] + JS0[2] * o->J[2] + cam[CAM_LOWPASS];
   o->b = JS0[0] * o->J[3] + JS0[1] * o->J[4] + JS0[2] * o->J[5];
   o->c = JS1[0] * o->J[3] + JS1[1] * o->J[4] + JS1[2] * o->J[5] + cam[CAM_LOWPASS];
@@ -262,7 +288,7 @@ inline int ewa_project(__constant const float* cam, float3 mean, float3 scale, f
 // --------------------------------------------------------------- blending
 // The Gaussian's exponent at pixel offsets (dx, dy) from its centre; shared by
 // the forward and backward kernels so both see identical bits.
-inline vfloat blend_sigma(float cA, float cB, float cC, vfloat dx, float dy) {
+ALWAYS_INLINE vfloat blend_sigma(float cA, float cB, float cC, vfloat dx, float dy) {
   return 0.5f * (cA * dx * dx + cC * dy * dy) + cB * dx * dy;
 }
 
@@ -270,7 +296,7 @@ inline vfloat blend_sigma(float cA, float cB, float cC, vfloat dx, float dy) {
 // opacity <= 1, so the Gaussian is skipped either way, and the cap keeps every
 // product downstream (alpha T, ...) out of denormals, which cost x86 CPUs
 // dearly.
-inline vfloat blend_falloff(vfloat sigma) { return EXPF(-fmin(sigma, 40.f)); }
+ALWAYS_INLINE vfloat blend_falloff(vfloat sigma) { return EXPF(-fmin(sigma, 40.f)); }
 
 // Whether the alpha test fails at every lane of sigma (blend_sigma's bits)
 // for a record whose REC_THR is thr: sigma above ln(255 o) by row_beyond's
@@ -279,7 +305,7 @@ inline vfloat blend_falloff(vfloat sigma) { return EXPF(-fmin(sigma, 40.f)); }
 // spares the pixels of a tile that a Gaussian misses (most of them in the
 // GPU layout, which has no row test); the outcome is the alpha test's, so
 // no bit changes.
-inline int out_of_reach(vfloat sigma, float thr) { return !ANY(sigma <= thr + 0.01f); }
+ALWAYS_INLINE int out_of_reach(vfloat sigma, float thr) { return !ANY(sigma <= thr + 0.01f); }
 
 // Tile geometry of one work-item: VW adjacent pixels of a tile row.
 typedef struct {
@@ -313,7 +339,7 @@ inline PixelRow pixel_row(int tiles_x, int width, int height) {
 // of sigma over a row at offset dy is 0.5 dy^2 (cC - cB^2/cA). Skipping such a
 // row changes nothing: every lane would have been skipped by the alpha test.
 // dx0, dx1: u minus the first and last pixel centre of the row.
-inline int row_beyond(float cA, float cB, float cC, float cm, float thr, float dy, float dx0, float dx1) {
+ALWAYS_INLINE int row_beyond(float cA, float cB, float cC, float cm, float thr, float dy, float dx0, float dx1) {
   float dxm = fmax(fabs(dx0), fabs(dx1));
   float dy2 = dy * dy;
   float terms = 0.5f * (cA * dxm * dxm + cC * dy2) + fabs(cB) * dxm * fabs(dy);
@@ -398,10 +424,26 @@ inline uint tile_reached(__local const float* q, int tile, int tiles_x) {
 #define ROW_LIST(pr) (s_list + ((pr).y % TILE) * LIST_WORDS)
 #define COL_LIST(pr) (s_list + (TILE + ((pr).x0 % TILE) / VW) * LIST_WORDS)
 // The lowest set bit of *m, taken out of it.
-inline int pop_record(uint* m) {
+ALWAYS_INLINE int pop_record(uint* m) {
   const uint low = *m & (0u - *m);
   *m ^= low;
   return 31 - (int)clz(low);
+}
+// The next record of list word m (index w) whose exponent at this
+// work-item's pixels, *sigma (blend_sigma's bits), passes out_of_reach: its
+// index in the batch, or -1 once the word is empty. Every record it passes
+// over is one whose alpha test would fail at each pixel: a walk that blends
+// only what it returns has the same bits. Keeping the skips in this small
+// loop spares the walks' running state a merge after each of them, which an
+// interpreter (Oclgrind) pays per state variable.
+ALWAYS_INLINE int next_in_reach(uint* m, int w, __local const float* s_rec, PixelRow pr, vfloat* sigma) {
+  while (*m != 0u) {
+    const int j = w * 32 + pop_record(m);
+    __local const float* q = s_rec + j * REC_SIZE;
+    *sigma = blend_sigma(q[REC_CA], q[REC_CB], q[REC_CC], q[REC_U] - pr.px, q[REC_V] - pr.py);
+    if (!out_of_reach(*sigma, q[REC_THR])) return j;
+  }
+  return -1;
 }
 // The lists from the batch's masks s_reach[0, nb): every work-item calls
 // reach_lists after the barrier that follows the staging; the lists are

@@ -28,15 +28,11 @@
 // Defines: MIN_FRACTION (float literal), WITH_IMAGES (0 or 1), NO_STAGING,
 // BATCH (with staging).
 
-// One list entry at this work-item's pixels, as blend_fwd blends it: the
-// weight w (0 where the entry does not blend), with T and done advanced.
-inline vfloat instance_weight(PixelRow pr, float u, float v, float cA, float cB, float cC, float o, float thr,
-                              vfloat* T, vint* done, vint* okp) {
-  const vfloat sigma = blend_sigma(cA, cB, cC, u - pr.px, v - pr.py);
-  if (out_of_reach(sigma, thr)) {
-    *okp = (vint)0;
-    return 0.f;
-  }
+// One list entry at this work-item's pixels, as blend_fwd blends it, from
+// its exponent sigma (the walks skip the entries out_of_reach, as
+// blend_fwd does): the weight w (0 where the entry does not blend), with T
+// and done advanced.
+ALWAYS_INLINE vfloat instance_weight(vfloat sigma, float o, vfloat* T, vint* done, vint* okp) {
   const vfloat alpha = fmin(o * blend_falloff(sigma), ALPHA_MAX);
   vint ok = NOT(*done) & (sigma >= 0.f) & (alpha >= ALPHA_MIN);
   const vfloat Tn = *T * (1.f - alpha);
@@ -48,9 +44,11 @@ inline vfloat instance_weight(PixelRow pr, float u, float v, float cA, float cB,
   *okp = ok;
   return w;
 }
-#define INSTANCE_WEIGHT(q, T, done, ok) \
-  instance_weight(pr, (q)[REC_U], (q)[REC_V], (q)[REC_CA], (q)[REC_CB], (q)[REC_CC], (q)[REC_OPACITY], (q)[REC_THR], \
-                  &(T), &(done), &(ok))
+// The CPU layout's sigma of record q at this work-item's pixels; the walk
+// goes on to the next record where it is out of reach.
+#define SIGMA_OR_NEXT(q)                                                                                         \
+  const vfloat sigma = blend_sigma((q)[REC_CA], (q)[REC_CB], (q)[REC_CC], (q)[REC_U] - pr.px, (q)[REC_V] - pr.py); \
+  if (out_of_reach(sigma, (q)[REC_THR])) continue;
 
 // Walk 1's weighted majority vote. Against a different cluster the heavier
 // side keeps the surplus; a tie leaves surplus 0, and the next vote wins.
@@ -61,7 +59,7 @@ typedef struct {
   vint contested;  // another cluster voted: walk 2 must sum the candidate
 } Vote;
 
-inline void vote(Vote* s, int k, vfloat w, vint ok, int j) {
+ALWAYS_INLINE void vote(Vote* s, int k, vfloat w, vint ok, int j) {
   if (k < 0) return;  // unclustered: occludes, does not vote
   const vint same = s->cand == k;
   const vint wins = NOT(same) & (w > s->surplus);
@@ -129,6 +127,7 @@ void instance_map(int width, int height, int tiles_x, int children,
       const uint gid = isect_gid[isect_vals[range.x + j]];
       __global const float* q = records + (size_t)gid * REC_SIZE;
       const int k = anchor_cluster[gid / (uint)children];
+      SIGMA_OR_NEXT(q)
       {
 #else
     for (int b0 = 0; b0 < n; b0 += BATCH) {
@@ -137,13 +136,15 @@ void instance_map(int width, int height, int tiles_x, int children,
       if (!s_alive) break;
       // The records that may reach this work-item's pixels, in list order.
       for (int wd = 0, jj; wd < LIST_WORDS && ANY(NOT(done)); ++wd)
-      for (uint m = rows[wd] & cols[wd]; m != 0u;) {
-        jj = wd * 32 + pop_record(&m);
+      for (uint m = rows[wd] & cols[wd];;) {
+        vfloat sigma;
+        jj = next_in_reach(&m, wd, s_rec, pr, &sigma);
+        if (jj < 0) break;
         const int j = b0 + jj;
         __local const float* q = s_rec + jj * REC_SIZE;
         const int k = s_k[jj];
 #endif
-        const vfloat w = INSTANCE_WEIGHT(q, T, done, ok);
+        const vfloat w = instance_weight(sigma, q[REC_OPACITY], &T, &done, &ok);
         // Where no lane blended, the sums would add zeros and the vote
         // change nothing.
         if (ANY(ok)) {
@@ -191,6 +192,7 @@ void instance_map(int width, int height, int tiles_x, int children,
       const uint gid = isect_gid[isect_vals[range.x + j]];
       __global const float* q = records + (size_t)gid * REC_SIZE;
       const int k = anchor_cluster[gid / (uint)children];
+      SIGMA_OR_NEXT(q)
       {
 #else
     barrier(CLK_LOCAL_MEM_FENCE);
@@ -207,13 +209,14 @@ void instance_map(int width, int height, int tiles_x, int children,
       // The same records before end.
       const int stop = min(nb, end - b0);
       for (int wd = 0, jj = 0; wd < LIST_WORDS && jj < stop && ANY(NOT(done)); ++wd)
-      for (uint m = rows[wd] & cols[wd]; m != 0u;) {
-        jj = wd * 32 + pop_record(&m);
-        if (jj >= stop) break;
+      for (uint m = rows[wd] & cols[wd];;) {
+        vfloat sigma;
+        jj = next_in_reach(&m, wd, s_rec, pr, &sigma);
+        if (jj < 0 || jj >= stop) break;  // (jj -1: on to the next word)
         __local const float* q = s_rec + jj * REC_SIZE;
         const int k = s_k[jj];
 #endif
-        const vfloat w = INSTANCE_WEIGHT(q, T2, done, ok);
+        const vfloat w = instance_weight(sigma, q[REC_OPACITY], &T2, &done, &ok);
         weight += select((vfloat)0.f, w, ok & (s.cand == k));
         if (!ANY(NOT(done))) break;
       }

@@ -29,8 +29,17 @@ __kernel void project_fwd(
   float opacity = opacities[g];
   // Non-finite inputs are culled, never propagated.
   float check = mean.x + mean.y + mean.z + scale.x + scale.y + scale.z + qraw.x + qraw.y + qraw.z + qraw.w + opacity;
-  for (int k = 0; k < SH_K * 3; ++k) check += sh[(size_t)g * SH_K * 3 + k] * 0.f;
-  check += (feat.x + feat.y + feat.z) * 0.f;  // x * 0 is NaN exactly when x is not finite
+  // x * 0 is NaN exactly when x is not finite, else +-0: the SH terms only
+  // decide whether check stays finite, in any order, so four at a time.
+  {
+    __global const float* c = sh + (size_t)g * SH_K * 3;
+    float4 c4 = 0.f;
+    int k = 0;
+    for (; k + 4 <= SH_K * 3; k += 4) c4 += vload4(0, c + k) * 0.f;
+    for (; k < SH_K * 3; ++k) check += c[k] * 0.f;
+    check += (c4.x + c4.y) + (c4.z + c4.w);
+  }
+  check += (feat.x + feat.y + feat.z) * 0.f;
   if (!isfinite(check)) return;
   if (!(opacity >= ALPHA_MIN)) return;
 
@@ -63,14 +72,14 @@ __kernel void project_fwd(
   float inv_norm;
   float3 d = view_dir(mean, vload3(0, cam + CAM_POS), &inv_norm);
   float3 rgb = (float3)(0.f);
-  const int K_ACTIVE = (SH_ACTIVE + 1) * (SH_ACTIVE + 1);
-  // Fully unrolled: the constant k folds sh_basis's switch away.
-  #pragma unroll
-  for (int kk = 0; kk < K_ACTIVE; ++kk) {
-    float3 grad;
-    float b = sh_basis(kk, d, &grad);
-    rgb += b * vload3(g * SH_K + kk, sh);
+#define SH_TERM(k)                   \
+  {                                  \
+    float3 grad;                     \
+    float b = sh_basis(k, d, &grad); \
+    rgb += b * vload3(g * SH_K + k, sh); \
   }
+  SH_EACH((SH_ACTIVE + 1) * (SH_ACTIVE + 1), SH_TERM)
+#undef SH_TERM
   rgb = fmax(rgb + 0.5f, 0.f);
 
   __global float* r = records + (size_t)g * REC_SIZE;

@@ -1,5 +1,6 @@
 #include "host/device/device_policy.h"
 
+#include <algorithm>
 #include <cstdlib>
 #include <sstream>
 #include <stdexcept>
@@ -76,6 +77,14 @@ size_t BlendBwdPlan::local_bytes() const {
   return 4 * (static_cast<size_t>(batch) * (REC_SIZE + 2) + rows * (wg + seg) + (seg > 1 ? rows * seg : 0) + 1);
 }
 
+size_t BlendBwdPlan::weights_local_bytes() const {
+  const size_t wg = kTilePixels / vector_width, b = static_cast<size_t>(weights_batch);
+  // s_rec, s_slot, s_reach, s_part (and s_seg), the lists and s_alive
+  // (kernels/blend_bwd.cl, blend_weights).
+  const size_t lists = (TILE + TILE / vector_width) * ((b + 31) / 32);
+  return 4 * (b * (REC_SIZE + 2) + b * (wg + seg) + (seg > 1 ? b * seg : 0) + lists + 1);
+}
+
 BlendBwdPlan parse_blend_bwd_plan(const std::string& text) {
   BlendBwdPlan p;
   std::stringstream in(text);
@@ -116,6 +125,8 @@ BlendBwdPlan blend_bwd_plan_for(const DeviceInfo& d) {
     p = BlendBwdPlan{};  // 4:8:2
     while (p.batch > 1 && p.local_bytes() > local) p.batch /= 2;
   }
+  while (p.weights_batch > p.batch && p.weights_local_bytes() > local) p.weights_batch /= 2;
+  p.weights_batch = std::max(p.weights_batch, p.batch);
   if (p.local_bytes() > local)
     throw std::invalid_argument("blend backward plan " + p.describe() + " needs " + std::to_string(p.local_bytes()) +
                                 " bytes of local memory, " + d.name + " has " + std::to_string(local) +

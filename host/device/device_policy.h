@@ -57,8 +57,14 @@ bool simulated_device(const DeviceInfo& device);
 // the CPU layout (no staging) has no plan.
 struct BlendBwdPlan {
   int vector_width = 4, batch = 8, seg = 2;
+  // blend_weights (the same kernel file) sums one value per Gaussian, not
+  // 13: it stages more Gaussians per batch, so a tile passes 4x fewer
+  // barriers. Its sums run over the work-items in the same order whatever
+  // the batch, so the bits do not depend on it.
+  int weights_batch = 32;
   std::string describe() const;
-  size_t local_bytes() const;  // the kernel's local memory
+  size_t local_bytes() const;          // blend_bwd's local memory
+  size_t weights_local_bytes() const;  // blend_weights'
 };
 BlendBwdPlan parse_blend_bwd_plan(const std::string& text);  // "VW:BATCH:SEG"; throws naming AG2GS_BLEND_BWD
 BlendBwdPlan blend_bwd_plan_for(const DeviceInfo& device);   // the default or AG2GS_BLEND_BWD, checked

@@ -445,6 +445,7 @@ void Renderer::blend_weights(const std::vector<float>& upstream) {
                                 std::to_string(npix) + " pixels");
   std::map<std::string, std::string> defs;
   const cl::NDRange local = blend_bwd_layout(defs);
+  if (staged_) defs["BATCH"] = std::to_string(bwd_plan_.weights_batch);
   defs["UPSTREAM"] = upstream.empty() ? "0" : "1";
   if (!upstream.empty())
     g_feat_.upload(upstream);

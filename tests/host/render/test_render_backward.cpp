@@ -239,6 +239,29 @@ TEST(RenderBackward, BadBlendBwdPlanIsRefused) {
   EXPECT_EQ(parse_blend_bwd_plan("4:8:2").describe(), "4:8:2");
 }
 
+// blend_weights stages more records per batch than blend_bwd where local
+// memory allows (BlendWeightsEqualTheFeatureBackwardBitForBit checks that its
+// bits do not depend on it), and falls back towards blend_bwd's batch on a
+// device with little local memory.
+TEST(RenderBackward, WeightsBatchFitsLocalMemory) {
+  unsetenv("AG2GS_BLEND_BWD");
+  DeviceInfo big;
+  big.name = "a device with 48 KB of local memory";
+  big.local_mem = 48 * 1024;
+  const BlendBwdPlan p = blend_bwd_plan_for(big);
+  EXPECT_EQ(p.weights_batch, 32);
+  EXPECT_GT(p.weights_batch, p.batch);
+  EXPECT_LE(p.weights_local_bytes(), big.local_mem);
+  for (uint64_t local : {uint64_t{32768}, uint64_t{16384}, uint64_t{8192}}) {
+    DeviceInfo small = big;
+    small.local_mem = local;
+    const BlendBwdPlan q = blend_bwd_plan_for(small);
+    SCOPED_TRACE(std::to_string(local) + " bytes, plan " + q.describe());
+    EXPECT_GE(q.weights_batch, q.batch);
+    if (q.weights_batch > q.batch) EXPECT_LE(q.weights_local_bytes(), local);
+  }
+}
+
 }  // namespace
 // The device-gradient entry point (used by the trainer, whose losses run on
 // the device) computes exactly what the host entry point computes.
