@@ -72,10 +72,10 @@ __kernel void project_fwd(
   float inv_norm;
   float3 d = view_dir(mean, vload3(0, cam + CAM_POS), &inv_norm);
   float3 rgb = (float3)(0.f);
-#define SH_TERM(k)                   \
-  {                                  \
-    float3 grad;                     \
-    float b = sh_basis(k, d, &grad); \
+#define SH_TERM(k)                       \
+  {                                      \
+    float3 grad;                         \
+    float b = sh_basis(k, d, &grad);     \
     rgb += b * vload3(g * SH_K + k, sh); \
   }
   SH_EACH((SH_ACTIVE + 1) * (SH_ACTIVE + 1), SH_TERM)

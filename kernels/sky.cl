@@ -23,10 +23,10 @@ inline float3 sky_direction(int x, int y, float4 r0, float4 r1, float4 r2, float
 
 ALWAYS_INLINE float3 sky_colour(__global const float* coef, float3 d) {
   float3 c = (float3)(0.f);
-#define SKY_TERM(k)                                     \
-  {                                                     \
-    float3 unused;                                      \
-    c += sh_basis(k, d, &unused) * vload3(k, coef);     \
+#define SKY_TERM(k)                                 \
+  {                                                 \
+    float3 unused;                                  \
+    c += sh_basis(k, d, &unused) * vload3(k, coef); \
   }
   SH_EACH(SKY_K, SKY_TERM)
 #undef SKY_TERM
