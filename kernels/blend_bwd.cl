@@ -455,8 +455,8 @@ void blend_weights(int width, int height, int tiles_x,
     barrier(CLK_LOCAL_MEM_FENCE);
     if (!s_alive) break;  // every pixel of the tile stopped: the rest get zeros below
     // Zeros for the records that blend at none of this work-item's pixels
-    // (not in its lists, or after its pixels stopped); the walk of the
-    // lists writes the others.
+    // (not in its lists, out of reach, or after its pixels stopped); the
+    // walk of the lists writes the others.
     for (int j = 0; j < nb; ++j) s_part[j * PSTRIDE + lid] = 0.f;
     for (int w = 0; w < LIST_WORDS && ANY(NOT(done)); ++w)
       for (uint m = rows[w] & cols[w];;) {
