@@ -10,7 +10,11 @@
 // culled Gaussian emits nothing, and the stable sort keeps the others in the
 // order it gave them among all. All integer work: the result is the same
 // whatever the thread count.
-// Defines: SCAN_BLOCK, SCAN_WG (the GPU scan's work-group, SCAN_BLOCK / SCAN_WG whole).
+// Defines: SCAN_BLOCK, SCAN_WG (the GPU scan's work-group, SCAN_BLOCK / SCAN_WG whole), SCAN_ONE_WG
+// (the one-launch scan's, a power of two up to SCAN_BLOCK; SCAN_WG when not given).
+#ifndef SCAN_ONE_WG
+#define SCAN_ONE_WG SCAN_WG
+#endif
 
 // 0, 1, ..., n - 1 (the runtime's tests launch it).
 __kernel void iota(int n, __global uint* out) {  // [n]
@@ -76,29 +80,55 @@ __kernel void scan_block_sums(int nblocks, __global uint* block_sums) {  // [nbl
 // The same sums for GPUs: a work-group of SCAN_WG per block, loads and
 // stores coalesced through local memory, and one work-group for the block
 // sums (integer sums: the same bits as the two kernels above).
-__kernel __attribute__((reqd_work_group_size(SCAN_WG, 1, 1)))
-void scan_blocks_wg(int n, __global const uint* in, __global uint* out,  // [n]
-                    __global uint* block_sums) {                         // [nblocks + 1]
-  __local uint vals[SCAN_BLOCK];
-  __local uint tmp[SCAN_WG];
-  const int lid = get_local_id(0), b = get_group_id(0);
-  const int begin = b * SCAN_BLOCK;
-  for (int i = lid; i < SCAN_BLOCK; i += SCAN_WG) vals[i] = begin + i < n ? in[begin + i] : 0u;
+// scan_block_wg: out[begin, begin + SCAN_BLOCK) = carry + the exclusive sums
+// of in over the block (within n) by a work-group of any power of two up to
+// SCAN_BLOCK; returns the block's sum to every work-item. vals: [SCAN_BLOCK],
+// tmp: [local size].
+uint scan_block_wg(int n, int begin, uint carry, __global const uint* in, __global uint* out, __local uint* vals,
+                   __local uint* tmp) {
+  const int lid = get_local_id(0), wg = get_local_size(0);
+  for (int i = lid; i < SCAN_BLOCK; i += wg) vals[i] = begin + i < n ? in[begin + i] : 0u;
   barrier(CLK_LOCAL_MEM_FENCE);
-  const int per = SCAN_BLOCK / SCAN_WG;
+  const int per = SCAN_BLOCK / wg;
   uint s = 0;
   for (int j = 0; j < per; ++j) s += vals[lid * per + j];
   uint total;
-  uint acc = group_exclusive_scan(s, tmp, &total);
+  uint acc = carry + group_exclusive_scan(s, tmp, &total);
   for (int j = 0; j < per; ++j) {
     uint v = vals[lid * per + j];
     vals[lid * per + j] = acc;
     acc += v;
   }
   barrier(CLK_LOCAL_MEM_FENCE);
-  for (int i = lid; i < SCAN_BLOCK; i += SCAN_WG)
+  for (int i = lid; i < SCAN_BLOCK; i += wg)
     if (begin + i < n) out[begin + i] = vals[i];
-  if (lid == 0) block_sums[b] = total;
+  barrier(CLK_LOCAL_MEM_FENCE);  // vals is free again
+  return total;
+}
+
+__kernel __attribute__((reqd_work_group_size(SCAN_WG, 1, 1)))
+void scan_blocks_wg(int n, __global const uint* in, __global uint* out,  // [n]
+                    __global uint* block_sums) {                         // [nblocks + 1]
+  __local uint vals[SCAN_BLOCK];
+  __local uint tmp[SCAN_WG];
+  const int b = get_group_id(0);
+  const uint total = scan_block_wg(n, b * SCAN_BLOCK, 0u, in, out, vals, tmp);
+  if (get_local_id(0) == 0) block_sums[b] = total;
+}
+
+// A short scan whole, by one work-group of SCAN_ONE_WG (the sort's) in one
+// launch: the blocks in order, each starting from the sum of those before
+// (the same integer sums as the three launches). The total goes where
+// scan_block_sums_wg puts it.
+__kernel __attribute__((reqd_work_group_size(SCAN_ONE_WG, 1, 1)))
+void scan_one_group_wg(int n, __global const uint* in, __global uint* out,  // [n]
+                       __global uint* block_sums) {                         // [nblocks + 1]
+  __local uint vals[SCAN_BLOCK];
+  __local uint tmp[SCAN_ONE_WG];
+  const int nblocks = (n + SCAN_BLOCK - 1) / SCAN_BLOCK;
+  uint carry = 0;
+  for (int b = 0; b < nblocks; ++b) carry += scan_block_wg(n, b * SCAN_BLOCK, carry, in, out, vals, tmp);
+  if (get_local_id(0) == 0) block_sums[nblocks] = carry;
 }
 
 __kernel __attribute__((reqd_work_group_size(SCAN_WG, 1, 1)))

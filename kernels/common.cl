@@ -13,8 +13,11 @@
 // sky_colour): PoCL compiles a call that stays a call with those structs in
 // memory, so the blend backward spent a third of its time passing them. Inlined,
 // they stay in registers (the cup's blend_bwd 13.1 -> 10.2 ms a step on 2
-// cores, same bits). Helpers that PoCL inlines itself, or whose calls are
-// cheaper than the code they would duplicate (ewa_project), keep plain inline.
+// cores, same bits). The small helpers of the projection (3x3 matrices,
+// ewa_project, one call a kernel) are inlined for Oclgrind's -Oz build,
+// which otherwise keeps their structs in private memory. Helpers that PoCL
+// inlines itself, or whose calls are cheaper than the code they would
+// duplicate, keep plain inline.
 #define ALWAYS_INLINE inline __attribute__((always_inline))
 
 #define CAT_(a, b) a##b
@@ -99,10 +102,11 @@ ALWAYS_INLINE void store_quat_opacity_sh(int g, __global const float* quat, __gl
 // --------------------------------------------------------------- 3x3 matrices
 typedef struct { float m[9]; } mat3;  // row-major
 
-// The 3x3 helpers are written out entry by entry: a compiler that does not
-// unroll loops (Oclgrind builds at -Oz) would otherwise index the private
-// arrays element by element.
-inline mat3 mat3_mul(mat3 a, mat3 b) {
+// The 3x3 helpers are written out entry by entry and always inlined: a
+// compiler that neither unrolls loops nor inlines much (Oclgrind builds at
+// -Oz) would otherwise pass the matrices through private memory and index
+// them element by element.
+ALWAYS_INLINE mat3 mat3_mul(mat3 a, mat3 b) {
   mat3 r;
 #define MAT3_MUL_ENTRY(i, j) \
   r.m[3 * (i) + (j)] = a.m[3 * (i)] * b.m[j] + a.m[3 * (i) + 1] * b.m[3 + (j)] + a.m[3 * (i) + 2] * b.m[6 + (j)];
@@ -112,18 +116,18 @@ inline mat3 mat3_mul(mat3 a, mat3 b) {
 #undef MAT3_MUL_ENTRY
   return r;
 }
-inline mat3 mat3_transpose(mat3 a) {
+ALWAYS_INLINE mat3 mat3_transpose(mat3 a) {
   mat3 r;
   r.m[0] = a.m[0]; r.m[1] = a.m[3]; r.m[2] = a.m[6];
   r.m[3] = a.m[1]; r.m[4] = a.m[4]; r.m[5] = a.m[7];
   r.m[6] = a.m[2]; r.m[7] = a.m[5]; r.m[8] = a.m[8];
   return r;
 }
-inline float3 mat3_vec(mat3 a, float3 v) {
+ALWAYS_INLINE float3 mat3_vec(mat3 a, float3 v) {
   return (float3)(a.m[0] * v.x + a.m[1] * v.y + a.m[2] * v.z, a.m[3] * v.x + a.m[4] * v.y + a.m[5] * v.z,
                   a.m[6] * v.x + a.m[7] * v.y + a.m[8] * v.z);
 }
-inline mat3 mat3_load(__constant const float* p) {
+ALWAYS_INLINE mat3 mat3_load(__constant const float* p) {
   mat3 r;
   r.m[0] = p[0]; r.m[1] = p[1]; r.m[2] = p[2];
   r.m[3] = p[3]; r.m[4] = p[4]; r.m[5] = p[5];
@@ -133,7 +137,7 @@ inline mat3 mat3_load(__constant const float* p) {
 
 // --------------------------------------------------------------- quaternion
 // R(q) for a unit quaternion q = (w, x, y, z).
-inline mat3 quat_to_rotmat(float4 q) {
+ALWAYS_INLINE mat3 quat_to_rotmat(float4 q) {
   float w = q.x, x = q.y, y = q.z, z = q.w;
   mat3 r;
   r.m[0] = 1.f - 2.f * (y * y + z * z); r.m[1] = 2.f * (x * y - w * z);       r.m[2] = 2.f * (x * z + w * y);
@@ -209,7 +213,7 @@ ALWAYS_INLINE float sh_basis(int k, float3 d, float3* grad) {
   }
 
 // Unit view direction from the camera centre to a mean; zero when they meet.
-inline float3 view_dir(float3 mean, float3 campos, float* inv_norm) {
+ALWAYS_INLINE float3 view_dir(float3 mean, float3 campos, float* inv_norm) {
   float3 d = mean - campos;
   float n2 = dot(d, d);
   *inv_norm = n2 > 0.f ? rsqrt(n2) : 0.f;
@@ -237,7 +241,7 @@ typedef struct {
 
 // Camera-space mean, covariance and its 2D EWA image (docs/rasterizer.md 2-6).
 // Returns 0 when the Gaussian is culled by the near plane or a bad quaternion.
-inline int ewa_project(__constant const float* cam, float3 mean, float3 scale, float4 qraw, Proj* o) {
+ALWAYS_INLINE int ewa_project(__constant const float* cam, float3 mean, float3 scale, float4 qraw, Proj* o) {
   mat3 R = mat3_load(cam + CAM_R);
   float3 t = (float3)(cam[CAM_T], cam[CAM_T + 1], cam[CAM_T + 2]);
   o->p = mat3_vec(R, mean) + t;

@@ -8,6 +8,8 @@
 //   rs_scatter: each work-group walks its tiles in order; inside a tile every
 //               key gets its rank among the tile's keys of lower digits and of
 //               the same digit at lower indices, so the pass is stable.
+//   rs_one_group: all of it, every pass, by one work-group in one launch,
+//               for sorts of a few tiles.
 // Everything is integer counting, so the result is the one stable order:
 // the same whatever the digit width, work-group size, tile or group count.
 // No global atomics; the counters in local memory belong to one work-item
@@ -37,16 +39,13 @@ void rs_range(uint n, uint tiles_per_group, uint g, uint* begin, uint* end) {
   *end = (uint)min(e, (ulong)n);
 }
 
-__kernel __attribute__((reqd_work_group_size(RS_WG, 1, 1)))
-void rs_count(uint n, int shift, uint tiles_per_group,
-              __global const uint* keys,  // [n]
-              __global uint* counts) {    // [BINS, groups] digit-major
-  __local uint cnt[CNT_WORDS];
-  __local uint part[RS_WG];
-  const uint lid = get_local_id(0), g = get_group_id(0), groups = get_num_groups(0);
+// Counts the digits of keys [begin, end) in cnt (a column per work-item),
+// then sums them: work-item d < BINS gets the count of digit d (the others
+// 0). part: [RS_WG].
+uint rs_count_digits(__global const uint* keys, uint begin, uint end, int shift, __local uint* cnt,
+                     __local uint* part) {
+  const uint lid = get_local_id(0);
   for (uint d = 0; d < BINS; ++d) cnt[PAD(d * RS_WG + lid)] = 0u;
-  uint begin, end;
-  rs_range(n, tiles_per_group, g, &begin, &end);
   for (uint i = begin + lid; i < end; i += RS_WG) cnt[PAD(((keys[i] >> shift) & (BINS - 1)) * RS_WG + lid)]++;
   barrier(CLK_LOCAL_MEM_FENCE);
   // Row d holds RS_WG counters: each work-item sums a run of BINS of them,
@@ -55,11 +54,23 @@ void rs_count(uint n, int shift, uint tiles_per_group,
   for (uint j = 0; j < BINS; ++j) s += cnt[PAD(lid * BINS + j)];
   part[lid] = s;
   barrier(CLK_LOCAL_MEM_FENCE);
-  if (lid < BINS) {
-    uint t = 0;
+  uint t = 0;
+  if (lid < BINS)
     for (uint j = 0; j < RS_WG / BINS; ++j) t += part[lid * (RS_WG / BINS) + j];
-    counts[(size_t)lid * groups + g] = t;
-  }
+  return t;
+}
+
+__kernel __attribute__((reqd_work_group_size(RS_WG, 1, 1)))
+void rs_count(uint n, int shift, uint tiles_per_group,
+              __global const uint* keys,  // [n]
+              __global uint* counts) {    // [BINS, groups] digit-major
+  __local uint cnt[CNT_WORDS];
+  __local uint part[RS_WG];
+  const uint lid = get_local_id(0), g = get_group_id(0), groups = get_num_groups(0);
+  uint begin, end;
+  rs_range(n, tiles_per_group, g, &begin, &end);
+  const uint t = rs_count_digits(keys, begin, end, shift, cnt, part);
+  if (lid < BINS) counts[(size_t)lid * groups + g] = t;
 }
 
 // One work-group: counts [BINS * groups] -> exclusive prefix sums, in place.
@@ -69,25 +80,15 @@ void rs_scan(uint groups, __global uint* counts) {  // [BINS * groups]
   group_scan_in_place(counts, BINS * groups, tmp);
 }
 
-__kernel __attribute__((reqd_work_group_size(RS_WG, 1, 1)))
-void rs_scatter(uint n, int shift, uint tiles_per_group,
-                __global const uint* keys_in,   // [n]
-                __global const uint* vals_in,   // [n]
-                __global uint* keys_out,        // [n]
-                __global uint* vals_out,        // [n]
-                __global const uint* offsets) { // [BINS, groups] of rs_scan
-  // (Letting the tile's keys share the counters' memory, with one more
-  // barrier, is miscompiled by PoCL 3.1: wrong ranks, then writes out of
-  // bounds. Oclgrind finds nothing wrong with it.)
-  __local uint cnt[CNT_WORDS];
-  __local uint tmp[RS_WG];
-  __local uint lkeys[TILE_KEYS], lvals[TILE_KEYS];  // the tile in rank order
-  __local uint base[BINS];  // where the group's next key of each digit goes
-  __local uint dest[BINS];  // the tile's key of rank i and digit d goes to dest[d] + i
-  const uint lid = get_local_id(0), g = get_group_id(0), groups = get_num_groups(0);
-  if (lid < BINS) base[lid] = offsets[(size_t)lid * groups + g];
-  uint begin, end;
-  rs_range(n, tiles_per_group, g, &begin, &end);
+// Moves keys [begin, end) and their values to their places of this pass,
+// tile by tile in order: base[d] (set by work-item d < BINS) is where the
+// range's first key of digit d goes. Local arrays as in rs_scatter.
+void rs_scatter_tiles(uint begin, uint end, int shift,
+                      __global const uint* keys_in, __global const uint* vals_in,
+                      __global uint* keys_out, __global uint* vals_out,
+                      __local uint* cnt, __local uint* tmp, __local uint* lkeys, __local uint* lvals,
+                      __local uint* base, __local uint* dest) {
+  const uint lid = get_local_id(0);
   const uint ntiles = (end - begin + TILE_KEYS - 1) / TILE_KEYS;
   // This work-item's keys of a tile: a contiguous run of RS_IPT, so that
   // rank order (digit, work-item, run position) is index order within a
@@ -149,6 +150,74 @@ void rs_scatter(uint n, int shift, uint tiles_per_group,
     // No barrier needed here: the next tile writes lkeys, lvals and dest
     // only after two more barriers, and the counters read above (other
     // work-items' cells) were read before the last one.
+  }
+}
+
+__kernel __attribute__((reqd_work_group_size(RS_WG, 1, 1)))
+void rs_scatter(uint n, int shift, uint tiles_per_group,
+                __global const uint* keys_in,   // [n]
+                __global const uint* vals_in,   // [n]
+                __global uint* keys_out,        // [n]
+                __global uint* vals_out,        // [n]
+                __global const uint* offsets) { // [BINS, groups] of rs_scan
+  // (Letting the tile's keys share the counters' memory, with one more
+  // barrier, is miscompiled by PoCL 3.1: wrong ranks, then writes out of
+  // bounds. Oclgrind finds nothing wrong with it.)
+  __local uint cnt[CNT_WORDS];
+  __local uint tmp[RS_WG];
+  __local uint lkeys[TILE_KEYS], lvals[TILE_KEYS];  // the tile in rank order
+  __local uint base[BINS];  // where the group's next key of each digit goes
+  __local uint dest[BINS];  // the tile's key of rank i and digit d goes to dest[d] + i
+  const uint lid = get_local_id(0), g = get_group_id(0), groups = get_num_groups(0);
+  if (lid < BINS) base[lid] = offsets[(size_t)lid * groups + g];
+  uint begin, end;
+  rs_range(n, tiles_per_group, g, &begin, &end);
+  rs_scatter_tiles(begin, end, shift, keys_in, vals_in, keys_out, vals_out, cnt, tmp, lkeys, lvals, base, dest);
+}
+
+// A small sort whole: one work-group runs every pass over all n keys in one
+// launch, for frames of a few tiles, where the three launches of each pass
+// cost more than its work. Each pass counts the digits, scans the BINS
+// totals and scatters as rs_scatter does, so the order is the same. Passes
+// alternate between the pairs as the host's do: the sorted keys end in
+// (keys_in, vals_in) after an even number of passes, in (keys_out, vals_out)
+// after an odd one; a global barrier lets each pass read what the last one
+// wrote.
+__kernel __attribute__((reqd_work_group_size(RS_WG, 1, 1)))
+void rs_one_group(uint n, int bits,
+                  __global uint* keys_in, __global uint* vals_in,     // [n] the keys to sort
+                  __global uint* keys_out, __global uint* vals_out) { // [n] scratch
+  __local uint cnt[CNT_WORDS];
+  __local uint part[RS_WG];
+  __local uint tmp[RS_WG];
+  __local uint lkeys[TILE_KEYS], lvals[TILE_KEYS];
+  __local uint base[BINS];
+  __local uint dest[BINS];
+  const uint lid = get_local_id(0);
+  // One loop of steps, each a pass's count (t 0) or one of its tiles: PoCL
+  // 3.1 miscompiles the tile loop's barriers nested in a loop of passes
+  // (wrong orders from the second tile on; Oclgrind finds nothing wrong).
+  const uint ntiles = (n + TILE_KEYS - 1) / TILE_KEYS;
+  const uint steps = (uint)((bits + RS_BITS - 1) / RS_BITS) * (ntiles + 1);
+  for (uint step = 0; step < steps; ++step) {
+    const uint pass = step / (ntiles + 1), t = step % (ntiles + 1);
+    const int shift = (int)pass * RS_BITS;
+    __global uint* const src_k = pass & 1 ? keys_out : keys_in;
+    __global uint* const src_v = pass & 1 ? vals_out : vals_in;
+    __global uint* const dst_k = pass & 1 ? keys_in : keys_out;
+    __global uint* const dst_v = pass & 1 ? vals_in : vals_out;
+    if (t == 0) {
+      // The last pass's writes are done.
+      barrier(CLK_GLOBAL_MEM_FENCE | CLK_LOCAL_MEM_FENCE);
+      const uint c = rs_count_digits(src_k, 0u, n, shift, cnt, part);
+      uint all;
+      const uint first = group_exclusive_scan(c, tmp, &all);  // over the BINS totals; the rest add 0
+      if (lid < BINS) base[lid] = first;
+    } else {
+      const uint t0 = (t - 1) * TILE_KEYS;
+      rs_scatter_tiles(t0, min(n, t0 + TILE_KEYS), shift, src_k, src_v, dst_k, dst_v, cnt, tmp, lkeys, lvals, base,
+                       dest);
+    }
   }
 }
 #endif  // RS_BITS

@@ -14,8 +14,9 @@ namespace ag2gs {
 namespace {
 
 const char* kPlanForms =
-    "'block', 'block:KEYS' (KEYS in [1, 65536]), 'group' or 'group:BITS:WG:IPT[:GROUPS]' (BITS in [1, 5], "
-    "WG a power of two in [2^BITS, 1024], IPT in [1, 32], GROUPS >= 1)";
+    "'block', 'block:KEYS' (KEYS in [1, 65536]), 'group' or 'group:BITS:WG:IPT[:GROUPS[:ONE]]' (BITS in [1, 5], "
+    "WG a power of two in [2^BITS, 1024], IPT in [1, 32], GROUPS >= 1 or 'auto', ONE >= 0: sorts of at most ONE "
+    "tiles in one launch)";
 
 size_t ceil_div(size_t a, size_t b) {
   return (a + b - 1) / b;
@@ -23,15 +24,23 @@ size_t ceil_div(size_t a, size_t b) {
 
 // The automatic plan on a simulator (fit_to).
 constexpr int kSimulatorSortGroup = 32, kSimulatorSortKeys = 32;
+// Sorts of at most this many tiles run whole in one launch (rs_one_group):
+// on a GPU a single tile, which one work-group would sort anyway, without
+// 3 launches a pass; on a simulator, whose every launch has a cost of its
+// own (Oclgrind's race detector clears a record of every allocated byte
+// after each kernel), the frames of small scenes.
+constexpr int kOneGroupTiles = 1, kSimulatorOneGroupTiles = 64;
 
 bool is_pow2(int v) {
   return v > 0 && (v & (v - 1)) == 0;
 }
 
-// Local memory of rs_scatter, the larger of the two kernels (radix_sort.cl).
+// Local memory of rs_one_group, the largest of the kernels (radix_sort.cl):
+// the counters, two arrays of a word per work-item, the tile, two of a word
+// per digit.
 uint64_t group_local_bytes(const RadixSortPlan& p) {
   const uint64_t cells = (uint64_t{1} << p.digit_bits) * p.work_group;
-  return 4 * (cells + cells / 32 + p.work_group + 2 * uint64_t(p.work_group) * p.keys_per_item +
+  return 4 * (cells + cells / 32 + 2 * uint64_t(p.work_group) + 2 * uint64_t(p.work_group) * p.keys_per_item +
               2 * (uint64_t{1} << p.digit_bits));
 }
 
@@ -48,6 +57,7 @@ void check_plan(const RadixSortPlan& p, const std::string& where) {
     throw bad("work-group of " + std::to_string(p.work_group));
   if (p.keys_per_item < 0 || p.keys_per_item > 32) throw bad(std::to_string(p.keys_per_item) + " keys per work-item");
   if (p.max_groups < 0) throw bad(std::to_string(p.max_groups) + " groups");
+  if (p.one_group_tiles < -1) throw bad("one launch up to " + std::to_string(p.one_group_tiles) + " tiles");
 }
 
 // A scatter's keys and values, n of each: read from keys and vals, written to
@@ -70,7 +80,8 @@ std::string RadixSortPlan::describe() const {
   } else {
     auto size = [](int v) { return v == 0 ? std::string("auto") : std::to_string(v); };
     s << "group:" << digit_bits << ":" << size(work_group) << ":" << size(keys_per_item);
-    if (max_groups > 0) s << ":" << max_groups;
+    if (max_groups > 0 || one_group_tiles >= 0) s << ":" << size(max_groups);
+    if (one_group_tiles >= 0) s << ":" << one_group_tiles;
   }
   return s.str();
 }
@@ -87,13 +98,13 @@ RadixSortPlan parse_radix_sort_plan(const std::string& text) {
     return std::stoi(s);
   };
   RadixSortPlan p;
-  if (parts.empty()) throw fail();
+  if (parts.empty() || text.back() == ':') throw fail();
   if (parts[0] == "block") {
     if (parts.size() > 2) throw fail();
     p.kind = RadixSortPlan::Kind::Block;
     if (parts.size() == 2) p.block = number(parts[1]);
   } else if (parts[0] == "group") {
-    if (parts.size() != 1 && parts.size() != 4 && parts.size() != 5) throw fail();
+    if (parts.size() != 1 && (parts.size() < 4 || parts.size() > 6)) throw fail();
     p.kind = RadixSortPlan::Kind::Group;
     if (parts.size() >= 4) {
       p.digit_bits = number(parts[1]);
@@ -101,10 +112,11 @@ RadixSortPlan parse_radix_sort_plan(const std::string& text) {
       p.keys_per_item = number(parts[3]);
       if (p.work_group == 0 || p.keys_per_item == 0) throw fail();
     }
-    if (parts.size() == 5) {
+    if (parts.size() >= 5 && parts[4] != "auto") {
       p.max_groups = number(parts[4]);
       if (p.max_groups == 0) throw fail();
     }
+    if (parts.size() == 6) p.one_group_tiles = number(parts[5]);
   } else {
     throw fail();
   }
@@ -159,6 +171,14 @@ RadixSort::RadixSort(Runtime& rt) : RadixSort(rt, radix_sort_plan_for(rt.info())
 
 RadixSort::RadixSort(Runtime& rt, const RadixSortPlan& plan) : rt_(rt), plan_(plan.fit_to(rt.info())), counts_(&rt) {}
 
+size_t RadixSort::one_launch_keys() const {
+  if (plan_.kind != RadixSortPlan::Kind::Group) return 0;
+  const int tiles = plan_.one_group_tiles >= 0     ? plan_.one_group_tiles
+                    : simulated_device(rt_.info()) ? kSimulatorOneGroupTiles
+                                                   : kOneGroupTiles;
+  return static_cast<size_t>(tiles) * plan_.work_group * plan_.keys_per_item;
+}
+
 void RadixSort::sort(DeviceBuffer*& keys, DeviceBuffer*& vals, DeviceBuffer*& keys_tmp, DeviceBuffer*& vals_tmp,
                      size_t n, int bits, const std::string& label) {
   if (bits < 1 || bits > 32) throw std::invalid_argument("RadixSort: key bits must be in [1, 32]");
@@ -211,6 +231,22 @@ void RadixSort::sort_group(DeviceBuffer*& keys, DeviceBuffer*& vals, DeviceBuffe
   const size_t max_groups = plan_.max_groups > 0 ? plan_.max_groups : 8 * std::max<size_t>(1, rt_.info().compute_units);
   const size_t tiles_per_group = ceil_div(tiles, std::min(tiles, max_groups));
   const size_t groups = ceil_div(tiles, tiles_per_group);
+  const cl::NDRange global(groups * plan_.work_group), local(plan_.work_group);
+  const int one_group_tiles = plan_.one_group_tiles >= 0     ? plan_.one_group_tiles
+                              : simulated_device(rt_.info()) ? kSimulatorOneGroupTiles
+                                                             : kOneGroupTiles;
+  if (tiles <= static_cast<size_t>(one_group_tiles)) {
+    cl::Kernel one = rt_.kernel("radix_sort.cl", "rs_one_group", defs);
+    scatter_buffers(KernelCall(one).arg("n", static_cast<cl_uint>(n)).arg("bits", bits), *keys, *vals, *keys_tmp,
+                    *vals_tmp, n)
+        .done();
+    rt_.launch(label, one, local, local);
+    if (ceil_div(bits, plan_.digit_bits) % 2 == 1) {  // an odd number of passes ends in the tmp pair
+      std::swap(keys, keys_tmp);
+      std::swap(vals, vals_tmp);
+    }
+    return;
+  }
   const size_t bins = size_t{1} << plan_.digit_bits;
   counts_.reserve(sizeof(cl_uint) * bins * groups);
   cl::Kernel count = rt_.kernel("radix_sort.cl", "rs_count", defs);
@@ -218,7 +254,6 @@ void RadixSort::sort_group(DeviceBuffer*& keys, DeviceBuffer*& vals, DeviceBuffe
   cl::Kernel scatter = rt_.kernel("radix_sort.cl", "rs_scatter", defs);
   const cl_uint nu = static_cast<cl_uint>(n), tpg = static_cast<cl_uint>(tiles_per_group),
                 gu = static_cast<cl_uint>(groups);
-  const cl::NDRange global(groups * plan_.work_group), local(plan_.work_group);
   const size_t key_bytes = n * sizeof(cl_uint), count_bytes = sizeof(cl_uint) * bins * groups;
   for (int shift = 0; shift < bits; shift += plan_.digit_bits) {
     KernelCall(count)

@@ -25,9 +25,12 @@ struct RadixSortPlan {
   int keys_per_item = 0;  // Group: keys per work-item and tile; 0 = 8 (32 under Oclgrind), or
                           // fewer where local memory is short
   int max_groups = 0;     // Group: work-groups per pass at most; 0 = 8 per compute unit
+  int one_group_tiles = -1;  // Group: sorts of at most this many tiles run whole in one launch by one work-group
+                             // (rs_one_group); -1 = 1 tile (64 under Oclgrind), 0 = never
 
-  // "block:4096" or "group:4:256:8" (":G" appended when max_groups is set),
-  // the form $AG2GS_SORT takes; "group:4:auto:auto" before fit_to().
+  // "block:4096" or "group:4:256:8" (":G" appended when max_groups is set,
+  // ":G:T" when one_group_tiles is, G maybe "auto"), the form $AG2GS_SORT
+  // takes; "group:4:auto:auto" before fit_to().
   std::string describe() const;
   // Resolves the automatic sizes for a device and checks the plan fits it
   // (work-group size, local memory); throws std::invalid_argument naming
@@ -36,7 +39,7 @@ struct RadixSortPlan {
 };
 
 // Parses $AG2GS_SORT's form ("block", "block:N", "group",
-// "group:BITS:WG:IPT[:GROUPS]"); throws std::invalid_argument naming the
+// "group:BITS:WG:IPT[:GROUPS[:ONE]]", GROUPS a number or "auto"); throws std::invalid_argument naming the
 // variable and the accepted forms.
 RadixSortPlan parse_radix_sort_plan(const std::string& text);
 
@@ -58,6 +61,9 @@ class RadixSort {
             int bits, const std::string& label = "sort");
 
   const RadixSortPlan& plan() const { return plan_; }
+  // The most keys a Group plan sorts whole in one launch (0 for Block): the
+  // renderer's scans of as many values take one launch too.
+  size_t one_launch_keys() const;
 
  private:
   void sort_block(DeviceBuffer*& keys, DeviceBuffer*& vals, DeviceBuffer*& keys_tmp, DeviceBuffer*& vals_tmp, size_t n,

@@ -76,7 +76,13 @@ void Renderer::reserve_each(size_t items, std::initializer_list<SizedBuffer> buf
 }
 
 std::map<std::string, std::string> Renderer::bin_defines() const {
-  return {{"SCAN_BLOCK", std::to_string(kScanBlock)}, {"SCAN_WG", std::to_string(kScanWg)}};
+  // The one-launch scan takes the sort plan's work-group: few work-items
+  // with many values each under a simulator, which pays every barrier work-item
+  // by work-item.
+  const int one_wg = sort_.plan().kind == RadixSortPlan::Kind::Group ? sort_.plan().work_group : kScanWg;
+  return {{"SCAN_BLOCK", std::to_string(kScanBlock)},
+          {"SCAN_WG", std::to_string(kScanWg)},
+          {"SCAN_ONE_WG", std::to_string(one_wg)}};
 }
 
 std::vector<float> pack_camera(const Camera& cam, const RenderSettings& settings) {
@@ -260,21 +266,28 @@ size_t Renderer::exclusive_scan(DeviceBuffer& in, DeviceBuffer& out, size_t n) {
   const int ni = static_cast<int>(n);
   const int nscan = static_cast<int>(ceil_div(n, kScanBlock));
   const bool wg_scan = sort_.plan().kind == RadixSortPlan::Kind::Group;
-  cl::Kernel sb = rt_.kernel("bin.cl", wg_scan ? "scan_blocks_wg" : "scan_blocks", bin_defines());
-  set_kernel_args(sb, ni, in, out, block_sums_);
-  if (wg_scan)
-    rt_.launch("bin", sb, cl::NDRange(static_cast<size_t>(nscan) * kScanWg), cl::NDRange(kScanWg));
-  else
-    rt_.launch("bin", sb, cl::NDRange(nscan));
-  cl::Kernel ss = rt_.kernel("bin.cl", wg_scan ? "scan_block_sums_wg" : "scan_block_sums", bin_defines());
-  set_kernel_args(ss, nscan, block_sums_);
-  if (wg_scan)
-    rt_.launch("bin", ss, cl::NDRange(kScanWg), cl::NDRange(kScanWg));
-  else
-    rt_.launch("bin", ss, cl::NDRange(1), cl::NDRange(1));
-  cl::Kernel sa = rt_.kernel("bin.cl", "scan_add", bin_defines());
-  set_kernel_args(sa, ni, out, block_sums_);
-  rt_.launch("bin", sa, cl::NDRange(n), cl::NDRange(64));
+  if (wg_scan && n <= sort_.one_launch_keys()) {  // a short scan: one work-group, one launch
+    cl::Kernel one = rt_.kernel("bin.cl", "scan_one_group_wg", bin_defines());
+    set_kernel_args(one, ni, in, out, block_sums_);
+    const size_t wg = sort_.plan().work_group;
+    rt_.launch("bin", one, cl::NDRange(wg), cl::NDRange(wg));
+  } else {
+    cl::Kernel sb = rt_.kernel("bin.cl", wg_scan ? "scan_blocks_wg" : "scan_blocks", bin_defines());
+    set_kernel_args(sb, ni, in, out, block_sums_);
+    if (wg_scan)
+      rt_.launch("bin", sb, cl::NDRange(static_cast<size_t>(nscan) * kScanWg), cl::NDRange(kScanWg));
+    else
+      rt_.launch("bin", sb, cl::NDRange(nscan));
+    cl::Kernel ss = rt_.kernel("bin.cl", wg_scan ? "scan_block_sums_wg" : "scan_block_sums", bin_defines());
+    set_kernel_args(ss, nscan, block_sums_);
+    if (wg_scan)
+      rt_.launch("bin", ss, cl::NDRange(kScanWg), cl::NDRange(kScanWg));
+    else
+      rt_.launch("bin", ss, cl::NDRange(1), cl::NDRange(1));
+    cl::Kernel sa = rt_.kernel("bin.cl", "scan_add", bin_defines());
+    set_kernel_args(sa, ni, out, block_sums_);
+    rt_.launch("bin", sa, cl::NDRange(n), cl::NDRange(64));
+  }
   cl_uint total = 0;
   AG2GS_CL_CHECK(rt_.queue().enqueueReadBuffer(block_sums_.get(), CL_TRUE, nscan * 4, 4, &total));
   return total;

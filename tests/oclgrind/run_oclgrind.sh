@@ -170,6 +170,11 @@ fi
 # renders with the other layout's sort and scans (AG2GS_SORT picks both).
 if [ "$layout" = gpu ]; then
   step radix_sort "$build/test_radix_sort" --gtest_filter='RadixSort.EveryPlanGivesTheSameOrder'
+  # Under Oclgrind the frames of these tests are sorted and scanned in one
+  # launch each (rs_one_group, scan_one_group_wg); a render with that off
+  # takes the three launches a pass and a scan.
+  AG2GS_SORT=group:4:32:32:auto:0 step render_three_launch_sort "$build/test_render_forward" \
+    --gtest_filter='RenderForward.OddSize17x9'
   other_sort=block
 else
   other_sort=group

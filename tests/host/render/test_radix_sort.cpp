@@ -1,7 +1,8 @@
 // The device radix sort (host/render/radix_sort.h) against std::stable_sort:
 // every plan the code can choose (the CPU block sort, the GPU work-group sort
 // at every digit width, work-groups from the smallest to 1024, one to 32 keys
-// per work-item, one group walking many tiles) must give the one stable
+// per work-item, one group walking many tiles, a sort whole in one launch
+// over one tile or many) must give the one stable
 // order, bit for bit, on keys with many duplicates, all-equal keys, the
 // largest keys, and counts of 0, 1, odd and large. Values are the input
 // index, so a tie broken the wrong way shows.
@@ -97,10 +98,12 @@ RadixSortPlan plan(const std::string& text) {
   return parse_radix_sort_plan(text);
 }
 
-// Every kind of key and count under the plans the renderer picks (CPU, GPU)
-// and a work-group plan whose groups each walk many tiles.
+// Every kind of key and count under the plans the renderer picks (CPU, GPU:
+// sorts of one tile in one launch), a work-group plan whose groups each walk
+// many tiles, and the one-launch sort over every count (up to 157 tiles).
 TEST(RadixSort, MatchesStableSortOnEveryKeyKind) {
-  const std::vector<std::string> plans{"block:4096", "group:4:256:8", "group:4:64:4:3", "group:4:32:32"};
+  const std::vector<std::string> plans{"block:4096", "group:4:256:8", "group:4:64:4:3", "group:4:32:32",
+                                       "group:4:64:4:auto:1000"};
   const std::vector<size_t> counts{0, 1, 2, 255, 2049, 40001};
   const std::vector<KeyKind> kinds{KeyKind::Duplicates, KeyKind::Uniform, KeyKind::AllEqual, KeyKind::Largest,
                                    KeyKind::Descending};
@@ -113,12 +116,27 @@ TEST(RadixSort, MatchesStableSortOnEveryKeyKind) {
 }
 
 // Every digit width, small and large work-groups, one to 32 keys per
-// work-item, a single group, odd block sizes of the block sort: small counts,
-// so the smallest plans stay quick (and the test runs under Oclgrind).
+// work-item, a single group, odd block sizes of the block sort, the
+// one-launch sort and the three launches a pass at the same sizes: small
+// counts, so the smallest plans stay quick (and the test runs under
+// Oclgrind, whose automatic plan sorts up to 64 tiles in one launch).
 TEST(RadixSort, EveryPlanGivesTheSameOrder) {
-  const std::vector<std::string> plans{"block:1",        "block:33",       "block:65536",   "group",
-                                       "group:1:2:1",    "group:2:4:3",    "group:3:8:32",  "group:5:32:1",
-                                       "group:5:64:2:1", "group:4:16:7:2", "group:1:128:5", "group:3:32:9:5"};
+  const std::vector<std::string> plans{"block:1",
+                                       "block:33",
+                                       "block:65536",
+                                       "group",
+                                       "group:1:2:1",
+                                       "group:2:4:3",
+                                       "group:3:8:32",
+                                       "group:5:32:1",
+                                       "group:5:64:2:1",
+                                       "group:4:16:7:2",
+                                       "group:1:128:5",
+                                       "group:3:32:9:5",
+                                       "group:4:32:32:auto:0",
+                                       "group:5:64:2:1:0",
+                                       "group:4:16:7:2:0",
+                                       "group:2:4:3:auto:500"};
   for (const std::string& p : plans)
     for (size_t n : {size_t{1}, size_t{97}, size_t{1000}})
       for (int bits : {32, 11})
@@ -141,6 +159,9 @@ TEST(RadixSort, PlansParseAndBadOnesAreRefused) {
   EXPECT_EQ(plan("group").describe(), "group:4:auto:auto");
   EXPECT_EQ(plan("group:3:64:5").describe(), "group:3:64:5");
   EXPECT_EQ(plan("group:3:64:5:7").describe(), "group:3:64:5:7");
+  EXPECT_EQ(plan("group:3:64:5:auto:0").describe(), "group:3:64:5:auto:0");
+  EXPECT_EQ(plan("group:3:64:5:7:12").describe(), "group:3:64:5:7:12");
+  EXPECT_EQ(plan("group:3:64:5:auto").describe(), "group:3:64:5");
   for (const char* bad : {"",
                           "blocks",
                           "block:0",
@@ -158,7 +179,11 @@ TEST(RadixSort, PlansParseAndBadOnesAreRefused) {
                           "group:4:0:8",
                           "group:4:256:33",
                           "group:4:256:8:0",
-                          "group:4:256:8:1:1",
+                          "group:4:256:8:1:1:1",
+                          "group:4:256:8:auto:-1",
+                          "group:4:256:8:auto:x",
+                          "group:4:256:8:auto:",
+                          "group:4:256:8:",
                           "group:x:256:8",
                           "radix"}) {
     try {
