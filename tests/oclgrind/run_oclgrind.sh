@@ -170,17 +170,17 @@ fi
 # renders with the other layout's sort and scans (AG2GS_SORT picks both).
 if [ "$layout" = gpu ]; then
   step radix_sort "$build/test_radix_sort" --gtest_filter='RadixSort.EveryPlanGivesTheSameOrder'
-  # Under Oclgrind the frames of these tests are sorted and scanned in one
-  # launch each (rs_one_group, scan_one_group_wg); a render with that off
-  # takes the three launches a pass and a scan.
-  AG2GS_SORT=group:4:32:32:auto:0 step render_three_launch_sort "$build/test_render_forward" \
-    --gtest_filter='RenderForward.OddSize17x9'
   other_sort=block
 else
   other_sort=group
 fi
 AG2GS_SORT=$other_sort step render_${other_sort}_sort "$build/test_render_forward" \
   --gtest_filter='RenderForward.OnePixel:RenderForward.OddSize17x9:RenderForward.Background'
+# Under Oclgrind the work-group sort sorts and scans these frames in one
+# launch each (rs_one_group, scan_one_group_wg); with that off it takes
+# three launches a pass and a scan.
+AG2GS_SORT=group:4:32:32:auto:0 step render_three_launch_sort "$build/test_render_forward" \
+  --gtest_filter='RenderForward.OddSize17x9'
 # The runtime's own checks of a launch (bin.cl's iota, which only they use).
 step runtime "$build/test_runtime" --gtest_filter='Runtime.KernelCallChecksNamesAndBufferSizes'
 # Culling, clamps, NaN and infinite parameters, empty scenes, bad input.
