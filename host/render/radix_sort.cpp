@@ -232,10 +232,7 @@ void RadixSort::sort_group(DeviceBuffer*& keys, DeviceBuffer*& vals, DeviceBuffe
   const size_t tiles_per_group = ceil_div(tiles, std::min(tiles, max_groups));
   const size_t groups = ceil_div(tiles, tiles_per_group);
   const cl::NDRange global(groups * plan_.work_group), local(plan_.work_group);
-  const int one_group_tiles = plan_.one_group_tiles >= 0     ? plan_.one_group_tiles
-                              : simulated_device(rt_.info()) ? kSimulatorOneGroupTiles
-                                                             : kOneGroupTiles;
-  if (tiles <= static_cast<size_t>(one_group_tiles)) {
+  if (n <= one_launch_keys()) {
     cl::Kernel one = rt_.kernel("radix_sort.cl", "rs_one_group", defs);
     scatter_buffers(KernelCall(one).arg("n", static_cast<cl_uint>(n)).arg("bits", bits), *keys, *vals, *keys_tmp,
                     *vals_tmp, n)

@@ -39,8 +39,8 @@ struct RadixSortPlan {
 };
 
 // Parses $AG2GS_SORT's form ("block", "block:N", "group",
-// "group:BITS:WG:IPT[:GROUPS[:ONE]]", GROUPS a number or "auto"); throws std::invalid_argument naming the
-// variable and the accepted forms.
+// "group:BITS:WG:IPT[:GROUPS[:ONE]]", GROUPS a number or "auto"); throws
+// std::invalid_argument naming the variable and the accepted forms.
 RadixSortPlan parse_radix_sort_plan(const std::string& text);
 
 // The plan for a device, fitted to it: Group on GPUs, Block with 4096 keys
