@@ -82,8 +82,8 @@ __kernel void scan_block_sums(int nblocks, __global uint* block_sums) {  // [nbl
 // sums (integer sums: the same bits as the two kernels above).
 // scan_block_wg: out[begin, begin + SCAN_BLOCK) = carry + the exclusive sums
 // of in over the block (within n) by a work-group of any power of two up to
-// SCAN_BLOCK; returns the block's sum to every work-item. vals: [SCAN_BLOCK],
-// tmp: [local size].
+// SCAN_BLOCK; returns the block's sum to every work-item. vals: [SCAN_BLOCK]
+// (free again after a barrier), tmp: [local size].
 uint scan_block_wg(int n, int begin, uint carry, __global const uint* in, __global uint* out, __local uint* vals,
                    __local uint* tmp) {
   const int lid = get_local_id(0), wg = get_local_size(0);
@@ -102,7 +102,6 @@ uint scan_block_wg(int n, int begin, uint carry, __global const uint* in, __glob
   barrier(CLK_LOCAL_MEM_FENCE);
   for (int i = lid; i < SCAN_BLOCK; i += wg)
     if (begin + i < n) out[begin + i] = vals[i];
-  barrier(CLK_LOCAL_MEM_FENCE);  // vals is free again
   return total;
 }
 
@@ -127,7 +126,10 @@ void scan_one_group_wg(int n, __global const uint* in, __global uint* out,  // [
   __local uint tmp[SCAN_ONE_WG];
   const int nblocks = (n + SCAN_BLOCK - 1) / SCAN_BLOCK;
   uint carry = 0;
-  for (int b = 0; b < nblocks; ++b) carry += scan_block_wg(n, b * SCAN_BLOCK, carry, in, out, vals, tmp);
+  for (int b = 0; b < nblocks; ++b) {
+    carry += scan_block_wg(n, b * SCAN_BLOCK, carry, in, out, vals, tmp);
+    barrier(CLK_LOCAL_MEM_FENCE);  // the block's vals are written out before the next one loads
+  }
   if (get_local_id(0) == 0) block_sums[nblocks] = carry;
 }
 
