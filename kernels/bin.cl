@@ -1,7 +1,8 @@
 // Binning: Gaussians -> (tile, depth)-ordered intersection lists.
 //   0. the Gaussians on screen (a tile or more), in index order: a scan of
 //      visible_flags, then compact_visible
-//   1. sort them by depth (stable radix sort of float bits, ties by index)
+//   1. sort them by depth (stable radix sort of float bits, ties by index;
+//      only the bits in which the on-screen keys differ)
 //   2. exclusive scan of tiles-per-Gaussian in that order -> offsets
 //   3. emit one intersection per (Gaussian, tile), Gaussians in depth order
 //   4. stable radix sort of the intersections by tile id -> per tile, depth order
@@ -22,22 +23,47 @@ __kernel void iota(int n, __global uint* out) {  // [n]
   if (i < n) out[i] = (uint)i;
 }
 
+// Also the least and the greatest depth key on screen, into key_range
+// (which the host sets to {0xFFFFFFFF, 0} first): min and max are the same
+// in any order, so the integer atomics leave the same bits. The depth sort
+// then sorts the keys minus the least over the bits their range spans,
+// skipping the passes of digits that no key changes.
 __kernel void visible_flags(int n, __global const uint* tile_counts,  // [N]
-                            __global uint* flags) {                   // [N] 1: on screen
-  int g = get_global_id(0);
-  if (g < n) flags[g] = tile_counts[g] > 0u ? 1u : 0u;
+                            __global const uint* depth_keys,          // [N]
+                            __global uint* flags,                     // [N] 1: on screen
+                            __global uint* key_range) {               // [2] least, greatest
+  __local uint lo, hi;
+  const int g = get_global_id(0);
+  const int on = g < n && tile_counts[g] > 0u;
+  if (g < n) flags[g] = on ? 1u : 0u;
+  if (get_local_id(0) == 0) {
+    lo = 0xFFFFFFFFu;
+    hi = 0u;
+  }
+  barrier(CLK_LOCAL_MEM_FENCE);
+  if (on) {
+    atomic_min(&lo, depth_keys[g]);
+    atomic_max(&hi, depth_keys[g]);
+  }
+  barrier(CLK_LOCAL_MEM_FENCE);
+  if (get_local_id(0) == 0 && lo <= hi) {
+    atomic_min(key_range, lo);
+    atomic_max(key_range + 1, hi);
+  }
 }
 
-// The on-screen Gaussians' depth keys and ids, packed in index order.
+// The on-screen Gaussians' depth keys (minus the least, key_base) and ids,
+// packed in index order.
 __kernel void compact_visible(int n, __global const uint* tile_counts,  // [N]
                               __global const uint* depth_keys,          // [N]
                               __global const uint* slots,               // [N] exclusive scan of the flags
+                              uint key_base,                            // the least on-screen key
                               __global uint* keys,                      // [V]
                               __global uint* ids) {                     // [V]
   int g = get_global_id(0);
   if (g >= n || tile_counts[g] == 0u) return;
   const uint s = slots[g];
-  keys[s] = depth_keys[g];
+  keys[s] = depth_keys[g] - key_base;
   ids[s] = (uint)g;
 }
 

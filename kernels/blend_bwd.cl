@@ -42,16 +42,25 @@
 // reached_sum: p[L] summed over the reached work-items L = g (mod step), in
 // increasing L (work-item L has row L / (TILE / VW), column group
 // L % (TILE / VW)).
-inline float reached_sum(__local const float* p, uint reach, int g, int step) {
+ALWAYS_INLINE float reached_sum(__local const float* p, uint reach, int g, int step) {
+  const int per_row = TILE / VW;  // work-items per tile row
   uint groups = 0u;
-  for (int c = 0; c < TILE / VW; ++c)
+  for (int c = 0; c < per_row; ++c)
     groups |= (((reach >> (TILE + c * VW)) & ((1u << VW) - 1u)) != 0u ? 1u : 0u) << c;
+  // Where step divides a row's work-items, L % step is the column group's
+  // own: the other groups are left out up front.
+  const int by_group = per_row % step == 0;
+  if (by_group) {
+    uint same = 0u;
+    for (int c = g; c < per_row; c += step) same |= 1u << c;
+    groups &= same;
+  }
   float s = 0.f;
   for (uint rows = reach & ((1u << TILE) - 1u); rows != 0u;) {
-    const int base = pop_record(&rows) * (TILE / VW);
+    const int base = pop_record(&rows) * per_row;
     for (uint m = groups; m != 0u;) {
       const int L = base + pop_record(&m);
-      if (L % step == g) s += p[L];
+      if (by_group || L % step == g) s += p[L];
     }
   }
   return s;

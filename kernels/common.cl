@@ -379,34 +379,33 @@ inline float tile_row_reach(__global const float* q, float x0) {
 }
 
 // The GPU layout's row test: bit r set when row r of tile `tile` may blend
-// the record q (row_beyond over the tile's 16 pixel centres of the row).
-// The work-item that stages a record computes its mask once for the tile;
-// then each pixel of a row the record cannot reach skips it with one bit
-// test instead of its exponent, which changes no bit of the result.
-inline uint tile_rows_reached(__local const float* q, int tile, int tiles_x) {
-  const float u = q[REC_U], v = q[REC_V];
-  const int x0 = (tile % tiles_x) * TILE, y0 = (tile / tiles_x) * TILE;
-  const float dx0 = u - ((float)x0 + 0.5f), dx1 = u - ((float)x0 + ((float)TILE - 0.5f));
+// the record q. The work-item that stages a record computes its mask once
+// for the tile; then each pixel of a row the record cannot reach skips it
+// with one bit test instead of its exponent, which changes no bit of the
+// result. The rows are those within row_reach of the record's centre, the
+// CPU layouts' row test (|dy| <= reach, dy computed as they compute it): one
+// square root per record and tile instead of a row_beyond per row.
+ALWAYS_INLINE uint reach_mask(float w, float first, float reach) {
   uint mask = 0u;
-  for (int r = 0; r < TILE; ++r)
-    if (!row_beyond(q[REC_CA], q[REC_CB], q[REC_CC], q[REC_CM], q[REC_THR], v - ((float)(y0 + r) + 0.5f), dx0, dx1))
-      mask |= 1u << r;
+  for (int r = 0; r < TILE; ++r) mask |= (fabs(w - (first + (float)r)) <= reach ? 1u : 0u) << r;
   return mask;
+}
+inline uint tile_rows_reached(__local const float* q, int tile, int tiles_x) {
+  const float u = q[REC_U];
+  const float x0 = (float)((tile % tiles_x) * TILE) + 0.5f, y0 = (float)((tile / tiles_x) * TILE) + 0.5f;
+  const float dxm = fmax(fabs(u - x0), fabs(u - (x0 + (float)(TILE - 1))));
+  return reach_mask(q[REC_V], y0, row_reach(q[REC_CA], q[REC_CB], q[REC_CC], q[REC_CM], q[REC_THR], dxm));
 }
 
 // The column counterpart of tile_rows_reached: bit c set when column c of
-// tile `tile` may blend the record q. It is row_beyond with x and y swapped:
+// tile `tile` may blend the record q. It is row_reach with x and y swapped:
 // over a column at offset dx the least sigma is 0.5 dx^2 (cA - cB^2 / cC).
 inline uint tile_cols_reached(__local const float* q, int tile, int tiles_x) {
-  const float u = q[REC_U], v = q[REC_V];
-  const int x0 = (tile % tiles_x) * TILE, y0 = (tile / tiles_x) * TILE;
-  const float dy0 = v - ((float)y0 + 0.5f), dy1 = v - ((float)y0 + ((float)TILE - 0.5f));
+  const float v = q[REC_V];
+  const float x0 = (float)((tile % tiles_x) * TILE) + 0.5f, y0 = (float)((tile / tiles_x) * TILE) + 0.5f;
+  const float dym = fmax(fabs(v - y0), fabs(v - (y0 + (float)(TILE - 1))));
   const float cm = q[REC_CA] - q[REC_CB] * q[REC_CB] / q[REC_CC];
-  uint mask = 0u;
-  for (int c = 0; c < TILE; ++c)
-    if (!row_beyond(q[REC_CC], q[REC_CB], q[REC_CA], cm, q[REC_THR], u - ((float)(x0 + c) + 0.5f), dy0, dy1))
-      mask |= 1u << c;
-  return mask;
+  return reach_mask(q[REC_U], x0, row_reach(q[REC_CC], q[REC_CB], q[REC_CA], cm, q[REC_THR], dym));
 }
 // Both: the rows in the low TILE bits, the columns in the next TILE.
 inline uint tile_reached(__local const float* q, int tile, int tiles_x) {

@@ -23,6 +23,13 @@ size_t ceil_div(size_t a, size_t b) {
   return (a + b - 1) / b;
 }
 
+// The bits a radix sort of keys in [0, range] needs (0: all keys equal).
+int key_bits(cl_uint range) {
+  int bits = 0;
+  while (bits < 32 && (range >> bits) != 0u) ++bits;
+  return bits;
+}
+
 // [H,W,C] -> [C,H,W]
 std::vector<float> to_planar(const std::vector<float>& hwc, size_t npix, int c) {
   std::vector<float> out(npix * c);
@@ -61,13 +68,13 @@ Renderer::Renderer(Runtime& rt)
       bwd_plan_(staged_ ? blend_bwd_plan_for(rt.info()) : BlendBwdPlan{}),
       cpu_bwd_vector_width_(staged_ ? 0 : cpu_blend_bwd_vector_width(rt.info())) {
   for (DeviceBuffer* b :
-       {&cam_buf_,        &records_,     &rects_,         &tile_counts_,    &depth_keys_,     &radii_,
-        &order_keys_tmp_, &order_keys_,  &order_vals_,    &order_vals_tmp_, &counts_sorted_,  &offsets_,
-        &block_sums_,     &tile_keys_,   &tile_keys_tmp_, &isect_vals_,     &isect_vals_tmp_, &isect_gid_,
-        &isect_start_,    &ranges_,      &out_rgb_,       &out_feat_,       &out_depth_,      &out_alpha_,
-        &out_dist_,       &out_aux_,     &out_last_,      &out_count_,      &g_rgb_,          &g_feat_,
-        &g_depth_,        &g_alpha_,     &g_dist_,        &isect_grads_,    &v_means_,        &v_scales_,
-        &v_quats_,        &v_opacities_, &v_sh_,          &v_features_,     &v_means2d_,      &weight_sums_})
+       {&cam_buf_,       &records_,    &rects_,          &tile_counts_,   &depth_keys_,  &radii_,      &order_keys_tmp_,
+        &order_keys_,    &order_vals_, &order_vals_tmp_, &counts_sorted_, &offsets_,     &block_sums_, &tile_keys_,
+        &tile_keys_tmp_, &isect_vals_, &isect_vals_tmp_, &isect_gid_,     &isect_start_, &ranges_,     &key_range_,
+        &out_rgb_,       &out_feat_,   &out_depth_,      &out_alpha_,     &out_dist_,    &out_aux_,    &out_last_,
+        &out_count_,     &g_rgb_,      &g_feat_,         &g_depth_,       &g_alpha_,     &g_dist_,     &isect_grads_,
+        &v_means_,       &v_scales_,   &v_quats_,        &v_opacities_,   &v_sh_,        &v_features_, &v_means2d_,
+        &weight_sums_})
     b->bind(&rt_);
 }
 
@@ -195,19 +202,24 @@ void Renderer::bin(const DeviceGaussians& g, const Camera& cam, const RenderSett
     // Only the Gaussians on screen are sorted (in index order first, so the
     // stable sort orders them as it would among all; a culled one emits
     // nothing): a view that sees half of them sorts half.
+    key_range_.upload(std::vector<cl_uint>{0xFFFFFFFFu, 0u});
     cl::Kernel flags = rt_.kernel("bin.cl", "visible_flags", bin_defines());
-    set_kernel_args(flags, ni, tile_counts_, counts_sorted_);
+    set_kernel_args(flags, ni, tile_counts_, depth_keys_, counts_sorted_, key_range_);
     rt_.launch("bin", flags, cl::NDRange(n), cl::NDRange(64));
     const size_t visible = exclusive_scan(counts_sorted_, offsets_, n);
     visible_ = visible;
     if (visible > 0) {
       const int nv = static_cast<int>(visible);
+      std::vector<cl_uint> range;
+      key_range_.download(range, 2);
       cl::Kernel compact = rt_.kernel("bin.cl", "compact_visible", bin_defines());
-      set_kernel_args(compact, ni, tile_counts_, depth_keys_, offsets_, order_keys_, order_vals_);
+      set_kernel_args(compact, ni, tile_counts_, depth_keys_, offsets_, range[0], order_keys_, order_vals_);
       rt_.launch("bin", compact, cl::NDRange(n), cl::NDRange(64));
-      // Depth order (stable: ties keep index order).
+      // Depth order (stable: ties keep index order). The keys minus the
+      // least span key_bits(range): a view whose depths lie within a factor
+      // of two sorts 24 bits or fewer, and keys all equal need no sort.
       DeviceBuffer *keys = &order_keys_, *vals = &order_vals_, *ktmp = &order_keys_tmp_, *vtmp = &order_vals_tmp_;
-      sort_.sort(keys, vals, ktmp, vtmp, visible, 32);
+      if (const int bits = key_bits(range[1] - range[0]); bits > 0) sort_.sort(keys, vals, ktmp, vtmp, visible, bits);
       sorted_order_ = vals;
 
       cl::Kernel gather = rt_.kernel("bin.cl", "gather_counts", bin_defines());

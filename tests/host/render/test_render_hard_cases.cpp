@@ -247,6 +247,41 @@ TEST(HardCases, DeepStackSaturatesTransmittance) {
   expect_matches_reference(g, cam, r, 2e-4);
 }
 
+TEST(HardCases, EqualDepthsBlendInIndexOrder) {
+  // Every on-screen Gaussian at the same depth: the depth keys span no bit,
+  // the renderer skips the depth sort, and the order must still be index
+  // order (the stable sort's), different colours and opacities making a
+  // wrong order visible.
+  GaussianSet g;
+  g.sh_degree = 0;
+  for (int i = 0; i < 40; ++i) {
+    GaussianSet one = single(0.05f * (i % 9) - 0.2f, 0.04f * (i % 5) - 0.1f, 3.f, 0.2f, 0.15f, 0.2f, 0.3f + 0.015f * i);
+    one.sh = {0.5f - 0.02f * i, 0.01f * i, 0.3f};
+    append(g, one);
+  }
+  Camera cam = axis_camera(48, 32);
+  RunResult r = run(g, cam);
+  expect_all_finite(r);
+  expect_matches_reference(g, cam, r);
+}
+
+TEST(HardCases, DepthsOverManyOctavesSortEveryBit) {
+  // Depths from 0.05 to 4000 (float bits differing in the exponent's high
+  // bits) next to a cluster within one octave: the depth sort runs over
+  // every bit the keys span, and the order matches the reference's.
+  GaussianSet g;
+  g.sh_degree = 0;
+  for (int i = 0; i < 30; ++i) {
+    const float z = 0.05f * std::pow(1.5f, static_cast<float>(i));
+    append(g, single(0.02f * z * (i % 3), 0.01f * z, z, 0.1f * z, 0.08f * z, 0.1f * z, 0.4f));
+  }
+  for (int i = 0; i < 30; ++i) append(g, single(0.01f * i - 0.15f, 0.f, 2.f + 0.03f * i, 0.1f, 0.1f, 0.1f, 0.5f));
+  Camera cam = axis_camera(48, 32);
+  RunResult r = run(g, cam);
+  expect_all_finite(r);
+  expect_matches_reference(g, cam, r);
+}
+
 TEST(HardCases, ZeroQuaternionCulledUnnormalisedEqualsNormalised) {
   GaussianSet a = single(0, 0, 3, 0.3f, 0.1f, 0.2f, 0.8f);
   a.quats = {0.5f, 0.5f, -0.5f, 0.5f};
