@@ -39,6 +39,11 @@
 // the SEG segment sums in order. PSTRIDE = WG_SIZE + SEG puts a warp's
 // 32 / SEG rows x SEG segments in distinct banks.
 //
+// p[0, n) = 0 by the work-group, 16 floats per store where it can.
+inline void zero_local(__local float* p, int n, int lid) {
+  for (int i = lid * 16; i + 16 <= n; i += WG_SIZE * 16) vstore16((float16)0.f, 0, p + i);
+  for (int t = n / 16 * 16 + lid; t < n; t += WG_SIZE) p[t] = 0.f;
+}
 // reached_sum: p[L] summed over the reached work-items L = g (mod step), in
 // increasing L (work-item L has row L / (TILE / VW), column group
 // L % (TILE / VW)).
@@ -278,7 +283,7 @@ void blend_bwd(int width, int height, int tiles_x,
       uint slot = isect_vals[range.x + b0 + i];
       uint gid = isect_gid[slot];
       s_slot[i] = slot;
-      for (int c = 0; c < REC_SIZE; ++c) s_rec[i * REC_SIZE + c] = records[(size_t)gid * REC_SIZE + c];
+      stage_record(s_rec, i, records, gid);
       s_reach[i] = tile_reached(s_rec + i * REC_SIZE, pr.tile, tiles_x);
       reach_lists_add(s_list, i, s_reach[i]);
     }
@@ -455,18 +460,18 @@ void blend_weights(int width, int height, int tiles_x,
       uint slot = isect_vals[range.x + b0 + i];
       s_slot[i] = slot;
       uint gid = isect_gid[slot];
-      for (int c = 0; c < REC_SIZE; ++c) s_rec[i * REC_SIZE + c] = records[(size_t)gid * REC_SIZE + c];
+      stage_record(s_rec, i, records, gid);
       s_reach[i] = tile_reached(s_rec + i * REC_SIZE, pr.tile, tiles_x);
     }
+    // Zeros for the records that blend at none of a work-item's pixels (not
+    // in its lists, out of reach, or after its pixels stopped); the walk of
+    // the lists writes the others. The whole block at once, in vectors.
+    zero_local(s_part, nb * PSTRIDE, lid);
     barrier(CLK_LOCAL_MEM_FENCE);
     reach_lists(s_reach, nb, s_list, lid);
     if (ANY(NOT(done))) atomic_or(&s_alive, 1);
     barrier(CLK_LOCAL_MEM_FENCE);
     if (!s_alive) break;  // every pixel of the tile stopped: the rest get zeros below
-    // Zeros for the records that blend at none of this work-item's pixels
-    // (not in its lists, out of reach, or after its pixels stopped); the
-    // walk of the lists writes the others.
-    for (int j = 0; j < nb; ++j) s_part[j * PSTRIDE + lid] = 0.f;
     for (int w = 0; w < LIST_WORDS && ANY(NOT(done)); ++w)
       for (uint m = rows[w] & cols[w];;) {
         vfloat sigma;

@@ -149,7 +149,7 @@ void blend_fwd(int width, int height, int tiles_x,
     if (lid == 0) s_alive = 0;
     for (int i = lid; i < nb; i += WG_SIZE) {
       uint gid = isect_gid[isect_vals[range.x + b0 + i]];
-      for (int c = 0; c < REC_SIZE; ++c) s_rec[i * REC_SIZE + c] = records[(size_t)gid * REC_SIZE + c];
+      stage_record(s_rec, i, records, gid);
       s_reach[i] = tile_reached(s_rec + i * REC_SIZE, pr.tile, tiles_x);
     }
     barrier(CLK_LOCAL_MEM_FENCE);

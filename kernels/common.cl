@@ -407,6 +407,15 @@ inline uint tile_cols_reached(__local const float* q, int tile, int tiles_x) {
   const float cm = q[REC_CA] - q[REC_CB] * q[REC_CB] / q[REC_CC];
   return reach_mask(q[REC_U], x0, row_reach(q[REC_CC], q[REC_CB], q[REC_CA], cm, q[REC_THR], dym));
 }
+// Copies record gid into slot i of a staged batch: one 16-float vector
+// load and store (REC_SIZE is 16) rather than 16 of each.
+ALWAYS_INLINE void stage_record(__local float* s_rec, int i, __global const float* records, uint gid) {
+#if REC_SIZE == 16
+  vstore16(vload16((size_t)gid, records), (size_t)i, s_rec);
+#else
+  for (int c = 0; c < REC_SIZE; ++c) s_rec[i * REC_SIZE + c] = records[(size_t)gid * REC_SIZE + c];
+#endif
+}
 // Both: the rows in the low TILE bits, the columns in the next TILE.
 inline uint tile_reached(__local const float* q, int tile, int tiles_x) {
   return tile_rows_reached(q, tile, tiles_x) | (tile_cols_reached(q, tile, tiles_x) << TILE);
@@ -458,7 +467,19 @@ inline void reach_lists(__local const uint* s_reach, int nb, __local uint* s_lis
     const int shift = list < TILE ? list : TILE + (list - TILE) * VW;
     const uint bits = list < TILE ? 1u : (1u << VW) - 1u;
     uint m = 0u;
-    for (int b = 0; b < 32 && j0 + b < nb; ++b) m |= (((s_reach[j0 + b] >> shift) & bits) != 0u ? 1u : 0u) << b;
+    int b = 0;
+    // Sixteen records at a time as vectors (an interpreter such as Oclgrind
+    // runs a vector operation as one step), then one by one to nb.
+    for (; b < 32 && j0 + b + 16 <= nb; b += 16) {
+      const uint16 hit = as_uint16(((vload16(0, s_reach + j0 + b) >> (uint)shift) & bits) != (uint16)0u) &
+                         (uint16)(0x1u, 0x2u, 0x4u, 0x8u, 0x10u, 0x20u, 0x40u, 0x80u, 0x100u, 0x200u, 0x400u, 0x800u,
+                                  0x1000u, 0x2000u, 0x4000u, 0x8000u);
+      const uint8 h8 = hit.lo | hit.hi;
+      const uint4 h4 = h8.lo | h8.hi;
+      const uint2 h2 = h4.lo | h4.hi;
+      m |= (h2.x | h2.y) << b;
+    }
+    for (; b < 32 && j0 + b < nb; ++b) m |= (((s_reach[j0 + b] >> shift) & bits) != 0u ? 1u : 0u) << b;
     s_list[k] = m;
   }
 }

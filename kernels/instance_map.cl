@@ -99,7 +99,7 @@ void instance_map(int width, int height, int tiles_x, int children,
   if (lid == 0) s_alive = 0;                                                                               \
   for (int i = lid; i < (nb); i += WG_SIZE) {                                                              \
     const uint gid = isect_gid[isect_vals[range.x + (b0) + i]];                                            \
-    for (int c = 0; c < REC_SIZE; ++c) s_rec[i * REC_SIZE + c] = records[(size_t)gid * REC_SIZE + c];      \
+    stage_record(s_rec, i, records, gid);                                                                  \
     s_k[i] = anchor_cluster[gid / (uint)children];                                                         \
     s_reach[i] = tile_reached(s_rec + i * REC_SIZE, pr.tile, tiles_x);                                     \
   }                                                                                                        \
