@@ -26,6 +26,12 @@
 #endif
 
 #if !NO_STAGING
+// p[0, n) = 0 by the work-group, 16 floats per store where it can.
+inline void zero_local(__local float* p, int n, int lid) {
+  for (int i = lid * 16; i + 16 <= n; i += WG_SIZE * 16) vstore16((float16)0.f, 0, p + i);
+  for (int t = n / 16 * 16 + lid; t < n; t += WG_SIZE) p[t] = 0.f;
+}
+
 // The GPU layout's fixed-order sum of each of `rows` values over the
 // work-items' partials (row r of s_part, PSTRIDE apart; `per` rows per
 // record, whose tile_reached mask is s_reach[r / per]), shared by blend_bwd
@@ -39,33 +45,35 @@
 // the SEG segment sums in order. PSTRIDE = WG_SIZE + SEG puts a warp's
 // 32 / SEG rows x SEG segments in distinct banks.
 //
-// p[0, n) = 0 by the work-group, 16 floats per store where it can.
-inline void zero_local(__local float* p, int n, int lid) {
-  for (int i = lid * 16; i + 16 <= n; i += WG_SIZE * 16) vstore16((float16)0.f, 0, p + i);
-  for (int t = n / 16 * 16 + lid; t < n; t += WG_SIZE) p[t] = 0.f;
-}
 // reached_sum: p[L] summed over the reached work-items L = g (mod step), in
 // increasing L (work-item L has row L / (TILE / VW), column group
 // L % (TILE / VW)).
 ALWAYS_INLINE float reached_sum(__local const float* p, uint reach, int g, int step) {
   const int per_row = TILE / VW;  // work-items per tile row
+  float s = 0.f;
+  if (per_row % step == 0) {
+    // L % step is the column group's own: the segment's groups of each
+    // reached row, per_row / step of them, in a loop of fixed length that
+    // the compiler unrolls. Bit VW c of `any` is set when column group c
+    // has a reached column.
+    uint any = reach >> TILE;
+    for (int b = 1; b < VW; b <<= 1) any |= any >> b;
+    for (uint rows = reach & ((1u << TILE) - 1u); rows != 0u;) {
+      __local const float* row = p + pop_record(&rows) * per_row;
+#pragma unroll
+      for (int t = 0; t < per_row / step; ++t)
+        if ((any >> (VW * (g + t * step))) & 1u) s += row[g + t * step];
+    }
+    return s;
+  }
   uint groups = 0u;
   for (int c = 0; c < per_row; ++c)
     groups |= (((reach >> (TILE + c * VW)) & ((1u << VW) - 1u)) != 0u ? 1u : 0u) << c;
-  // Where step divides a row's work-items, L % step is the column group's
-  // own: the other groups are left out up front.
-  const int by_group = per_row % step == 0;
-  if (by_group) {
-    uint same = 0u;
-    for (int c = g; c < per_row; c += step) same |= 1u << c;
-    groups &= same;
-  }
-  float s = 0.f;
   for (uint rows = reach & ((1u << TILE) - 1u); rows != 0u;) {
     const int base = pop_record(&rows) * per_row;
     for (uint m = groups; m != 0u;) {
       const int L = base + pop_record(&m);
-      if (by_group || L % step == g) s += p[L];
+      if (L % step == g) s += p[L];
     }
   }
   return s;
