@@ -202,7 +202,12 @@ void Renderer::bin(const DeviceGaussians& g, const Camera& cam, const RenderSett
     // Only the Gaussians on screen are sorted (in index order first, so the
     // stable sort orders them as it would among all; a culled one emits
     // nothing): a view that sees half of them sorts half.
-    key_range_.upload(std::vector<cl_uint>{0xFFFFFFFFu, 0u});
+    // {least, greatest} before the flags pass narrows them; a static
+    // source, so the write need not block the queue.
+    static const cl_uint kKeyRangeStart[2] = {0xFFFFFFFFu, 0u};
+    key_range_.reserve(sizeof(kKeyRangeStart));
+    AG2GS_CL_CHECK(
+        rt_.queue().enqueueWriteBuffer(key_range_.get(), CL_FALSE, 0, sizeof(kKeyRangeStart), kKeyRangeStart));
     cl::Kernel flags = rt_.kernel("bin.cl", "visible_flags", bin_defines());
     set_kernel_args(flags, ni, tile_counts_, depth_keys_, counts_sorted_, key_range_);
     rt_.launch("bin", flags, cl::NDRange(n), cl::NDRange(64));
