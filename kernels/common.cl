@@ -407,6 +407,7 @@ inline uint tile_cols_reached(__local const float* q, int tile, int tiles_x) {
   const float cm = q[REC_CA] - q[REC_CB] * q[REC_CB] / q[REC_CC];
   return reach_mask(q[REC_U], x0, row_reach(q[REC_CC], q[REC_CB], q[REC_CA], cm, q[REC_THR], dym));
 }
+
 // Copies record gid into slot i of a staged batch: one 16-float vector
 // load and store (REC_SIZE is 16) rather than 16 of each.
 ALWAYS_INLINE void stage_record(__local float* s_rec, int i, __global const float* records, uint gid) {
@@ -416,6 +417,7 @@ ALWAYS_INLINE void stage_record(__local float* s_rec, int i, __global const floa
   for (int c = 0; c < REC_SIZE; ++c) s_rec[i * REC_SIZE + c] = records[(size_t)gid * REC_SIZE + c];
 #endif
 }
+
 // Both: the rows in the low TILE bits, the columns in the next TILE.
 inline uint tile_reached(__local const float* q, int tile, int tiles_x) {
   return tile_rows_reached(q, tile, tiles_x) | (tile_cols_reached(q, tile, tiles_x) << TILE);
