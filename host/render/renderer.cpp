@@ -211,12 +211,15 @@ void Renderer::bin(const DeviceGaussians& g, const Camera& cam, const RenderSett
     cl::Kernel flags = rt_.kernel("bin.cl", "visible_flags", bin_defines());
     set_kernel_args(flags, ni, tile_counts_, depth_keys_, counts_sorted_, key_range_);
     rt_.launch("bin", flags, cl::NDRange(n), cl::NDRange(64));
+    // Read back with the scan's total: the in-order queue has finished this
+    // read when the scan's blocking one returns, so the frame waits once (a
+    // member, so a read left pending by an error never writes a dead frame).
+    cl_uint* range = key_range_host_;
+    AG2GS_CL_CHECK(rt_.queue().enqueueReadBuffer(key_range_.get(), CL_FALSE, 0, sizeof(key_range_host_), range));
     const size_t visible = exclusive_scan(counts_sorted_, offsets_, n);
     visible_ = visible;
     if (visible > 0) {
       const int nv = static_cast<int>(visible);
-      std::vector<cl_uint> range;
-      key_range_.download(range, 2);
       cl::Kernel compact = rt_.kernel("bin.cl", "compact_visible", bin_defines());
       set_kernel_args(compact, ni, tile_counts_, depth_keys_, offsets_, range[0], order_keys_, order_vals_);
       rt_.launch("bin", compact, cl::NDRange(n), cl::NDRange(64));

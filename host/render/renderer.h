@@ -195,6 +195,7 @@ class Renderer {
   DeviceBuffer cam_buf_, records_, rects_, tile_counts_, depth_keys_, radii_;
   DeviceBuffer order_keys_, order_keys_tmp_, order_vals_, order_vals_tmp_, counts_sorted_, offsets_, block_sums_;
   DeviceBuffer key_range_;  // [2] the least and greatest on-screen depth key (bin.cl visible_flags)
+  cl_uint key_range_host_[2] = {0u, 0u};  // key_range_ read back in bin()
   DeviceBuffer tile_keys_, tile_keys_tmp_, isect_vals_, isect_vals_tmp_, isect_gid_, isect_start_, ranges_;
   DeviceBuffer out_rgb_, out_feat_, out_depth_, out_alpha_, out_dist_, out_aux_, out_last_, out_count_;
   DeviceBuffer g_rgb_, g_feat_, g_depth_, g_alpha_, g_dist_, isect_grads_;
