@@ -9,7 +9,9 @@
 //               key gets its rank among the tile's keys of lower digits and of
 //               the same digit at lower indices, so the pass is stable.
 //   rs_one_group: all of it, every pass, by one work-group in one launch,
-//               for sorts of a few tiles.
+//               for sorts of a few tiles (or two halves by two groups,
+//               joined by rs_merge_runs: a simulator runs them on two
+//               threads).
 // Everything is integer counting, so the result is the one stable order:
 // the same whatever the digit width, work-group size, tile or group count.
 // No global atomics; the counters in local memory belong to one work-item
@@ -175,18 +177,24 @@ void rs_scatter(uint n, int shift, uint tiles_per_group,
   rs_scatter_tiles(begin, end, shift, keys_in, vals_in, keys_out, vals_out, cnt, tmp, lkeys, lvals, base, dest);
 }
 
-// A small sort whole: one work-group runs every pass over all n keys in one
-// launch, for frames of a few tiles, where the three launches of each pass
-// cost more than its work. Each pass counts the digits, scans the BINS
+// A small sort whole: one work-group runs every pass over all its keys in
+// one launch, for frames of a few tiles, where the three launches of each
+// pass cost more than its work. Each pass counts the digits, scans the BINS
 // totals and scatters as rs_scatter does, so the order is the same. Passes
 // alternate between the pairs as the host's do: the sorted keys end in
 // (keys_in, vals_in) after an even number of passes, in (keys_out, vals_out)
 // after an odd one; a global barrier lets each pass read what the last one
-// wrote.
+// wrote. Work-group g sorts its own run, keys [g * run, (g + 1) * run) of n
+// (run >= n: one group, the whole sort); rs_merge_runs joins two runs.
 __kernel __attribute__((reqd_work_group_size(RS_WG, 1, 1)))
-void rs_one_group(uint n, int bits,
+void rs_one_group(uint n, int bits, uint run,
                   __global uint* keys_in, __global uint* vals_in,     // [n] the keys to sort
                   __global uint* keys_out, __global uint* vals_out) { // [n] scratch
+  {
+    const uint begin = (uint)min((ulong)n, (ulong)get_group_id(0) * run);
+    n = min(n - begin, run);
+    keys_in += begin; vals_in += begin; keys_out += begin; vals_out += begin;
+  }
   __local uint cnt[CNT_WORDS];
   __local uint part[RS_WG];
   __local uint tmp[RS_WG];
@@ -219,6 +227,32 @@ void rs_one_group(uint n, int bits,
                        dest);
     }
   }
+}
+
+// The stable merge of two sorted runs, [0, run) and [run, n) of the input
+// pair, into the output pair: a key of the first run goes after the keys of
+// the second that are smaller, a key of the second after those of the first
+// that are smaller or equal, so equal keys keep index order. One work-item
+// per key, a binary search in the other run; each output slot is written
+// once.
+__kernel void rs_merge_runs(uint n, uint run,
+                            __global const uint* keys_in, __global const uint* vals_in,  // [n] two sorted runs
+                            __global uint* keys_out, __global uint* vals_out) {          // [n] sorted
+  const uint i = get_global_id(0);
+  if (i >= n) return;
+  const uint key = keys_in[i];
+  const bool first = i < run;
+  uint lo = first ? run : 0u, hi = first ? n : run;
+  while (lo < hi) {
+    const uint mid = lo + (hi - lo) / 2u, k = keys_in[mid];
+    if (first ? k < key : k <= key)
+      lo = mid + 1u;
+    else
+      hi = mid;
+  }
+  const uint pos = first ? i + (lo - run) : (i - run) + lo;
+  keys_out[pos] = key;
+  vals_out[pos] = vals_in[i];
 }
 #endif  // RS_BITS
 

@@ -14,9 +14,9 @@ namespace ag2gs {
 namespace {
 
 const char* kPlanForms =
-    "'block', 'block:KEYS' (KEYS in [1, 65536]), 'group' or 'group:BITS:WG:IPT[:GROUPS[:ONE]]' (BITS in [1, 5], "
-    "WG a power of two in [2^BITS, 1024], IPT in [1, 32], GROUPS >= 1 or 'auto', ONE >= 0: sorts of at most ONE "
-    "tiles in one launch)";
+    "'block', 'block:KEYS' (KEYS in [1, 65536]), 'group' or 'group:BITS:WG:IPT[:GROUPS[:ONE[:RUNS]]]' (BITS in "
+    "[1, 5], WG a power of two in [2^BITS, 1024], IPT in [1, 32], GROUPS >= 1 or 'auto', ONE >= 0 or 'auto': sorts "
+    "of at most ONE tiles in one launch, RUNS 1 or 2: such a sort by one work-group or by two and a merge)";
 
 size_t ceil_div(size_t a, size_t b) {
   return (a + b - 1) / b;
@@ -58,6 +58,8 @@ void check_plan(const RadixSortPlan& p, const std::string& where) {
   if (p.keys_per_item < 0 || p.keys_per_item > 32) throw bad(std::to_string(p.keys_per_item) + " keys per work-item");
   if (p.max_groups < 0) throw bad(std::to_string(p.max_groups) + " groups");
   if (p.one_group_tiles < -1) throw bad("one launch up to " + std::to_string(p.one_group_tiles) + " tiles");
+  if (p.one_group_runs < 0 || p.one_group_runs > 2)
+    throw bad("one-launch sorts in " + std::to_string(p.one_group_runs) + " runs");
 }
 
 // A scatter's keys and values, n of each: read from keys and vals, written to
@@ -80,8 +82,10 @@ std::string RadixSortPlan::describe() const {
   } else {
     auto size = [](int v) { return v == 0 ? std::string("auto") : std::to_string(v); };
     s << "group:" << digit_bits << ":" << size(work_group) << ":" << size(keys_per_item);
-    if (max_groups > 0 || one_group_tiles >= 0) s << ":" << size(max_groups);
-    if (one_group_tiles >= 0) s << ":" << one_group_tiles;
+    if (max_groups > 0 || one_group_tiles >= 0 || one_group_runs > 0) s << ":" << size(max_groups);
+    if (one_group_tiles >= 0 || one_group_runs > 0)
+      s << ":" << (one_group_tiles >= 0 ? std::to_string(one_group_tiles) : std::string("auto"));
+    if (one_group_runs > 0) s << ":" << one_group_runs;
   }
   return s.str();
 }
@@ -104,7 +108,7 @@ RadixSortPlan parse_radix_sort_plan(const std::string& text) {
     p.kind = RadixSortPlan::Kind::Block;
     if (parts.size() == 2) p.block = number(parts[1]);
   } else if (parts[0] == "group") {
-    if (parts.size() != 1 && (parts.size() < 4 || parts.size() > 6)) throw fail();
+    if (parts.size() != 1 && (parts.size() < 4 || parts.size() > 7)) throw fail();
     p.kind = RadixSortPlan::Kind::Group;
     if (parts.size() >= 4) {
       p.digit_bits = number(parts[1]);
@@ -116,7 +120,11 @@ RadixSortPlan parse_radix_sort_plan(const std::string& text) {
       p.max_groups = number(parts[4]);
       if (p.max_groups == 0) throw fail();
     }
-    if (parts.size() == 6) p.one_group_tiles = number(parts[5]);
+    if (parts.size() >= 6 && parts[5] != "auto") p.one_group_tiles = number(parts[5]);
+    if (parts.size() == 7) {
+      p.one_group_runs = number(parts[6]);
+      if (p.one_group_runs == 0) throw fail();
+    }
   } else {
     throw fail();
   }
@@ -233,12 +241,27 @@ void RadixSort::sort_group(DeviceBuffer*& keys, DeviceBuffer*& vals, DeviceBuffe
   const size_t groups = ceil_div(tiles, tiles_per_group);
   const cl::NDRange global(groups * plan_.work_group), local(plan_.work_group);
   if (n <= one_launch_keys()) {
+    const size_t passes = ceil_div(bits, plan_.digit_bits);
+    // Two halves pay off where there is more than a tile to sort and more
+    // than one pass to share: the merge costs about a pass and a launch.
+    const int runs = plan_.one_group_runs > 0 ? plan_.one_group_runs : simulated_device(rt_.info()) ? 2 : 1;
+    const bool halves = runs == 2 && n > tile && passes > 1;
+    const cl_uint run = static_cast<cl_uint>(halves ? ceil_div(n, 2) : n);
     cl::Kernel one = rt_.kernel("radix_sort.cl", "rs_one_group", defs);
-    scatter_buffers(KernelCall(one).arg("n", static_cast<cl_uint>(n)).arg("bits", bits), *keys, *vals, *keys_tmp,
-                    *vals_tmp, n)
+    scatter_buffers(KernelCall(one).arg("n", static_cast<cl_uint>(n)).arg("bits", bits).arg("run", run), *keys, *vals,
+                    *keys_tmp, *vals_tmp, n)
         .done();
-    rt_.launch(label, one, local, local);
-    if (ceil_div(bits, plan_.digit_bits) % 2 == 1) {  // an odd number of passes ends in the tmp pair
+    rt_.launch(label, one, cl::NDRange((halves ? 2 : 1) * local[0]), local);
+    if (passes % 2 == 1) {  // an odd number of passes ends in the tmp pair
+      std::swap(keys, keys_tmp);
+      std::swap(vals, vals_tmp);
+    }
+    if (halves) {
+      cl::Kernel merge = rt_.kernel("radix_sort.cl", "rs_merge_runs", defs);
+      scatter_buffers(KernelCall(merge).arg("n", static_cast<cl_uint>(n)).arg("run", run), *keys, *vals, *keys_tmp,
+                      *vals_tmp, n)
+          .done();
+      rt_.launch(label, merge, cl::NDRange(n), local);
       std::swap(keys, keys_tmp);
       std::swap(vals, vals_tmp);
     }

@@ -27,10 +27,14 @@ struct RadixSortPlan {
   int max_groups = 0;     // Group: work-groups per pass at most; 0 = 8 per compute unit
   int one_group_tiles = -1;  // Group: sorts of at most this many tiles run whole in one launch by one work-group
                              // (rs_one_group); -1 = 1 tile (64 under Oclgrind), 0 = never
+  int one_group_runs = 0;    // Group: 2 = such a sort of more than a tile and more than one pass runs as two
+                             // halves, a work-group each, then a merge (rs_merge_runs); 1 = one group;
+                             // 0 = 2 under Oclgrind (its threads run work-groups side by side), else 1
 
   // "block:4096" or "group:4:256:8" (":G" appended when max_groups is set,
-  // ":G:T" when one_group_tiles is, G maybe "auto"), the form $AG2GS_SORT
-  // takes; "group:4:auto:auto" before fit_to().
+  // ":G:T" when one_group_tiles is, ":G:T:R" when one_group_runs is, G maybe
+  // "auto", T maybe -1), the form $AG2GS_SORT takes; "group:4:auto:auto"
+  // before fit_to().
   std::string describe() const;
   // Resolves the automatic sizes for a device and checks the plan fits it
   // (work-group size, local memory); throws std::invalid_argument naming
@@ -39,7 +43,7 @@ struct RadixSortPlan {
 };
 
 // Parses $AG2GS_SORT's form ("block", "block:N", "group",
-// "group:BITS:WG:IPT[:GROUPS[:ONE]]", GROUPS a number or "auto"); throws
+// "group:BITS:WG:IPT[:GROUPS[:ONE[:RUNS]]]", GROUPS a number or "auto"); throws
 // std::invalid_argument naming the variable and the accepted forms.
 RadixSortPlan parse_radix_sort_plan(const std::string& text);
 

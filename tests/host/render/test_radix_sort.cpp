@@ -2,7 +2,8 @@
 // every plan the code can choose (the CPU block sort, the GPU work-group sort
 // at every digit width, work-groups from the smallest to 1024, one to 32 keys
 // per work-item, one group walking many tiles, a sort whole in one launch
-// over one tile or many) must give the one stable
+// over one tile or many, by one work-group or in two halves merged) must
+// give the one stable
 // order, bit for bit, on keys with many duplicates, all-equal keys, the
 // largest keys, and counts of 0, 1, odd and large. Values are the input
 // index, so a tie broken the wrong way shows.
@@ -100,10 +101,11 @@ RadixSortPlan plan(const std::string& text) {
 
 // Every kind of key and count under the plans the renderer picks (CPU, GPU:
 // sorts of one tile in one launch), a work-group plan whose groups each walk
-// many tiles, and the one-launch sort over every count (up to 157 tiles).
+// many tiles, and the one-launch sort over every count (up to 157 tiles),
+// whole and in two halves merged.
 TEST(RadixSort, MatchesStableSortOnEveryKeyKind) {
-  const std::vector<std::string> plans{"block:4096", "group:4:256:8", "group:4:64:4:3", "group:4:32:32",
-                                       "group:4:64:4:auto:1000"};
+  const std::vector<std::string> plans{"block:4096",    "group:4:256:8",          "group:4:64:4:3",
+                                       "group:4:32:32", "group:4:64:4:auto:1000", "group:4:64:4:auto:1000:2"};
   const std::vector<size_t> counts{0, 1, 2, 255, 2049, 40001};
   const std::vector<KeyKind> kinds{KeyKind::Duplicates, KeyKind::Uniform, KeyKind::AllEqual, KeyKind::Largest,
                                    KeyKind::Descending};
@@ -135,7 +137,11 @@ TEST(RadixSort, EveryPlanGivesTheSameOrder) {
                                        "group:3:32:9:5",
                                        "group:4:32:32:auto:0",
                                        "group:5:64:2:1:0",
-                                       "group:4:16:7:2:0"};
+                                       "group:4:16:7:2:0",
+                                       "group:4:32:32:auto:auto:1",
+                                       "group:2:4:3:auto:1000:2",
+                                       "group:5:32:1:auto:64:2",
+                                       "group:3:8:32:auto:8:2"};
   for (const std::string& p : plans)
     for (size_t n : {size_t{1}, size_t{97}, size_t{1000}})
       for (int bits : {32, 11})
@@ -161,6 +167,9 @@ TEST(RadixSort, PlansParseAndBadOnesAreRefused) {
   EXPECT_EQ(plan("group:3:64:5:auto:0").describe(), "group:3:64:5:auto:0");
   EXPECT_EQ(plan("group:3:64:5:7:12").describe(), "group:3:64:5:7:12");
   EXPECT_EQ(plan("group:3:64:5:auto").describe(), "group:3:64:5");
+  EXPECT_EQ(plan("group:3:64:5:auto:auto").describe(), "group:3:64:5");
+  EXPECT_EQ(plan("group:3:64:5:auto:auto:2").describe(), "group:3:64:5:auto:auto:2");
+  EXPECT_EQ(plan("group:3:64:5:7:12:1").describe(), "group:3:64:5:7:12:1");
   for (const char* bad : {"",
                           "blocks",
                           "block:0",
@@ -178,7 +187,10 @@ TEST(RadixSort, PlansParseAndBadOnesAreRefused) {
                           "group:4:0:8",
                           "group:4:256:33",
                           "group:4:256:8:0",
-                          "group:4:256:8:1:1:1",
+                          "group:4:256:8:1:1:1:1",
+                          "group:4:256:8:1:1:0",
+                          "group:4:256:8:1:1:3",
+                          "group:4:256:8:1:1:",
                           "group:4:256:8:auto:-1",
                           "group:4:256:8:auto:x",
                           "group:4:256:8:auto:",
