@@ -498,6 +498,11 @@ void Trainer::importance_prune(StepStats& st) {
   settings.lowpass = config_.lowpass_at_level(0);
   std::vector<Camera> cameras;
   for (int v : train_views_) cameras.push_back(scene_.views()[v].camera);
+  // This step's gradients and images are spent (the optimiser has stepped);
+  // the sweep needs neither, and the next step allocates them again.
+  grads_.release();
+  feature_grads_.release();
+  renderer_.release_images_and_gradients();
   const std::vector<double> per_child = blend_weight_sums(renderer_, gaussians_, cameras, settings);
   const size_t before = model_.size();
   const std::vector<uint8_t> keep = least_drawing_anchors(per_child, model_.children(), config_.prune_importance);

@@ -155,6 +155,7 @@ Runtime::Runtime(int device_index) {
   queue_ = cl::CommandQueue(context_, info_.device, CL_QUEUE_PROFILING_ENABLE, &err);
   AG2GS_CL_CHECK(err);
   vector_width_ = vector_width_for(info_);
+  exact_allocations_ = simulated_device(info_);
   if (const char* log = std::getenv("AG2GS_LAUNCH_LOG"); log && *log) {
     launch_log_ = std::fopen(log, "a");
     if (!launch_log_) throw std::runtime_error(std::string("AG2GS_LAUNCH_LOG='") + log + "' cannot be opened for appending");
@@ -376,8 +377,9 @@ DeviceBuffer::~DeviceBuffer() {
 
 bool DeviceBuffer::reserve(size_t bytes) {
   if (bytes <= capacity_ && capacity_ > 0) return false;
-  // Grow geometrically so a slowly rising demand does not reallocate each frame.
-  size_t want = std::max<size_t>({bytes, capacity_ + capacity_ / 2, 256});
+  // Grow geometrically so a slowly rising demand does not reallocate each
+  // frame (on a simulator, to the size asked: Runtime::exact_allocations).
+  size_t want = std::max<size_t>({bytes, rt_->exact_allocations() ? 0 : capacity_ + capacity_ / 2, 256});
   if (want > rt_->info().max_alloc && bytes <= rt_->info().max_alloc) want = rt_->info().max_alloc;
   if (want > rt_->info().max_alloc)
     throw std::runtime_error("a device buffer of " + std::to_string(bytes >> 20) + " MiB exceeds the device's " +
@@ -396,6 +398,13 @@ bool DeviceBuffer::reserve(size_t bytes) {
     AG2GS_CL_CHECK(rt_->queue().enqueueFillBuffer(buffer_, pattern, 0, want / 4 * 4));
   }
   return true;
+}
+
+void DeviceBuffer::release() {
+  if (!capacity_) return;
+  rt_->on_alloc(-static_cast<int64_t>(capacity_));
+  buffer_ = cl::Buffer();
+  capacity_ = 0;
 }
 
 void DeviceBuffer::fill_zero(size_t bytes) {

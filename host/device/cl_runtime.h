@@ -99,6 +99,10 @@ class Runtime {
   uint64_t peak_bytes() const { return peak_; }
   void reset_peak() { peak_ = allocated_; }
   void on_alloc(int64_t delta);
+  // Buffers grow to what is asked, without headroom: on a simulator, whose
+  // every launch costs time in proportion to all allocated bytes (Oclgrind's
+  // race detector clears a record of each one), spare capacity is not free.
+  bool exact_allocations() const { return exact_allocations_; }
 
   static std::string cache_dir();
 
@@ -107,6 +111,7 @@ class Runtime {
   cl::Context context_;
   cl::CommandQueue queue_;
   int vector_width_ = 1;
+  bool exact_allocations_ = false;
   bool profiling_ = false, by_kernel_ = false;
   std::map<std::string, cl::Program> programs_;
   std::map<std::string, cl::Kernel> kernels_;  // by file|name|defines
@@ -121,9 +126,10 @@ class Runtime {
   std::FILE* launch_log_ = nullptr;  // $AG2GS_LAUNCH_LOG, opened for appending
 };
 
-// A device buffer that grows on demand (never shrinks); contents are not
-// preserved across growth. In test builds (AG2GS_FILL_SENTINEL=1 in the
-// environment) fresh memory is filled with a NaN sentinel.
+// A device buffer that grows on demand (never shrinks unless released);
+// contents are not preserved across growth. In test builds
+// (AG2GS_FILL_SENTINEL=1 in the environment) fresh memory is filled with a
+// NaN sentinel.
 class DeviceBuffer {
  public:
   DeviceBuffer() = default;
@@ -137,6 +143,8 @@ class DeviceBuffer {
   bool reserve(size_t bytes);
   cl::Buffer& get() { return buffer_; }
   size_t capacity() const { return capacity_; }
+  // Frees the memory (capacity 0); the next reserve() allocates afresh.
+  void release();
 
   template <typename T>
   void upload(const std::vector<T>& data) {

@@ -516,6 +516,14 @@ void Renderer::blend_weights(const std::vector<float>& upstream) {
   rt_.launch("blend_weights", sums, cl::NDRange(g.n), cl::NDRange(64));
 }
 
+void Renderer::release_images_and_gradients() {
+  for (DeviceBuffer* b : {&out_rgb_,   &out_feat_, &out_depth_,   &out_alpha_, &out_dist_,   &out_aux_,  &out_last_,
+                          &out_count_, &g_rgb_,    &g_feat_,      &g_depth_,   &g_alpha_,    &g_dist_,   &v_means_,
+                          &v_scales_,  &v_quats_,  &v_opacities_, &v_sh_,      &v_features_, &v_means2d_})
+    b->release();
+  have_images_ = false;
+}
+
 cl::NDRange Renderer::blend_bwd_layout(std::map<std::string, std::string>& defs) {
   isect_grads_.reserve(std::max<size_t>(stats_.n_intersections, 1) * G2_SIZE * 4);
   defs["NO_STAGING"] = staged_ ? "0" : "1";

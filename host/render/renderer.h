@@ -106,6 +106,11 @@ class Renderer {
   // plane, bit for bit.
   void blend_weights(const std::vector<float>& upstream = {});
   const DeviceBuffer& device_weight_sums() const { return weight_sums_; }
+  // Frees the output planes and the gradients of the last forward() and
+  // backward() (the next ones allocate them again), for a stretch of bin()
+  // and blend_weights() calls that need neither, such as the importance
+  // sweep: a smaller footprint, and on a simulator cheaper launches.
+  void release_images_and_gradients();
 
   // The blending inputs of the last forward(), read-only, for kernels that
   // walk the same depth-ordered per-tile lists as blend_fwd.cl (instance

@@ -119,6 +119,10 @@ void DeviceAnchors::download(AnchorModel& model) {
 DeviceAnchorGrads::DeviceAnchorGrads(Runtime& rt)
     : feature(&rt), offset(&rt), scale_logit(&rt), quat(&rt), opacity_logit(&rt), sh_dc(&rt), sh_rest(&rt) {}
 
+void DeviceAnchorGrads::release() {
+  for (DeviceBuffer* b : {&feature, &offset, &scale_logit, &quat, &opacity_logit, &sh_dc, &sh_rest}) b->release();
+}
+
 AnchorGrads DeviceAnchorGrads::download() {
   const size_t n = gaussians();
   AnchorGrads g;

@@ -87,6 +87,8 @@ struct DeviceAnchorGrads {
   DeviceAnchorGrads& operator=(const DeviceAnchorGrads&) = delete;
 
   AnchorGrads download();
+  // Frees the buffers until the next backward pass reserves them again.
+  void release();
 
   size_t anchors = 0;
   int children = 0;

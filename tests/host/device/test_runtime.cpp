@@ -177,6 +177,28 @@ TEST(Runtime, BuffersGrowAndTimingsAreRecorded) {
   auto t = rt.take_timings();
   ASSERT_EQ(t.count("iota"), 1u);
   EXPECT_GE(t["iota"], 0.0);
+  // Growth: geometric on devices, to the size asked on a simulator.
+  const size_t before = b.capacity();
+  EXPECT_TRUE(b.reserve(before + 4));
+  if (rt.exact_allocations())
+    EXPECT_EQ(b.capacity(), before + 4);
+  else
+    EXPECT_GE(b.capacity(), before + before / 2);
+  // Released memory leaves the runtime's count; the next reserve allocates
+  // afresh and the buffer works as before.
+  const uint64_t held = rt.allocated_bytes();
+  const size_t cap = b.capacity();
+  b.release();
+  EXPECT_EQ(b.capacity(), 0u);
+  EXPECT_EQ(rt.allocated_bytes(), held - cap);
+  b.release();  // twice is harmless
+  EXPECT_EQ(rt.allocated_bytes(), held - cap);
+  EXPECT_TRUE(b.reserve(4000));
+  EXPECT_EQ(rt.allocated_bytes(), held - cap + b.capacity());
+  k.setArg(1, b.get());
+  rt.launch("iota", k, cl::NDRange(1000), cl::NDRange(64));
+  b.download(out, 1000);
+  for (uint32_t i = 0; i < 1000; ++i) ASSERT_EQ(out[i], i);
 }
 
 // Each launch's arguments are checked against the kernel's own declaration:
