@@ -375,7 +375,7 @@ void blend_weights(int width, int height, int tiles_x,
                    __global const uint* isect_gid,    // [M] by slot: Gaussian id
                    __global const float* records,     // [N,REC_SIZE]
                    __global const float* upstream,    // [H,W] with UPSTREAM: each pixel's factor
-                   __global float* isect_grads) {     // [M,G2_SIZE] by slot
+                   __global float* isect_weights) {   // [M] by slot: the weights' sum
   const int tile = get_group_id(0);
   int2 range = ranges[tile];
   const int n = range.y - range.x;
@@ -402,7 +402,6 @@ void blend_weights(int width, int height, int tiles_x,
   }
 
   for (int j = 0; j < n; ++j) {
-    __global float* o2 = isect_grads + (size_t)vals[j] * G2_SIZE;
     vfloat s_w = 0.f;
     if (live > 0) {
       __global const float* q = records + (size_t)isect_gid[vals[j]] * REC_SIZE;
@@ -426,8 +425,7 @@ void blend_weights(int width, int height, int tiles_x,
         if (!ANY(NOT(dones[row]))) --live;
       }
     }
-    for (int c = 0; c < G2_SIZE; ++c) o2[c] = 0.f;
-    o2[G2_FEAT] = HSUM(s_w);
+    isect_weights[vals[j]] = HSUM(s_w);
   }
 }
 #else
@@ -438,7 +436,7 @@ void blend_weights(int width, int height, int tiles_x,
                    __global const uint* isect_gid,    // [M] by slot: Gaussian id
                    __global const float* records,     // [N,REC_SIZE]
                    __global const float* upstream,    // [H,W] with UPSTREAM: each pixel's factor
-                   __global float* isect_grads) {     // [M,G2_SIZE] by slot
+                   __global float* isect_weights) {   // [M] by slot: the weights' sum
   __local float s_rec[BATCH * REC_SIZE];
   __local uint s_slot[BATCH];
   __local uint s_reach[BATCH];                     // tile_reached
@@ -501,15 +499,9 @@ void blend_weights(int width, int height, int tiles_x,
     segment_sums(s_part, s_seg, s_reach, 1, nb, lid);
 #endif
     for (int r = lid; r < nb; r += WG_SIZE) {
-      const float total = row_total(s_part, S_SEG, s_reach, 1, r);
-      __global float* o2 = isect_grads + (size_t)s_slot[r] * G2_SIZE;
-      for (int c = 0; c < G2_SIZE; ++c) o2[c] = 0.f;
-      o2[G2_FEAT] = total;
+      isect_weights[s_slot[r]] = row_total(s_part, S_SEG, s_reach, 1, r);
     }
   }
-  for (int k = b0 + lid; k < n; k += WG_SIZE) {
-    __global float* o2 = isect_grads + (size_t)isect_vals[range.x + k] * G2_SIZE;
-    for (int c = 0; c < G2_SIZE; ++c) o2[c] = 0.f;
-  }
+  for (int k = b0 + lid; k < n; k += WG_SIZE) isect_weights[isect_vals[range.x + k]] = 0.f;
 }
 #endif

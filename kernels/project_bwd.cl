@@ -151,22 +151,22 @@ __kernel void project_bwd(
 }
 
 // Renderer::blend_weights()'s per-Gaussian step: the sum of a Gaussian's
-// intersection slots' G2_FEAT value (each slot one tile's blending weights,
+// intersection slots' values (each slot one tile's blending weights,
 // kernels/blend_bwd.cl blend_weights), in slot order from 0, the very sum
-// project_bwd makes for that channel, without project_bwd's chain rule,
-// which the weights do not need.
+// project_bwd makes of the slots' G2_FEAT values, without project_bwd's
+// chain rule, which the weights do not need.
 __kernel void weight_sums(int n,
                           __global const uint* tile_counts,  // [N]
                           __global const uint* isect_start,  // [N]
-                          __global const float* isect_grads, // [M,G2_SIZE]
-                          __global float* sums) {            // [N]
+                          __global const float* isect_weights, // [M] blend_weights' sum per slot
+                          __global float* sums) {              // [N]
   int g = get_global_id(0);
   if (g >= n) return;
   float s = 0.f;
   const uint cnt = tile_counts[g];
   if (cnt > 0) {
-    __global const float* p = isect_grads + (size_t)isect_start[g] * G2_SIZE + G2_FEAT;
-    for (uint i = 0; i < cnt; ++i) s += p[(size_t)i * G2_SIZE];
+    __global const float* p = isect_weights + isect_start[g];
+    for (uint i = 0; i < cnt; ++i) s += p[i];
   }
   sums[g] = s;
 }

@@ -496,6 +496,9 @@ void Trainer::importance_prune(StepStats& st) {
   expander_.forward(anchors_, gaussians_, active_sh_degree());
   RenderSettings settings;
   settings.lowpass = config_.lowpass_at_level(0);
+  // The weights need no colour: the projection skips the SH terms past the
+  // constant one (they change no weight, culling reads every coefficient).
+  settings.sh_degree = 0;
   std::vector<Camera> cameras;
   for (int v : train_views_) cameras.push_back(scene_.views()[v].camera);
   // This step's gradients and images are spent (the optimiser has stepped);

@@ -311,6 +311,7 @@ std::vector<double> seen_weight(Renderer& renderer, const GaussianSet& set, cons
                                 std::to_string(set.size()) + " Gaussians");
   RenderSettings rs = settings;
   rs.features = true;
+  rs.sh_degree = 0;  // no colour is read: the SH terms past the constant one would be wasted
   // The weights do not depend on the features: they carry the object's flag
   // (its blending weight per pixel) when there is one.
   GaussianSet flagged = set;

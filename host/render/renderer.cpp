@@ -74,7 +74,7 @@ Renderer::Renderer(Runtime& rt)
         &out_rgb_,       &out_feat_,   &out_depth_,      &out_alpha_,     &out_dist_,    &out_aux_,    &out_last_,
         &out_count_,     &g_rgb_,      &g_feat_,         &g_depth_,       &g_alpha_,     &g_dist_,     &isect_grads_,
         &v_means_,       &v_scales_,   &v_quats_,        &v_opacities_,   &v_sh_,        &v_features_, &v_means2d_,
-        &weight_sums_})
+        &isect_weights_, &weight_sums_})
     b->bind(&rt_);
 }
 
@@ -440,6 +440,7 @@ void Renderer::backward_from(const DeviceBuffer& g_rgb, const DeviceBuffer& g_fe
                                           {"GRAD_ALPHA", flag(present.alpha)},
                                           {"GRAD_DIST", flag(present.distortion)}};
   const cl::NDRange local = blend_bwd_layout(defs);
+  isect_grads_.reserve(std::max<size_t>(stats_.n_intersections, 1) * G2_SIZE * 4);
   cl::Kernel blend = rt_.kernel("blend_bwd.cl", "blend_bwd", defs);
   // An upstream gradient that is not present is not read (its term is
   // compiled out): any buffer will do there.
@@ -484,6 +485,7 @@ void Renderer::blend_weights(const std::vector<float>& upstream) {
     g_feat_.upload(upstream);
   else
     g_feat_.reserve(4);  // not read
+  isect_weights_.reserve(std::max<size_t>(stats_.n_intersections, 1) * 4);
   cl::Kernel weights = rt_.kernel("blend_bwd.cl", "blend_weights", defs);
   const size_t M = stats_.n_intersections, f4 = sizeof(float);
   KernelCall(weights)
@@ -495,7 +497,7 @@ void Renderer::blend_weights(const std::vector<float>& upstream) {
       .buffer("isect_gid", isect_gid_, M * 4)
       .buffer("records", records_, gaussians_->n * REC_SIZE * f4)
       .buffer("upstream", g_feat_, upstream.empty() ? 4 : npix * f4)
-      .buffer("isect_grads", isect_grads_, M * G2_SIZE * f4)
+      .buffer("isect_weights", isect_weights_, M * f4)
       .done();
   rt_.launch("blend_weights", weights, cl::NDRange(static_cast<size_t>(tiles_x_) * tiles_y_ * local[0]), local);
   const DeviceGaussians& g = *gaussians_;
@@ -510,22 +512,22 @@ void Renderer::blend_weights(const std::vector<float>& upstream) {
       .arg("n", static_cast<int>(g.n))
       .buffer("tile_counts", tile_counts_, g.n * 4)
       .buffer("isect_start", isect_start_, g.n * 4)
-      .buffer("isect_grads", isect_grads_, M * G2_SIZE * f4)
+      .buffer("isect_weights", isect_weights_, M * f4)
       .buffer("sums", weight_sums_, g.n * f4)
       .done();
   rt_.launch("blend_weights", sums, cl::NDRange(g.n), cl::NDRange(64));
 }
 
 void Renderer::release_images_and_gradients() {
-  for (DeviceBuffer* b : {&out_rgb_,   &out_feat_, &out_depth_,   &out_alpha_, &out_dist_,   &out_aux_,  &out_last_,
-                          &out_count_, &g_rgb_,    &g_feat_,      &g_depth_,   &g_alpha_,    &g_dist_,   &v_means_,
-                          &v_scales_,  &v_quats_,  &v_opacities_, &v_sh_,      &v_features_, &v_means2d_})
+  for (DeviceBuffer* b :
+       {&out_rgb_,   &out_feat_, &out_depth_,   &out_alpha_, &out_dist_,   &out_aux_,   &out_last_,
+        &out_count_, &g_rgb_,    &g_feat_,      &g_depth_,   &g_alpha_,    &g_dist_,    &v_means_,
+        &v_scales_,  &v_quats_,  &v_opacities_, &v_sh_,      &v_features_, &v_means2d_, &isect_grads_})
     b->release();
   have_images_ = false;
 }
 
 cl::NDRange Renderer::blend_bwd_layout(std::map<std::string, std::string>& defs) {
-  isect_grads_.reserve(std::max<size_t>(stats_.n_intersections, 1) * G2_SIZE * 4);
   defs["NO_STAGING"] = staged_ ? "0" : "1";
   if (!staged_) {
     defs["VW"] = std::to_string(cpu_bwd_vector_width_);

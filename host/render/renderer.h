@@ -205,6 +205,7 @@ class Renderer {
   DeviceBuffer out_rgb_, out_feat_, out_depth_, out_alpha_, out_dist_, out_aux_, out_last_, out_count_;
   DeviceBuffer g_rgb_, g_feat_, g_depth_, g_alpha_, g_dist_, isect_grads_;
   DeviceBuffer v_means_, v_scales_, v_quats_, v_opacities_, v_sh_, v_features_, v_means2d_;
+  DeviceBuffer isect_weights_;            // blend_weights(): [M] each slot's weights summed over its tile
   DeviceBuffer weight_sums_;              // blend_weights(): [N]
   DeviceBuffer* sorted_order_ = nullptr;  // the on-screen Gaussians' ids in depth order
   size_t visible_ = 0;                    // how many (sorted_order_'s length)
