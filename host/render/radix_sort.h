@@ -32,9 +32,9 @@ struct RadixSortPlan {
                              // 0 = 2 under Oclgrind (its threads run work-groups side by side), else 1
 
   // "block:4096" or "group:4:256:8" (":G" appended when max_groups is set,
-  // ":G:T" when one_group_tiles is, ":G:T:R" when one_group_runs is, G maybe
-  // "auto", T maybe -1), the form $AG2GS_SORT takes; "group:4:auto:auto"
-  // before fit_to().
+  // ":G:T" when one_group_tiles is, ":G:T:R" when one_group_runs is, G and T
+  // maybe "auto"), the form $AG2GS_SORT takes; "group:4:auto:auto" before
+  // fit_to().
   std::string describe() const;
   // Resolves the automatic sizes for a device and checks the plan fits it
   // (work-group size, local memory); throws std::invalid_argument naming

@@ -176,6 +176,13 @@ else
 fi
 AG2GS_SORT=$other_sort step render_${other_sort}_sort "$build/test_render_forward" \
   --gtest_filter='RenderForward.OnePixel:RenderForward.OddSize17x9:RenderForward.Background'
+# The one-launch sort in two halves and their merge (rs_merge_runs), which
+# the GPU layout's own plan takes under Oclgrind: here with tiles of 32 keys,
+# so that this small frame's depth sort splits.
+if [ "$layout" = cpu ]; then
+  AG2GS_SORT=group:4:32:1:auto:64:2 step render_split_sort "$build/test_render_forward" \
+    --gtest_filter='RenderForward.OddSize17x9'
+fi
 # Under Oclgrind the work-group sort sorts and scans these frames in one
 # launch each (rs_one_group, scan_one_group_wg); with that off it takes
 # three launches a pass and a scan.
