@@ -31,6 +31,14 @@ void ParamGroups::gather(const std::vector<int>& rows, const std::vector<int>& a
     if (specs_[i].fixed_rows == 0) groups_[i]->gather(specs_[i].per_anchor ? anchor_rows : rows);
 }
 
+void ParamGroups::park() {
+  for (auto& g : groups_) g->park();
+}
+
+void ParamGroups::unpark() {
+  for (auto& g : groups_) g->unpark();
+}
+
 uint64_t ParamGroups::count_nonfinite(Adam& adam, const std::vector<GroupStep>& steps) const {
   adam.clear_nonfinite();
   for (const GroupStep& s : steps) {

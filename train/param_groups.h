@@ -57,6 +57,9 @@ class ParamGroups {
   // Rows follow a change of the model: per-Gaussian groups take
   // `rows`, per-anchor groups `anchor_rows` (AdamGroup::gather).
   void gather(const std::vector<int>& rows, const std::vector<int>& anchor_rows);
+  // Every group's AdamGroup::park / unpark.
+  void park();
+  void unpark();
 
   // The number of non-finite values in the gradients of `steps` (one read
   // back: a trainer skips the whole step when it is not 0).

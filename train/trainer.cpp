@@ -506,7 +506,27 @@ void Trainer::importance_prune(StepStats& st) {
   grads_.release();
   feature_grads_.release();
   renderer_.release_images_and_gradients();
-  const std::vector<double> per_child = blend_weight_sums(renderer_, gaussians_, cameras, settings);
+  // On a simulator every launch of the sweep pays for the memory held, so
+  // the optimiser's moments and the anchors (model_ holds their values:
+  // model() above) wait in host memory meanwhile; the same bits return.
+  const bool park = rt_.simulated();
+  auto restore = [&] {
+    if (!park) return;
+    groups_->unpark();
+    anchors_.upload(model_);
+  };
+  if (park) {
+    groups_->park();
+    anchors_.release();
+  }
+  std::vector<double> per_child;
+  try {
+    per_child = blend_weight_sums(renderer_, gaussians_, cameras, settings);
+  } catch (...) {
+    restore();
+    throw;
+  }
+  restore();
   const size_t before = model_.size();
   const std::vector<uint8_t> keep = least_drawing_anchors(per_child, model_.children(), config_.prune_importance);
   const size_t removed = before - static_cast<size_t>(std::count(keep.begin(), keep.end(), uint8_t{1}));

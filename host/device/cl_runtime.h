@@ -103,6 +103,9 @@ class Runtime {
   // every launch costs time in proportion to all allocated bytes (Oclgrind's
   // race detector clears a record of each one), spare capacity is not free.
   bool exact_allocations() const { return exact_allocations_; }
+  // Whether the device is a simulator (Oclgrind): work that only pays for
+  // itself there (holding less memory between launches, wider walks) asks.
+  bool simulated() const { return exact_allocations_; }
 
   static std::string cache_dir();
 

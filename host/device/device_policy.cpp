@@ -50,6 +50,11 @@ int cpu_blend_bwd_vector_width(const DeviceInfo& device) {
   return n >= 16 ? 16 : n >= 8 ? 8 : n >= 4 ? 4 : 16;
 }
 
+int instance_walk_vector_width(const DeviceInfo& device, int renderer_width) {
+  if (const int v = vector_width_from_env("AG2GS_INSTANCE_VW")) return v;
+  return simulated_device(device) ? 4 : renderer_width;
+}
+
 bool blend_staging_for(const DeviceInfo& device) {
   if (const char* e = std::getenv("AG2GS_BLEND_STAGING")) {
     if (std::string(e) == "1") return true;

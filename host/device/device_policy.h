@@ -49,6 +49,14 @@ inline constexpr int kCpuSortBlockKeys = 4096;
 // many work-items cost it what parallel hardware would hide.
 bool simulated_device(const DeviceInfo& device);
 
+// Pixels per work-item of the GPU layout's instance walk (kernels/
+// instance_map.cl with staging). Its arithmetic is per pixel, so every width
+// gives the same bits. The renderer's width (vector_width_for: 1 on GPUs),
+// except on a simulator, which interprets a vector operation as one step:
+// 4 pixels per work-item (the blend backward's GPU width) halve its time
+// there. AG2GS_INSTANCE_VW (1, 2, 4, 8 or 16) overrides.
+int instance_walk_vector_width(const DeviceInfo& device, int renderer_width);
+
 // How the GPU layout of the blend backward (kernels/blend_bwd.cl) sums each
 // intersection's per-pixel partials: pixels per work-item (its own vector
 // width), Gaussians staged per batch, and work-items per summed value (SEG).

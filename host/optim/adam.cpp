@@ -139,6 +139,24 @@ void AdamGroup::gather(const std::vector<int>& index) {
   gather(idx, index.size());
 }
 
+void AdamGroup::park() {
+  if (parked_) return;
+  m_->download(parked_m_, size());
+  v_->download(parked_v_, size());
+  m_->release();
+  v_->release();
+  parked_ = true;
+}
+
+void AdamGroup::unpark() {
+  if (!parked_) return;
+  m_->upload(parked_m_);
+  v_->upload(parked_v_);
+  parked_m_ = {};
+  parked_v_ = {};
+  parked_ = false;
+}
+
 // ---------------------------------------------------------------- optimiser
 
 Adam::Adam(Runtime& rt, AdamSettings settings) : rt_(rt), settings_(settings), counter_(&rt) {

@@ -64,6 +64,15 @@ class AdamGroup {
   void gather(const DeviceBuffer& index, size_t new_rows);
   void gather(const std::vector<int>& index);
 
+  // Moves both moments into host memory and frees their device buffers;
+  // unpark() brings them back, the same bits. Between the two the group
+  // must not be stepped, gathered or read. For a simulator, whose every
+  // launch costs in proportion to the device memory held (Runtime::
+  // simulated), while a long run of launches needs no optimiser.
+  void park();
+  void unpark();
+  bool parked() const { return parked_; }
+
  private:
   friend class Adam;  // advances steps_
   Runtime& rt_;
@@ -72,6 +81,8 @@ class AdamGroup {
   int row_size_;
   int64_t steps_ = 0;
   std::unique_ptr<DeviceBuffer> m_, v_;
+  bool parked_ = false;
+  std::vector<float> parked_m_, parked_v_;
 };
 
 class Adam {

@@ -200,6 +200,12 @@ step mask_loss "$build/test_mask_loss" \
 step adam "$build/test_adam" \
   --gtest_filter='Adam.ConstantGradientMovesByLearningRate:Adam.VisibleRowsOnly:Adam.CountsNonFiniteValues:Adam.GatherRows'
 step instance_map "$build/test_instance_map" --gtest_filter='InstanceMap.NearHalfTies'
+# On the simulator the GPU layout's instance walk takes 4 pixels per
+# work-item (device_policy.h); GPUs run it with the renderer's 1.
+if [ "$layout" = gpu ]; then
+  AG2GS_INSTANCE_VW=1 step instance_map_one_pixel "$build/test_instance_map" \
+    --gtest_filter='InstanceMap.NearHalfTies'
+fi
 step propagation "$build/test_anchor_graph" --gtest_filter='PropagationLoss.DeviceMatchesReference'
 step expander "$build/test_anchors" --gtest_filter='Expander.ForwardMatchesReference:Expander.ExtremeLogitsStayFinite'
 step sky "$build/test_sky" \

@@ -119,6 +119,11 @@ void DeviceAnchors::download(AnchorModel& model) {
 DeviceAnchorGrads::DeviceAnchorGrads(Runtime& rt)
     : feature(&rt), offset(&rt), scale_logit(&rt), quat(&rt), opacity_logit(&rt), sh_dc(&rt), sh_rest(&rt) {}
 
+void DeviceAnchors::release() {
+  for (DeviceBuffer* b : {&pos, &voxel, &feature, &offset, &scale_logit, &quat, &opacity_logit, &sh_dc, &sh_rest})
+    b->release();
+}
+
 void DeviceAnchorGrads::release() {
   for (DeviceBuffer* b : {&feature, &offset, &scale_logit, &quat, &opacity_logit, &sh_dc, &sh_rest}) b->release();
 }

@@ -50,6 +50,8 @@ struct DeviceAnchors {
   // Writes the trained arrays back into `model`, which must have the anchor
   // and child counts of the last upload (std::invalid_argument otherwise).
   void download(AnchorModel& model);
+  // Frees every buffer (the counts stay) until the next upload.
+  void release();
 
   size_t anchors = 0;     // A
   int children = 0;       // K

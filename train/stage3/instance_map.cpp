@@ -6,6 +6,7 @@
 #include <stdexcept>
 #include <string>
 
+#include "host/device/device_policy.h"
 #include "host/device/kernel_call.h"
 #include "kernels/layout.h"
 
@@ -56,12 +57,15 @@ void InstanceMapper::run(const Renderer& renderer, bool with_images) {
   // Without images the kernel writes neither plane: small placeholders.
   feat_.reserve(with_images ? npix * 12 : 4);
   alpha_.reserve(with_images ? npix * 4 : 4);
-  const int wg = 256 / rt_.vector_width();
-  // The renderer's layout: records staged through local memory on GPUs.
+  // The renderer's layout: records staged through local memory on GPUs,
+  // there with the walk's own pixels per work-item (the same bits at any).
+  const int vw = renderer.staged() ? instance_walk_vector_width(rt_.info(), rt_.vector_width()) : rt_.vector_width();
+  const int wg = 256 / vw;
   cl::Kernel k = rt_.kernel("instance_map.cl", "instance_map",
                             {{"MIN_FRACTION", frac},
                              {"WITH_IMAGES", with_images ? "1" : "0"},
                              {"NO_STAGING", renderer.staged() ? "0" : "1"},
+                             {"VW", std::to_string(vw)},
                              {"BATCH", std::to_string(std::max(64, wg))}});
   const int ntiles = f.tiles_x * f.tiles_y;
   const size_t M = renderer.stats().n_intersections, f4 = sizeof(float);

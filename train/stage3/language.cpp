@@ -197,6 +197,7 @@ LanguageFeatures attach_language(Runtime& rt, const AnchorModel& model, const Cl
   Expander expander(rt);
   expander.forward(anchors, gaussians, 0);
   rt.queue().finish();
+  anchors.release();  // the views need the Gaussians only
   st.expand_ms = ms_since(t0);
 
   Renderer renderer(rt);
