@@ -508,13 +508,9 @@ void Trainer::importance_prune(StepStats& st) {
   renderer_.release_images_and_gradients();
   // On a simulator every launch of the sweep pays for the memory held, so
   // the optimiser's moments and the anchors (model_ holds their values:
-  // model() above) wait in host memory meanwhile; the same bits return.
+  // model() above) wait in host memory meanwhile; the same bits return
+  // (the anchors with remove_anchor_rows' upload when the prune removes any).
   const bool park = rt_.simulated();
-  auto restore = [&] {
-    if (!park) return;
-    groups_->unpark();
-    anchors_.upload(model_);
-  };
   if (park) {
     groups_->park();
     anchors_.release();
@@ -523,14 +519,20 @@ void Trainer::importance_prune(StepStats& st) {
   try {
     per_child = blend_weight_sums(renderer_, gaussians_, cameras, settings);
   } catch (...) {
-    restore();
+    if (park) {
+      groups_->unpark();
+      anchors_.upload(model_);
+    }
     throw;
   }
-  restore();
+  if (park) groups_->unpark();
   const size_t before = model_.size();
   const std::vector<uint8_t> keep = least_drawing_anchors(per_child, model_.children(), config_.prune_importance);
   const size_t removed = before - static_cast<size_t>(std::count(keep.begin(), keep.end(), uint8_t{1}));
-  if (removed == 0) return;
+  if (removed == 0) {
+    if (park) anchors_.upload(model_);
+    return;
+  }
   const int K = model_.children();
   double total = 0, gone = 0;
   for (size_t i = 0; i < per_child.size(); ++i) {
