@@ -661,8 +661,12 @@ typedef struct {
 ALWAYS_INLINE int blend_vjp(BlendRec q, vfloat dx, float dy, vint active, float zj, const RowTotals* t, BlendRun* run,
                      BlendVjp* d) {
   const vfloat sigma = blend_sigma(q.cA, q.cB, q.cC, dx, dy);
-#if !NO_STAGING
-  if (out_of_reach(sigma, q.thr)) return 0;  // (the CPU layout's row test came first)
+  // The GPU layout has no row test. The CPU layout's (row_reach) bounds
+  // whole tile rows, so its work-items of fewer than TILE pixels (8 on AVX2
+  // CPUs: half a row) still meet records that reach none of their pixels;
+  // the test spares them the exponential and changes no bit.
+#if !NO_STAGING || VW < TILE
+  if (out_of_reach(sigma, q.thr)) return 0;
 #endif
   const vfloat G = blend_falloff(sigma);
   const vfloat oG = q.o * G;

@@ -16,6 +16,7 @@
 #include <string>
 #include <vector>
 
+#include "host/device/device_policy.h"
 #include "host/render/radix_sort.h"
 #include "tests/test_util.h"
 
@@ -122,7 +123,14 @@ TEST(RadixSort, MatchesStableSortOnEveryKeyKind) {
 // one-launch sort and the three launches a pass at the same sizes: small
 // counts, so the smallest plans stay quick (and the test runs under
 // Oclgrind, whose automatic plan sorts up to 64 tiles in one launch).
+// Under a simulator, which looks for races and accesses out of bounds (the
+// order itself is checked on the real devices), each key width takes one
+// kind of key: duplicates at 32 bits, the largest keys (the last digits'
+// runs, at the ends of the buffers) at 11. That halves the sorts, whose
+// accesses depend on the plan, the count and the width, not on the keys'
+// kind.
 TEST(RadixSort, EveryPlanGivesTheSameOrder) {
+  const bool simulated = simulated_device(test::runtime().info());
   const std::vector<std::string> plans{"block:1",
                                        "block:33",
                                        "block:65536",
@@ -145,9 +153,11 @@ TEST(RadixSort, EveryPlanGivesTheSameOrder) {
   for (const std::string& p : plans)
     for (size_t n : {size_t{1}, size_t{97}, size_t{1000}})
       for (int bits : {32, 11})
-        for (KeyKind kind : {KeyKind::Duplicates, KeyKind::Largest})
+        for (KeyKind kind : {KeyKind::Duplicates, KeyKind::Largest}) {
+          if (simulated && kind != (bits == 32 ? KeyKind::Duplicates : KeyKind::Largest)) continue;
           expect_stable_sorted(plan(p), make_keys(n, bits, kind, static_cast<uint32_t>(n + bits)), bits,
                                "key kind " + std::to_string(static_cast<int>(kind)));
+        }
 }
 
 // Large counts under the GPU plan with the widest and narrowest digits and
