@@ -9,8 +9,6 @@
 #include <filesystem>
 #include <memory>
 #include <nlohmann/json.hpp>
-#include <opencv2/imgproc.hpp>
-#include <opencv2/videoio.hpp>
 #include <sstream>
 #include <string>
 
@@ -23,6 +21,7 @@
 #include "cli/setting_options.h"
 #include "host/device/cl_runtime.h"
 #include "host/io/atomic_file.h"
+#include "host/io/avi_writer.h"
 #include "host/io/image_io.h"
 #include "host/io/ply_io.h"
 #include "host/scene/scene.h"
@@ -93,31 +92,19 @@ void cmd_simulate(const GlobalOptions& global, SimulateArgs a) {
   std::vector<std::string> names;
   for (int v : req.views) names.push_back(scene->views()[v].name);
   const std::vector<std::string> stems = output_stems(names);
-  std::vector<std::unique_ptr<cv::VideoWriter>> videos;
+  std::vector<std::unique_ptr<MjpegAviWriter>> videos;
   for (size_t i = 0; i < req.views.size(); ++i) {
     const Camera& cam = scene->views()[req.views[i]].camera;
     fs::create_directories(tmp / "frames" / stems[i]);
-    auto w = std::make_unique<cv::VideoWriter>();
-    w->open((tmp / "frames" / (stems[i] + ".avi")).string(), cv::CAP_OPENCV_MJPEG,
-            cv::VideoWriter::fourcc('M', 'J', 'P', 'G'), req.fps, cv::Size(cam.width, cam.height));
-    if (!w->isOpened()) {
-      spdlog::warn("OpenCV cannot write a video here; the frames are PNG only");
-      w.reset();
-    }
-    videos.push_back(std::move(w));
+    videos.push_back(std::make_unique<MjpegAviWriter>((tmp / "frames" / (stems[i] + ".avi")).string(), cam.width,
+                                                      cam.height, req.fps));
   }
   if (a.ply_every > 0) fs::create_directories(tmp / "ply");
   char name[32];
   req.on_render = [&](int f, size_t i, const RenderOutput& o) {
     std::snprintf(name, sizeof name, "%04d.png", f);
     write_rgb_png((tmp / "frames" / stems[i] / name).string(), o.rgb, o.width, o.height);
-    if (videos[i]) {
-      cv::Mat img(o.height, o.width, CV_32FC3, const_cast<float*>(o.rgb.data()));
-      cv::Mat bgr;
-      img.convertTo(bgr, CV_8UC3, 255.0);
-      cv::cvtColor(bgr, bgr, cv::COLOR_RGB2BGR);
-      videos[i]->write(bgr);
-    }
+    videos[i]->write_rgb(o.rgb);
   };
   req.on_frame = [&](int f, Simulation& sim) {
     if (a.ply_every > 0 && f % a.ply_every == 0) {
@@ -128,8 +115,7 @@ void cmd_simulate(const GlobalOptions& global, SimulateArgs a) {
   };
   req.check_stop = [&](const std::string& during) { staged.stop_if_interrupted(during); };
   const SimulationResult result = simulate_object(rt, req);
-  for (auto& v : videos)
-    if (v) v->release();
+  for (auto& v : videos) v->close();
   report.update(result.report);
   report["views"] = nlohmann::json::array();
   for (int v : req.views) report["views"].push_back(scene->views()[v].name);
