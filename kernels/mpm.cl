@@ -37,6 +37,20 @@ inline float3 bspline_weights(float fx) {
   return (float3)(0.5f * a * a, 0.75f - b * b, 0.5f * c * c);
 }
 inline float bspline_pick(float3 w, int d) { return d == 0 ? w.x : (d == 1 ? w.y : w.z); }
+// bspline_weights(fx) picked at node d, computing that weight alone (the same
+// expression, so the same bits).
+inline float bspline_weight(float fx, int d) {
+  if (d == 0) {
+    const float a = 1.5f - fx;
+    return 0.5f * a * a;
+  }
+  if (d == 1) {
+    const float b = fx - 1.f;
+    return 0.75f - b * b;
+  }
+  const float c = fx - 0.5f;
+  return 0.5f * c * c;
+}
 
 inline mat3 mat3_load_g(__global const float* p) {
   mat3 r;
@@ -76,7 +90,10 @@ inline mat3 mat3_usv(mat3 U, float3 s, mat3 V) {
 inline void svd3(mat3 F, mat3* Uo, float3* so, mat3* Vo) {
   mat3 A = mat3_mul(mat3_transpose(F), F);
   mat3 V = {{1.f, 0.f, 0.f, 0.f, 1.f, 0.f, 0.f, 0.f, 1.f}};
+  // Unrolled: constant p and q keep A and V in registers.
+#pragma unroll
   for (int sweep = 0; sweep < 4; ++sweep) {
+#pragma unroll
     for (int pair = 0; pair < 3; ++pair) {
       const int p = pair == 2 ? 1 : 0, q = pair == 0 ? 1 : 2;
       const float apq = A.m[3 * p + q];
@@ -85,16 +102,19 @@ inline void svd3(mat3 F, mat3* Uo, float3* so, mat3* Vo) {
       const float t = (theta >= 0.f ? 1.f : -1.f) / (fabs(theta) + sqrt(theta * theta + 1.f));
       const float c = 1.f / sqrt(t * t + 1.f), s = t * c;
       // A <- J^T A J, V <- V J with J the rotation in the (p, q) plane.
+#pragma unroll
       for (int k = 0; k < 3; ++k) {
         const float akp = A.m[3 * k + p], akq = A.m[3 * k + q];
         A.m[3 * k + p] = c * akp - s * akq;
         A.m[3 * k + q] = s * akp + c * akq;
       }
+#pragma unroll
       for (int k = 0; k < 3; ++k) {
         const float apk = A.m[3 * p + k], aqk = A.m[3 * q + k];
         A.m[3 * p + k] = c * apk - s * aqk;
         A.m[3 * q + k] = s * apk + c * aqk;
       }
+#pragma unroll
       for (int k = 0; k < 3; ++k) {
         const float vkp = V.m[3 * k + p], vkq = V.m[3 * k + q];
         V.m[3 * k + p] = c * vkp - s * vkq;
@@ -254,8 +274,13 @@ __kernel void mpm_grid(int n_active, int grid, float dt, float dx, float inv_dx,
   const int3 node = (int3)(id / (ndim.y * ndim.z), (id / ndim.z) % ndim.y, id % ndim.z) + nlo.xyz;
   float3 mom = (float3)(0.f);
   float m = 0.f;
+  // Unrolled (here and in mpm_g2p): constant offsets fold the choice of
+  // weight; the same sums in the same order.
+#pragma unroll
   for (int ox = 0; ox < 3; ++ox)
+#pragma unroll
     for (int oy = 0; oy < 3; ++oy)
+#pragma unroll
       for (int oz = 0; oz < 3; ++oz) {
         const int3 c = node - (int3)(ox, oy, oz) - clo.xyz;
         if (c.x < 0 || c.y < 0 || c.z < 0 || c.x >= cdim.x || c.y >= cdim.y || c.z >= cdim.z) continue;
@@ -264,8 +289,7 @@ __kernel void mpm_grid(int n_active, int grid, float dt, float dx, float inv_dx,
         for (int s = cell_start[ci]; s < cell_start[ci + 1]; ++s) {
           __global const float* pd = pdata + (size_t)s * PD_SIZE;
           const float3 fx = (float3)(pd[0], pd[1], pd[2]) * inv_dx - convert_float3(base);
-          const float w = bspline_pick(bspline_weights(fx.x), ox) * bspline_pick(bspline_weights(fx.y), oy) *
-                          bspline_pick(bspline_weights(fx.z), oz);
+          const float w = bspline_weight(fx.x, ox) * bspline_weight(fx.y, oy) * bspline_weight(fx.z, oz);
           const float3 dpos = ((float3)((float)ox, (float)oy, (float)oz) - fx) * dx;
           const float3 q = (float3)(pd[7] * dpos.x + pd[8] * dpos.y + pd[9] * dpos.z,
                                     pd[10] * dpos.x + pd[11] * dpos.y + pd[12] * dpos.z,
@@ -312,8 +336,11 @@ __kernel void mpm_g2p(int n, int grid, float dt, float dx, float inv_dx, int4 nl
   const float3 wx = bspline_weights(fx.x), wy = bspline_weights(fx.y), wz = bspline_weights(fx.z);
   float3 vel = (float3)(0.f);
   mat3 B = {{0.f, 0.f, 0.f, 0.f, 0.f, 0.f, 0.f, 0.f, 0.f}};
+#pragma unroll
   for (int ox = 0; ox < 3; ++ox)
+#pragma unroll
     for (int oy = 0; oy < 3; ++oy)
+#pragma unroll
       for (int oz = 0; oz < 3; ++oz) {
         const int3 nl = base + (int3)(ox, oy, oz) - nlo.xyz;
         const float4 g = vload4((nl.x * ndim.y + nl.y) * ndim.z + nl.z, grid_v);
