@@ -27,8 +27,12 @@ constexpr uint32_t kKeyFrame = 0x10;  // idx1 dwFlags: AVIIF_KEYFRAME (every JPE
 //     LIST 'movi'
 //       00dc  (one JPEG per frame, padded to an even size)
 //     idx1  (16 bytes a frame: '00dc', key frame, offset from 'movi', size)
-MjpegAviWriter::MjpegAviWriter(const std::string& path, int width, int height, double fps, int jpeg_quality)
-    : path_(path), width_(width), height_(height), quality_(jpeg_quality) {
+MjpegAviWriter::MjpegAviWriter(const std::string& path, int width, int height, double fps, int jpeg_quality,
+                               int64_t max_bytes)
+    : path_(path), width_(width), height_(height), quality_(jpeg_quality), max_bytes_(max_bytes) {
+  if (max_bytes < 1024 || max_bytes > (int64_t{1} << 31))
+    throw std::invalid_argument("video " + path + ": a size limit of " + std::to_string(max_bytes) +
+                                " bytes; give 1 KiB to 2 GiB");
   if (width < 1 || height < 1 || width > 65535 || height > 65535)
     throw std::invalid_argument("video " + path + ": frames of " + std::to_string(width) + "x" +
                                 std::to_string(height) + " pixels; sides must be 1 to 65535");
@@ -163,10 +167,20 @@ void MjpegAviWriter::write_jpeg(const std::vector<unsigned char>& jpeg) {
   if (jpeg.size() < 4 || jpeg[0] != 0xFF || jpeg[1] != 0xD8)
     throw std::invalid_argument("video " + path_ + ": a frame that is not a JPEG image");
   const std::streamoff at = out_.tellp();
-  // RIFF sizes are 32-bit: stop well before 4 GiB (an AVI 1.0 file; players
-  // read the first 1 GiB of one reliably).
-  if (at + static_cast<std::streamoff>(jpeg.size()) + 16 * (index_.size() + 1) + 16 > (std::streamoff{1} << 30))
-    throw std::runtime_error("video " + path_ + ": over 1 GiB; render fewer frames or views into one video");
+  // RIFF sizes are 32-bit, and players read the first 1 GiB of an AVI 1.0
+  // file reliably (the default limit): a longer run keeps its first frames
+  // in the video (the PNGs beside it hold them all) rather than failing
+  // after the work.
+  const int64_t chunk = 8 + static_cast<int64_t>(jpeg.size() + jpeg.size() % 2);
+  const int64_t index = 8 + 16 * static_cast<int64_t>(index_.size() + 1);  // idx1 with this frame
+  if (full_ || static_cast<int64_t>(at) + chunk + index > max_bytes_) {
+    if (!full_)
+      spdlog::warn("video {}: its size limit ({} MiB) reached after {} frames; the later frames are in the PNGs only",
+                   path_, max_bytes_ >> 20, index_.size());
+    full_ = true;
+    ++dropped_;
+    return;
+  }
   fourcc("00dc");
   put32(static_cast<uint32_t>(jpeg.size()));
   out_.write(reinterpret_cast<const char*>(jpeg.data()), static_cast<std::streamsize>(jpeg.size()));

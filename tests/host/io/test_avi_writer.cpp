@@ -135,6 +135,27 @@ TEST(AviWriter, TheRiffSizesAndTheIndexAgree) {
   fs::remove_all(path.parent_path());
 }
 
+TEST(AviWriter, AFullVideoKeepsItsFirstFramesAndStaysReadable) {
+  const fs::path path = scratch("limit.avi");
+  {
+    MjpegAviWriter avi(path.string(), 32, 24, 25, 95, 4096);
+    for (int f = 0; f < 40; ++f) avi.write_rgb(frame(32, 24, f, 40));
+    EXPECT_GT(avi.frames(), 1);
+    EXPECT_EQ(avi.frames() + avi.dropped(), 40);
+    EXPECT_GT(avi.dropped(), 0);
+    avi.close();
+    EXPECT_LE(static_cast<int64_t>(fs::file_size(path)), 4096);
+    cv::VideoCapture video(path.string(), cv::CAP_OPENCV_MJPEG);
+    ASSERT_TRUE(video.isOpened());
+    EXPECT_EQ(video.get(cv::CAP_PROP_FRAME_COUNT), avi.frames());
+    cv::Mat bgr;
+    int read = 0;
+    while (video.read(bgr)) ++read;
+    EXPECT_EQ(read, avi.frames());
+  }
+  fs::remove_all(path.parent_path());
+}
+
 TEST(AviWriter, BadArgumentsAndPathsAreRefusedByName) {
   const fs::path path = scratch("bad.avi");
   auto message = [](auto&& make) {
@@ -148,6 +169,8 @@ TEST(AviWriter, BadArgumentsAndPathsAreRefusedByName) {
   EXPECT_NE(message([&] { MjpegAviWriter(path.string(), 0, 8, 25); }).find("sides must be"), std::string::npos);
   EXPECT_NE(message([&] { MjpegAviWriter(path.string(), 8, 8, 0); }).find("frames a second"), std::string::npos);
   EXPECT_NE(message([&] { MjpegAviWriter(path.string(), 8, 8, NAN); }).find("frames a second"), std::string::npos);
+  EXPECT_NE(message([&] { MjpegAviWriter(path.string(), 8, 8, 25, 0); }).find("quality"), std::string::npos);
+  EXPECT_NE(message([&] { MjpegAviWriter(path.string(), 8, 8, 25, 95, 10); }).find("size limit"), std::string::npos);
   const std::string no_dir = (path.parent_path() / "no_such_dir" / "x.avi").string();
   EXPECT_NE(message([&] { MjpegAviWriter(no_dir, 8, 8, 25); }).find(no_dir), std::string::npos);
   MjpegAviWriter avi(path.string(), 8, 8, 25);
