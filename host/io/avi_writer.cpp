@@ -175,8 +175,10 @@ void MjpegAviWriter::write_jpeg(const std::vector<unsigned char>& jpeg) {
   const int64_t index = 8 + 16 * static_cast<int64_t>(index_.size() + 1);  // idx1 with this frame
   if (full_ || static_cast<int64_t>(at) + chunk + index > max_bytes_) {
     if (!full_)
-      spdlog::warn("video {}: its size limit ({} MiB) reached after {} frames; the later frames are in the PNGs only",
-                   path_, max_bytes_ >> 20, index_.size());
+      spdlog::warn(
+          "video {}: its size limit ({}) reached after {} frames; the later frames are in the PNGs only", path_,
+          max_bytes_ >= (1 << 20) ? std::to_string(max_bytes_ >> 20) + " MiB" : std::to_string(max_bytes_) + " bytes",
+          index_.size());
     full_ = true;
     ++dropped_;
     return;
