@@ -107,7 +107,7 @@ MjpegAviWriter::MjpegAviWriter(const std::string& path, int width, int height, d
   put16(1);   // planes
   put16(24);  // bits a pixel once decoded
   fourcc("MJPG");
-  put32(w * h * 3);
+  put32(static_cast<uint32_t>(std::min<uint64_t>(uint64_t{w} * h * 3, 0xFFFFFFFFu)));  // decoded bytes
   for (int i = 0; i < 4; ++i) put32(0);  // resolution, colours used, important
   fourcc("LIST");
   movi_size_at_ = out_.tellp();
