@@ -6,8 +6,9 @@
 #include <cmath>
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
-#include <opencv2/imgproc.hpp>
 #include <stdexcept>
+
+#include "host/io/image_io.h"
 
 namespace ag2gs {
 
@@ -152,12 +153,8 @@ void MjpegAviWriter::write_rgb(const std::vector<float>& rgb) {
     throw std::invalid_argument("video " + path_ + ": a frame of " + std::to_string(rgb.size()) + " values, not " +
                                 std::to_string(want) + " (" + std::to_string(width_) + "x" + std::to_string(height_) +
                                 "x3)");
-  cv::Mat img(height_, width_, CV_32FC3, const_cast<float*>(rgb.data()));
-  cv::Mat bgr;
-  img.convertTo(bgr, CV_8UC3, 255.0);  // rounds and saturates
-  cv::cvtColor(bgr, bgr, cv::COLOR_RGB2BGR);
-  std::vector<unsigned char> jpeg;
-  if (!cv::imencode(".jpg", bgr, jpeg, {cv::IMWRITE_JPEG_QUALITY, quality_}))
+  std::vector<unsigned char> jpeg;  // the PNG frames' 8 bits, JPEG-encoded
+  if (!cv::imencode(".jpg", rgb_to_bgr8(rgb, width_, height_), jpeg, {cv::IMWRITE_JPEG_QUALITY, quality_}))
     throw std::runtime_error("video " + path_ + ": a frame could not be encoded as JPEG");
   write_jpeg(jpeg);
 }
@@ -173,13 +170,12 @@ void MjpegAviWriter::write_jpeg(const std::vector<unsigned char>& jpeg) {
   // after the work.
   const int64_t chunk = 8 + static_cast<int64_t>(jpeg.size() + jpeg.size() % 2);
   const int64_t index = 8 + 16 * static_cast<int64_t>(index_.size() + 1);  // idx1 with this frame
-  if (full_ || static_cast<int64_t>(at) + chunk + index > max_bytes_) {
-    if (!full_)
+  if (dropped_ > 0 || static_cast<int64_t>(at) + chunk + index > max_bytes_) {
+    if (dropped_ == 0)
       spdlog::warn(
           "video {}: its size limit ({}) reached after {} frames; the later frames are in the PNGs only", path_,
           max_bytes_ >= (1 << 20) ? std::to_string(max_bytes_ >> 20) + " MiB" : std::to_string(max_bytes_) + " bytes",
           index_.size());
-    full_ = true;
     ++dropped_;
     return;
   }

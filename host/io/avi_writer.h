@@ -56,8 +56,8 @@ class MjpegAviWriter {
   std::streamoff suggested_at_[2] = {0, 0};
   uint32_t largest_ = 0;
   std::vector<Entry> index_;
-  bool closed_ = false, full_ = false;
-  int dropped_ = 0;
+  bool closed_ = false;
+  int dropped_ = 0;  // frames left out at the size limit; the file is full once one is
 };
 
 }  // namespace ag2gs

@@ -44,10 +44,7 @@ void write_atomic(const std::string& path, const cv::Mat& img) {
 
 }  // namespace
 
-void write_rgb_png(const std::string& path, const std::vector<float>& rgb, int width, int height) {
-  if (rgb.size() != static_cast<size_t>(width) * height * 3)
-    throw std::invalid_argument(path + ": image buffer size does not match " + std::to_string(width) + "x" +
-                                std::to_string(height) + "x3");
+cv::Mat rgb_to_bgr8(const std::vector<float>& rgb, int width, int height) {
   cv::Mat img(height, width, CV_8UC3);
   for (int y = 0; y < height; ++y)
     for (int x = 0; x < width; ++x) {
@@ -57,7 +54,14 @@ void write_rgb_png(const std::string& path, const std::vector<float>& rgb, int w
       };
       img.at<cv::Vec3b>(y, x) = cv::Vec3b(q(p[2]), q(p[1]), q(p[0]));  // OpenCV is BGR
     }
-  write_atomic(path, img);
+  return img;
+}
+
+void write_rgb_png(const std::string& path, const std::vector<float>& rgb, int width, int height) {
+  if (rgb.size() != static_cast<size_t>(width) * height * 3)
+    throw std::invalid_argument(path + ": image buffer size does not match " + std::to_string(width) + "x" +
+                                std::to_string(height) + "x3");
+  write_atomic(path, rgb_to_bgr8(rgb, width, height));
 }
 
 void write_gray16_png(const std::string& path, const std::vector<float>& v, int width, int height, float scale) {

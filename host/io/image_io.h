@@ -1,11 +1,15 @@
 // Image output: PNGs written atomically (temp file + rename).
 #pragma once
 
+#include <opencv2/core.hpp>
 #include <string>
 #include <vector>
 
 namespace ag2gs {
 
+// [H,W,3] floats in [0,1] -> 8-bit BGR (OpenCV's order): clamped, rounded,
+// non-finite values 0. What write_rgb_png writes and the videos encode.
+cv::Mat rgb_to_bgr8(const std::vector<float>& rgb, int width, int height);
 // [H,W,3] floats in [0,1] -> 8-bit sRGB-as-is PNG (values clamped).
 void write_rgb_png(const std::string& path, const std::vector<float>& rgb, int width, int height);
 // [H,W] floats times `scale`, clamped to [0, 65535] -> 16-bit grey PNG.
