@@ -28,10 +28,34 @@ __kernel void iota(int n, __global uint* out) {  // [n]
 // in any order, so the integer atomics leave the same bits. The depth sort
 // then sorts the keys minus the least over the bits their range spans,
 // skipping the passes of digits that no key changes.
+// VISIBLE_CHUNK > 1 (CPUs): each work-item takes that many Gaussians in a
+// loop, keeping the least and greatest key in registers, and adds them to
+// key_range with two atomics; a work-group's local atomics and barriers
+// cost a CPU more than the flags themselves. 1 (GPUs): one Gaussian per
+// work-item, the work-group's range gathered in local memory first.
+#ifndef VISIBLE_CHUNK
+#define VISIBLE_CHUNK 1
+#endif
 __kernel void visible_flags(int n, __global const uint* tile_counts,  // [N]
                             __global const uint* depth_keys,          // [N]
                             __global uint* flags,                     // [N] 1: on screen
                             __global uint* key_range) {               // [2] least, greatest
+#if VISIBLE_CHUNK > 1
+  const int begin = get_global_id(0) * VISIBLE_CHUNK;
+  const int end = min(n, begin + VISIBLE_CHUNK);
+  uint lo = 0xFFFFFFFFu, hi = 0u;
+  for (int g = begin; g < end; ++g) {
+    const uint on = tile_counts[g] > 0u ? 1u : 0u;
+    flags[g] = on;
+    const uint k = depth_keys[g];
+    lo = on ? min(lo, k) : lo;
+    hi = on ? max(hi, k) : hi;
+  }
+  if (lo <= hi) {
+    atomic_min(key_range, lo);
+    atomic_max(key_range + 1, hi);
+  }
+#else
   __local uint lo, hi;
   const int g = get_global_id(0);
   const int on = g < n && tile_counts[g] > 0u;
@@ -50,6 +74,7 @@ __kernel void visible_flags(int n, __global const uint* tile_counts,  // [N]
     atomic_min(key_range, lo);
     atomic_max(key_range + 1, hi);
   }
+#endif
 }
 
 // The on-screen Gaussians' depth keys (minus the least, key_base) and ids,

@@ -1,5 +1,6 @@
 #include "train/trainer.h"
 
+#include <cstdlib>
 #include <spdlog/spdlog.h>
 #include <unistd.h>
 
@@ -291,10 +292,16 @@ StepStats Trainer::step(bool compute_offset_loss, const std::function<void()>& b
   if (!st.stage2 && growth_.due(st.iteration)) growing_round(st);
   if (!st.stage2 && config_.prune_importance > 0 && st.iteration == config_.effective_prune_importance_at())
     importance_prune(st);
+  if (const char* e = std::getenv("AG2GS_EXTRA_PRUNE"); e && !st.stage2 && st.iteration == std::atoi(e)) importance_prune(st);
   if (!st.stage2 && st.iteration == config_.iterations && config_.final_prune_opacity > 0) final_prune(st);
   if (opacity_reset_due(st.iteration)) reset_opacities(st);
   iteration_ = st.iteration;
   return st;
+}
+
+int Trainer::training_level(int it, bool stage2) const {
+  const bool mask_step = has_masks_ && (it >= config_.effective_mask_from() || stage2);
+  return stage2 || mask_step ? 0 : config_.resolution_level(it);
 }
 
 std::pair<int, int> Trainer::render_and_losses(StepStats& st, bool compute_offset_loss) {
@@ -311,7 +318,7 @@ std::pair<int, int> Trainer::render_and_losses(StepStats& st, bool compute_offse
   const SceneView& view = scene_.views()[st.view];
   std::shared_ptr<const Image> target = scene_.image(st.view);
   const bool mask_step = has_masks_ && (it >= config_.effective_mask_from() || st.stage2);
-  const int level = st.stage2 || mask_step ? 0 : config_.resolution_level(it);
+  const int level = training_level(it, st.stage2);
   st.downscale = 1 << level;
   const Camera camera = level > 0 ? downscaled_camera(view.camera, st.downscale) : view.camera;
 
@@ -494,13 +501,22 @@ void Trainer::remove_anchor_rows(const std::vector<uint8_t>& keep) {
 void Trainer::importance_prune(StepStats& st) {
   model();  // host values current
   expander_.forward(anchors_, gaussians_, active_sh_degree());
+  // The views at this step's resolution (the one the model is being fitted
+  // at; a level-L walk has 4^L times fewer pixels to blend). Each pixel's
+  // weights then cover 4^L full-resolution pixels, the same scale for every
+  // anchor, and the prune takes a share of the total, so the choice is
+  // about the same at a fraction of the cost.
+  const int level = training_level(st.iteration - 1, false);
   RenderSettings settings;
-  settings.lowpass = config_.lowpass_at_level(0);
+  settings.lowpass = config_.lowpass_at_level(level);
   // The weights need no colour: the projection skips the SH terms past the
   // constant one (they change no weight, culling reads every coefficient).
   settings.sh_degree = 0;
   std::vector<Camera> cameras;
-  for (int v : train_views_) cameras.push_back(scene_.views()[v].camera);
+  for (int v : train_views_) {
+    const Camera& c = scene_.views()[v].camera;
+    cameras.push_back(level > 0 ? downscaled_camera(c, 1 << level) : c);
+  }
   // This step's gradients and images are spent (the optimiser has stepped);
   // the sweep needs neither, and the next step allocates them again.
   grads_.release();

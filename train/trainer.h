@@ -212,6 +212,9 @@ class Trainer {
   // non-finite check and the Adam updates (and growth statistics); the
   // growing round; the opacity reset.
   std::pair<int, int> render_and_losses(StepStats& st, bool compute_offset_loss);
+  // The downscale level (a power of two) iteration `it` (0-based) renders
+  // at: the coarse-to-fine level, 0 on mask-loss steps and in stage 2.
+  int training_level(int it, bool stage2) const;
   void update(StepStats& st, int w, int h);
   void growing_round(StepStats& st);
   // After the last stage-1 iteration (TrainConfig::final_prune_opacity).

@@ -17,6 +17,8 @@ namespace {
 
 constexpr int kTile = TILE;
 constexpr int kScanBlock = 1024;
+// Gaussians per work-item of visible_flags in the CPU layout.
+constexpr int kVisibleChunk = 256;
 constexpr int kScanWg = 256;  // the GPU scan's work-group (bin.cl)
 
 size_t ceil_div(size_t a, size_t b) {
@@ -82,12 +84,15 @@ void Renderer::reserve_each(size_t items, std::initializer_list<SizedBuffer> buf
   for (const SizedBuffer& b : buffers) b.buffer->reserve(items * b.bytes_per_item);
 }
 
+int Renderer::visible_chunk() const { return staged_ ? 1 : kVisibleChunk; }
+
 std::map<std::string, std::string> Renderer::bin_defines() const {
   // The one-launch scan takes the sort plan's work-group: few work-items
   // with many values each under a simulator, which pays every barrier work-item
   // by work-item.
   const int one_wg = sort_.plan().kind == RadixSortPlan::Kind::Group ? sort_.plan().work_group : kScanWg;
-  return {{"SCAN_BLOCK", std::to_string(kScanBlock)},
+  return {{"VISIBLE_CHUNK", std::to_string(visible_chunk())},
+          {"SCAN_BLOCK", std::to_string(kScanBlock)},
           {"SCAN_WG", std::to_string(kScanWg)},
           {"SCAN_ONE_WG", std::to_string(one_wg)}};
 }
@@ -210,7 +215,8 @@ void Renderer::bin(const DeviceGaussians& g, const Camera& cam, const RenderSett
         rt_.queue().enqueueWriteBuffer(key_range_.get(), CL_FALSE, 0, sizeof(kKeyRangeStart), kKeyRangeStart));
     cl::Kernel flags = rt_.kernel("bin.cl", "visible_flags", bin_defines());
     set_kernel_args(flags, ni, tile_counts_, depth_keys_, counts_sorted_, key_range_);
-    rt_.launch("bin", flags, cl::NDRange(n), cl::NDRange(64));
+    const size_t chunk = visible_chunk();
+    rt_.launch("bin", flags, cl::NDRange(chunk > 1 ? ceil_div(n, chunk) : n), cl::NDRange(chunk > 1 ? 1 : 64));
     // Read back with the scan's total: the in-order queue has finished this
     // read when the scan's blocking one returns, so the frame waits once (a
     // member, so a read left pending by an error never writes a dead frame).

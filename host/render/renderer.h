@@ -154,8 +154,11 @@ class Renderer {
   Runtime& runtime() { return rt_; }
 
  private:
-  // SCAN_BLOCK for kernels/bin.cl.
+  // The defines of kernels/bin.cl (SCAN_BLOCK, VISIBLE_CHUNK, ...).
   std::map<std::string, std::string> bin_defines() const;
+  // Gaussians per work-item of bin.cl's visible_flags: 1 in the GPU layout
+  // (work-groups of 64), more on CPUs (work-groups of 1, no barriers).
+  int visible_chunk() const;
   // Exclusive scan of n uints of `in` into `out` (bin.cl); returns the total.
   size_t exclusive_scan(DeviceBuffer& in, DeviceBuffer& out, size_t n);
   void upload_plane(DeviceBuffer& buf, const std::vector<float>& host_hwc, int channels, const char* what);

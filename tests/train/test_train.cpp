@@ -22,6 +22,7 @@
 #include "tests/test_util.h"
 #include "train/anchors/anchor_model.h"
 #include "train/anchors/expander.h"
+#include "train/train_common.h"
 #include "train/trainer.h"
 
 namespace fs = std::filesystem;
@@ -202,6 +203,30 @@ TEST(Train, FinalPruneRemovesFadedAnchorsAndKeepsTheRest) {
 // reference in test_render_backward; least_drawing_anchors, checked below)
 // go while together they draw at most the share, the others keep their bits
 // in their order, and training goes on from the rows left.
+// The prune's default iteration: where the round after the last growing
+// round would be; halfway to the end when nothing grows.
+TEST(Train, ImportancePruneTakesThePlaceOfTheRoundAfterTheLast) {
+  TrainConfig cfg;
+  const std::vector<std::pair<int, int>> runs = {{2000, 1400}, {7000, 4700}, {30000, 20100}, {3000, 2100}};
+  for (const auto& [iterations, at] : runs) {
+    cfg.iterations = iterations;
+    EXPECT_EQ(cfg.effective_prune_importance_at(), at) << iterations << " iterations";
+  }
+  cfg.iterations = 2000;
+  cfg.grow_until = 1300;  // the last round at 1300 itself
+  EXPECT_EQ(cfg.effective_prune_importance_at(), 1400);
+  cfg.grow_until = 1999;  // the round after would be past the end
+  EXPECT_EQ(cfg.effective_prune_importance_at(), 2000);
+  cfg.grow_until = 0;
+  cfg.grow_from = 1500;  // no round before the end of growing (1333)
+  EXPECT_EQ(cfg.effective_prune_importance_at(), (1333 + 2000) / 2);
+  cfg.grow_from = 500;
+  cfg.grow_every = 0;  // growing off
+  EXPECT_EQ(cfg.effective_prune_importance_at(), (1333 + 2000) / 2);
+  cfg.prune_importance_at = 123;  // given
+  EXPECT_EQ(cfg.effective_prune_importance_at(), 123);
+}
+
 TEST(Train, ImportancePruneRemovesTheAnchorsThatDrawLeast) {
   SceneOptions so;
   so.resolution = 2;
@@ -213,6 +238,14 @@ TEST(Train, ImportancePruneRemovesTheAnchorsThatDrawLeast) {
   cfg.white_background = true;
   cfg.grow_from = 1000;  // no growing rounds
   cfg.prune_importance_at = 20;
+  // Iterations 1-25 at half the resolution: the prune walks the views at
+  // the size its step renders at.
+  // (The sample has masks; steps with the mask losses render at full
+  // resolution, so they start after the prune.)
+  cfg.downscales = 1;
+  cfg.res_schedule = 25;
+  cfg.mask_from = 25;
+  ASSERT_EQ(cfg.resolution_level(cfg.prune_importance_at - 1), 1);
   Trainer ref_trainer(test::runtime(), *scene, cfg);
   for (int it = 0; it < cfg.prune_importance_at; ++it) ASSERT_FALSE(ref_trainer.step().skipped);
   const AnchorModel ref = ref_trainer.model();
@@ -225,10 +258,10 @@ TEST(Train, ImportancePruneRemovesTheAnchorsThatDrawLeast) {
   Expander(rt).forward(da, dg,
                        std::min(cfg.anchors.sh_degree, (cfg.prune_importance_at - 1) / cfg.effective_sh_interval()));
   std::vector<Camera> cams;
-  for (int v : scene->train_views()) cams.push_back(scene->views()[v].camera);
+  for (int v : scene->train_views()) cams.push_back(downscaled_camera(scene->views()[v].camera, 2));
   Renderer r(rt);
   RenderSettings settings;
-  settings.lowpass = cfg.lowpass_at_level(0);
+  settings.lowpass = cfg.lowpass_at_level(1);
   const std::vector<double> per_child = blend_weight_sums(r, dg, cams, settings);
   const int K = ref.children();
   cfg.prune_importance = 0.02;
