@@ -55,61 +55,57 @@ __kernel void adam_step_visible(ulong n, int row_size,
               bc2_sqrt);
 }
 
-// Prefix variant: each row of row_size values steps only its first `cols`
-// (n = rows * cols work-items). The trainer steps the SH coefficients of
-// the degrees switched on so far; the others have had only zero gradients,
-// so their moments are zero and a full step would leave them as they are.
-__kernel void adam_step_cols(ulong n, int row_size, int cols,
+// Prefix variant: each row of row_size values steps only its first `cols`.
+// The trainer steps the SH coefficients of the degrees switched on so far;
+// the others have had only zero gradients, so their moments are zero and a
+// full step would leave them as they are. A 2-D range: column
+// get_global_id(0) (< cols) of row get_global_id(1) (< rows), both ranges
+// rounded up to the work-group's shape; the work-items of a work-group row
+// read consecutive values (vector loads on CPUs, coalesced on GPUs) with no
+// division to find their row.
+__kernel void adam_step_cols(ulong rows, int row_size, int cols,
                              __global float* param,       // [rows, row_size]
                              __global const float* grad,  // [rows, row_size]
                              __global float* exp_avg,     // [rows, row_size]
                              __global float* exp_avg_sq,  // [rows, row_size]
                              float one_minus_beta1, float beta2, float one_minus_beta2, float eps, float step_size,
                              float bc2_sqrt) {
-  const size_t i = get_global_id(0);
-  if (i >= n) return;
-  // n < 2^32 (checked by the host): a 32-bit division.
-  const uint r = (uint)i / (uint)cols, c = (uint)i - r * (uint)cols;
-  adam_update((size_t)r * row_size + c, param, grad, exp_avg, exp_avg_sq, one_minus_beta1, beta2, one_minus_beta2,
+  const size_t c = get_global_id(0), r = get_global_id(1);
+  if (c >= (size_t)cols || r >= rows) return;
+  adam_update(r * (size_t)row_size + c, param, grad, exp_avg, exp_avg_sq, one_minus_beta1, beta2, one_minus_beta2,
               eps, step_size, bc2_sqrt);
 }
 
+// Whether a float is NaN or Inf by its exponent bits, which do not depend
+// on the compiler's isfinite under relaxed-math options.
+inline int nonfinite(float x) { return (as_uint(x) & 0x7f800000u) == 0x7f800000u; }
+
 #define NONFINITE_CHUNK 16
-// Work-item's share: NONFINITE_CHUNK values of the n = rows * cols counted,
-// value i at row i / cols, column i % cols of rows of row_size. The dense
-// kernel passes cols = row_size = 1, which the compiler folds to v[i].
-inline uint nonfinite_chunk(ulong n, uint row_size, uint cols, __global const float* v) {
+// Adds the number of NaN/Inf values of v to *count. Each work-item checks
+// NONFINITE_CHUNK values, strided by the group size (coalesced on GPUs);
+// integer atomics make the count exact whatever the order.
+__kernel void count_nonfinite(ulong n,
+                              __global const float* v,  // [n]
+                              __global uint* count) {   // [1] accumulated
   const size_t lsize = get_local_size(0);
   const size_t base = get_group_id(0) * lsize * NONFINITE_CHUNK + get_local_id(0);
   uint c = 0;
   for (int k = 0; k < NONFINITE_CHUNK; ++k) {
     const size_t i = base + k * lsize;
     if (i >= n) break;
-    // n < 2^32 where cols < row_size (checked by the host): a 32-bit division.
-    const size_t at = cols == row_size ? i : (size_t)((uint)i / cols) * row_size + (uint)i % cols;
-    if ((as_uint(v[at]) & 0x7f800000u) == 0x7f800000u) ++c;
+    if (nonfinite(v[i])) ++c;
   }
-  return c;
-}
-
-// Adds the number of NaN/Inf values of v to *count. Each work-item checks
-// NONFINITE_CHUNK values, strided by the group size (coalesced on GPUs);
-// integer atomics make the count exact whatever the order. The exponent test
-// does not depend on the compiler's isfinite under relaxed-math options.
-__kernel void count_nonfinite(ulong n,
-                              __global const float* v,  // [n]
-                              __global uint* count) {   // [1] accumulated
-  const uint c = nonfinite_chunk(n, 1, 1, v);
   if (c != 0) atomic_add(count, c);
 }
 
-// The same over the first `cols` values of each row of row_size (n = rows *
-// cols).
-__kernel void count_nonfinite_cols(ulong n, int row_size, int cols,
+// The same over the first `cols` values of each row of row_size, in
+// adam_step_cols' 2-D range: one value per work-item.
+__kernel void count_nonfinite_cols(ulong rows, int row_size, int cols,
                                    __global const float* v,  // [rows, row_size]
                                    __global uint* count) {   // [1] accumulated
-  const uint c = nonfinite_chunk(n, (uint)row_size, (uint)cols, v);
-  if (c != 0) atomic_add(count, c);
+  const size_t c = get_global_id(0), r = get_global_id(1);
+  if (c >= (size_t)cols || r >= rows) return;
+  if (nonfinite(v[r * (size_t)row_size + c])) atomic_inc(count);
 }
 
 // dst row r = src row index[r]; index -1 gives a row of zeros (a new row),

@@ -228,16 +228,25 @@ void Adam::step_cols(AdamGroup& group, DeviceBuffer& param, const DeviceBuffer& 
                                 " columns of a row of " + std::to_string(group.row_size()));
   if (cols == group.row_size()) return step(group, param, grad, lr);
   check_step(group, param, grad, lr);
-  if (group.size() > std::numeric_limits<cl_uint>::max())
-    throw std::invalid_argument("adam: group '" + group.name() + "' has 2^32 or more values; split it");
   const StepCoeffs c = step_coeffs(settings_, group.steps_ + 1, lr);
   ++group.steps_;  // the bias correction counts every step, stepped columns or not
   const size_t n = group.rows() * static_cast<size_t>(cols);
   if (n == 0) return;
   cl::Kernel k = rt_.kernel("adam.cl", "adam_step_cols", kNoDefines);
-  step_args(KernelCall(k).arg("n", static_cast<cl_ulong>(n)).arg("row_size", group.row_size()).arg("cols", cols), param,
-            grad, group, c);
-  rt_.launch("adam", k, cl::NDRange(n), cl::NDRange(wg_));
+  step_args(KernelCall(k)
+                .arg("rows", static_cast<cl_ulong>(group.rows()))
+                .arg("row_size", group.row_size())
+                .arg("cols", cols),
+            param, grad, group, c);
+  launch_cols(k, group.rows(), cols);
+}
+
+void Adam::launch_cols(cl::Kernel& k, size_t rows, int cols) {
+  // Work-groups of 16 columns (or fewer) by as many rows as make wg_.
+  const size_t lx = std::min<size_t>(16, wg_), ly = wg_ / lx;
+  const auto round_up = [](size_t v, size_t m) { return (v + m - 1) / m * m; };
+  rt_.launch("adam", k, cl::NDRange(round_up(static_cast<size_t>(cols), lx), round_up(rows, ly)),
+             cl::NDRange(lx, ly));
 }
 
 void Adam::step_visible(AdamGroup& group, DeviceBuffer& param, const DeviceBuffer& grad, double lr,
@@ -289,17 +298,15 @@ void Adam::accumulate_nonfinite_cols(const DeviceBuffer& buf, size_t rows, int r
     throw std::invalid_argument("count_nonfinite: the buffer holds fewer than " + std::to_string(rows) + " rows");
   if (rows * static_cast<size_t>(row_size) > std::numeric_limits<cl_uint>::max())
     throw std::invalid_argument("count_nonfinite: more than 2^32 values in one buffer");
-  constexpr size_t kChunk = 16;  // NONFINITE_CHUNK in adam.cl
-  const size_t groups = (n + kChunk * wg_ - 1) / (kChunk * wg_);
   cl::Kernel k = rt_.kernel("adam.cl", "count_nonfinite_cols", kNoDefines);
   KernelCall(k)
-      .arg("n", static_cast<cl_ulong>(n))
+      .arg("rows", static_cast<cl_ulong>(rows))
       .arg("row_size", row_size)
       .arg("cols", cols)
       .buffer("v", buf, rows * static_cast<size_t>(row_size) * sizeof(float))
       .buffer("count", counter_, sizeof(cl_uint))
       .done();
-  rt_.launch("adam", k, cl::NDRange(groups * wg_), cl::NDRange(wg_));
+  launch_cols(k, rows, cols);
 }
 
 uint64_t Adam::read_nonfinite() {

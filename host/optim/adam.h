@@ -119,6 +119,10 @@ class Adam {
   int work_group() const { return wg_; }
 
  private:
+  // Launches a kernel of adam.cl's 2-D column range over the first `cols`
+  // columns of `rows` rows (adam_step_cols, count_nonfinite_cols).
+  void launch_cols(cl::Kernel& k, size_t rows, int cols);
+
   Runtime& rt_;
   AdamSettings settings_;
   int wg_ = 64;

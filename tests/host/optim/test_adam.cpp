@@ -223,6 +223,12 @@ TEST(Adam, ColumnPrefixStepsKeepTheBitsOfFullSteps) {
   adam.clear_nonfinite();
   adam.accumulate_nonfinite_cols(grad, rows, row_size, row_size);
   EXPECT_EQ(adam.read_nonfinite(), 2u);
+  // Every value of a 9-column prefix (the last rows and columns of the
+  // rounded-up range included) is counted once.
+  grad.upload(std::vector<float>(rows * row_size, std::numeric_limits<float>::quiet_NaN()));
+  adam.clear_nonfinite();
+  adam.accumulate_nonfinite_cols(grad, rows, row_size, 9);
+  EXPECT_EQ(adam.read_nonfinite(), rows * 9);
   EXPECT_THROW(adam.step_cols(cols, p_cols, grad, 1e-2, 46), std::invalid_argument);
   EXPECT_THROW(adam.step_cols(cols, p_cols, grad, 1e-2, -1), std::invalid_argument);
 }
