@@ -4,7 +4,8 @@
 //   1. sort them by depth (stable radix sort of float bits, ties by index;
 //      only the bits in which the on-screen keys differ)
 //   2. exclusive scan of tiles-per-Gaussian in that order -> offsets
-//   3. emit one intersection per (Gaussian, tile), Gaussians in depth order
+//   3. emit one intersection per (Gaussian, tile) at the slots the scan gave
+//      each Gaussian (isect_starts, then emit_isects in index order)
 //   4. stable radix sort of the intersections by tile id -> per tile, depth order
 //   5. per-tile [start, end) ranges
 // The sorts (1 and 4) are radix_sort.cl's. Step 0 changes no order: a
@@ -197,32 +198,43 @@ __kernel void scan_add(int n, __global uint* out, __global const uint* block_sum
 }
 
 // ---------------------------------------------------------------- emit
+// Each on-screen Gaussian's first intersection slot: the exclusive scan of
+// the tile counts in depth order, scattered back to the Gaussians' ids.
+__kernel void isect_starts(int n,
+                           __global const uint* order,    // [V] depth order
+                           __global const uint* offsets,  // [V] exclusive scan in depth order
+                           __global uint* isect_start) {  // [N] first slot of each Gaussian on screen
+  const int s = get_global_id(0);
+  if (s < n) isect_start[order[s]] = offsets[s];
+}
+
+// One intersection per (Gaussian, tile it reaches) from slot isect_start[g]
+// on. The Gaussians are taken in index order, so their rects and records
+// are read in the order they lie in memory (in depth order every Gaussian
+// was a cache miss); the slots, and so every list, are those of the depth
+// order.
 __kernel void emit_isects(int n,
-                          __global const uint* order,    // [N] depth order
-                          __global const int4* rects,    // [N]
-                          __global const float* records, // [N,REC_SIZE] of project_fwd
-                          __global const uint* offsets,  // [N] exclusive scan in depth order
-                          __global const uint* counts_sorted,  // [N]
+                          __global const uint* tile_counts,  // [N] 0: off screen
+                          __global const int4* rects,        // [N]
+                          __global const float* records,     // [N,REC_SIZE] of project_fwd
+                          __global const uint* isect_start,  // [N] isect_starts
                           int tiles_x,
-                          __global uint* tile_keys,      // [M] tile id per intersection
-                          __global uint* isect_vals,     // [M] identity: the intersection's slot
-                          __global uint* isect_gid,      // [M] Gaussian id
-                          __global uint* isect_start) {  // [N] first slot of each Gaussian
-  int s = get_global_id(0);
-  if (s >= n || counts_sorted[s] == 0) return;
-  uint g = order[s];
-  int4 r = rects[g];
-  uint e = offsets[s];
-  isect_start[g] = e;
+                          __global uint* tile_keys,          // [M] tile id per intersection
+                          __global uint* isect_vals,         // [M] identity: the intersection's slot
+                          __global uint* isect_gid) {        // [M] Gaussian id
+  const int g = get_global_id(0);
+  if (g >= n || tile_counts[g] == 0u) return;
+  const int4 r = rects[g];
+  uint e = isect_start[g];
   // The tiles project_fwd counted: the same test on the same floats.
   __global const float* q = records + (size_t)g * REC_SIZE;
-  float k = fmax(2.f * q[REC_THR], 0.f);
+  const float k = fmax(2.f * q[REC_THR], 0.f);
   for (int ty = r.y; ty <= r.w; ++ty)
     for (int tx = r.x; tx <= r.z; ++tx) {
       if (!tile_touched(q[REC_U], q[REC_V], q[REC_CA], q[REC_CB], q[REC_CC], k, tx, ty)) continue;
       tile_keys[e] = (uint)(ty * tiles_x + tx);
       isect_vals[e] = e;
-      isect_gid[e] = g;
+      isect_gid[e] = (uint)g;
       ++e;
     }
 }

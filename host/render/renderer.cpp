@@ -256,22 +256,23 @@ void Renderer::bin(const DeviceGaussians& g, const Camera& cam, const RenderSett
   sorted_tile_keys_ = &tile_keys_;
   sorted_isect_vals_ = &isect_vals_;
   if (M > 0) {
+    cl::Kernel starts = rt_.kernel("bin.cl", "isect_starts", bin_defines());
+    set_kernel_args(starts, static_cast<int>(visible_), *sorted_order_, offsets_, isect_start_);
+    rt_.launch("bin", starts, cl::NDRange(visible_), cl::NDRange(64));
     cl::Kernel emit = rt_.kernel("bin.cl", "emit_isects", bin_defines());
     const size_t f4 = sizeof(float);
     KernelCall(emit)
-        .arg("n", static_cast<int>(visible_))
-        .buffer("order", *sorted_order_, visible_ * 4)
+        .arg("n", ni)
+        .buffer("tile_counts", tile_counts_, n * 4)
         .buffer("rects", rects_, n * 4 * f4)
         .buffer("records", records_, n * REC_SIZE * f4)
-        .buffer("offsets", offsets_, visible_ * 4)
-        .buffer("counts_sorted", counts_sorted_, visible_ * 4)
+        .buffer("isect_start", isect_start_, n * 4)
         .arg("tiles_x", tiles_x_)
         .buffer("tile_keys", tile_keys_, M * 4)
         .buffer("isect_vals", isect_vals_, M * 4)
         .buffer("isect_gid", isect_gid_, M * 4)
-        .buffer("isect_start", isect_start_, n * 4)
         .done();
-    rt_.launch("bin", emit, cl::NDRange(visible_), cl::NDRange(64));
+    rt_.launch("bin", emit, cl::NDRange(n), cl::NDRange(64));
     int bits = 1;
     while ((1 << bits) < ntiles) ++bits;
     DeviceBuffer *keys = &tile_keys_, *vals = &isect_vals_, *ktmp = &tile_keys_tmp_, *vtmp = &isect_vals_tmp_;
