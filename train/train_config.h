@@ -135,11 +135,10 @@ struct TrainConfig : GaussianRates {
   // round draw almost nothing; the default preset sets 0.02, the recycling
   // threshold); 0 = off.
   double final_prune_opacity = 0;
-  // Once, at iteration prune_importance_at (0 = where the growing round
-  // after the last one would be; without growing rounds, halfway between
-  // the end of growing and the last stage-1 iteration): each anchor's
-  // children's blending weights are summed over every pixel of the training
-  // views at that step's resolution (host/render/importance.h), and the anchors that draw least are removed
+  // Once, at iteration prune_importance_at (0 = halfway between the end of
+  // growing and the last stage-1 iteration): each anchor's children's
+  // blending weights are summed over every pixel of the training views at
+  // that step's resolution (host/render/importance.h), and the anchors that draw least are removed
   // while together they draw at most this share of the total
   // (least_drawing_anchors). 0 = off (the published rule; the program's
   // default preset sets 0.01).

@@ -274,8 +274,7 @@ void add_growth_and_stage2_settings(Rows& add) {
       .presets(0.01, kKeep);
   add(field<int>([](TrainConfig& c) -> int& { return c.prune_importance_at; }), "prune_importance_at",
       "--prune-importance-at",
-      "The iteration of the importance prune (default 0: where the growing round after the last would be, e.g. 1400 of "
-      "2000; halfway between the end of growing and --iters when nothing grows)")
+      "The iteration of the importance prune (default 0: halfway between the end of growing and --iters)")
       .range(0, std::numeric_limits<int>::max())
       .before(0)
       .effective([](const TrainConfig& c) { return c.effective_prune_importance_at(); });

@@ -1,6 +1,5 @@
 #include "train/trainer.h"
 
-#include <cstdlib>
 #include <spdlog/spdlog.h>
 #include <unistd.h>
 
@@ -292,7 +291,6 @@ StepStats Trainer::step(bool compute_offset_loss, const std::function<void()>& b
   if (!st.stage2 && growth_.due(st.iteration)) growing_round(st);
   if (!st.stage2 && config_.prune_importance > 0 && st.iteration == config_.effective_prune_importance_at())
     importance_prune(st);
-  if (const char* e = std::getenv("AG2GS_EXTRA_PRUNE"); e && !st.stage2 && st.iteration == std::atoi(e)) importance_prune(st);
   if (!st.stage2 && st.iteration == config_.iterations && config_.final_prune_opacity > 0) final_prune(st);
   if (opacity_reset_due(st.iteration)) reset_opacities(st);
   iteration_ = st.iteration;

@@ -203,30 +203,6 @@ TEST(Train, FinalPruneRemovesFadedAnchorsAndKeepsTheRest) {
 // reference in test_render_backward; least_drawing_anchors, checked below)
 // go while together they draw at most the share, the others keep their bits
 // in their order, and training goes on from the rows left.
-// The prune's default iteration: where the round after the last growing
-// round would be; halfway to the end when nothing grows.
-TEST(Train, ImportancePruneTakesThePlaceOfTheRoundAfterTheLast) {
-  TrainConfig cfg;
-  const std::vector<std::pair<int, int>> runs = {{2000, 1400}, {7000, 4700}, {30000, 20100}, {3000, 2100}};
-  for (const auto& [iterations, at] : runs) {
-    cfg.iterations = iterations;
-    EXPECT_EQ(cfg.effective_prune_importance_at(), at) << iterations << " iterations";
-  }
-  cfg.iterations = 2000;
-  cfg.grow_until = 1300;  // the last round at 1300 itself
-  EXPECT_EQ(cfg.effective_prune_importance_at(), 1400);
-  cfg.grow_until = 1999;  // the round after would be past the end
-  EXPECT_EQ(cfg.effective_prune_importance_at(), 2000);
-  cfg.grow_until = 0;
-  cfg.grow_from = 1500;  // no round before the end of growing (1333)
-  EXPECT_EQ(cfg.effective_prune_importance_at(), (1333 + 2000) / 2);
-  cfg.grow_from = 500;
-  cfg.grow_every = 0;  // growing off
-  EXPECT_EQ(cfg.effective_prune_importance_at(), (1333 + 2000) / 2);
-  cfg.prune_importance_at = 123;  // given
-  EXPECT_EQ(cfg.effective_prune_importance_at(), 123);
-}
-
 TEST(Train, ImportancePruneRemovesTheAnchorsThatDrawLeast) {
   SceneOptions so;
   so.resolution = 2;
