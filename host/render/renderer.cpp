@@ -84,7 +84,9 @@ void Renderer::reserve_each(size_t items, std::initializer_list<SizedBuffer> buf
   for (const SizedBuffer& b : buffers) b.buffer->reserve(items * b.bytes_per_item);
 }
 
-int Renderer::visible_chunk() const { return staged_ ? 1 : kVisibleChunk; }
+int Renderer::visible_chunk() const {
+  return staged_ ? 1 : kVisibleChunk;
+}
 
 std::map<std::string, std::string> Renderer::bin_defines() const {
   // The one-launch scan takes the sort plan's work-group: few work-items
