@@ -242,10 +242,10 @@ void Adam::step_cols(AdamGroup& group, DeviceBuffer& param, const DeviceBuffer& 
 }
 
 void Adam::launch_cols(cl::Kernel& k, size_t rows, int cols) {
-  // Work-groups of 16 columns (or fewer) by as many rows as make wg_.
+  // Work-groups of 16 columns (or fewer) by as many rows as make wg_; the
+  // runtime rounds the range up to whole work-groups.
   const size_t lx = std::min<size_t>(16, wg_), ly = wg_ / lx;
-  const auto round_up = [](size_t v, size_t m) { return (v + m - 1) / m * m; };
-  rt_.launch("adam", k, cl::NDRange(round_up(static_cast<size_t>(cols), lx), round_up(rows, ly)), cl::NDRange(lx, ly));
+  rt_.launch("adam", k, cl::NDRange(static_cast<size_t>(cols), rows), cl::NDRange(lx, ly));
 }
 
 void Adam::step_visible(AdamGroup& group, DeviceBuffer& param, const DeviceBuffer& grad, double lr,
